@@ -1,0 +1,37 @@
+# Two commands for a newcomer: `make demo` and `make test`. Both create .venv when missing.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+.PHONY: demo test test-fast lint typecheck bench-replay pose-basis clean
+
+$(STAMP): pyproject.toml
+	test -d $(VENV) || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e '.[dev]'
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/hoi-refine demo
+
+test: $(STAMP)
+	$(BIN)/ruff check common worker service migrations tests bench
+	$(BIN)/mypy
+	$(BIN)/python -m pytest
+
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -m "not slow"
+
+lint: $(STAMP)
+	$(BIN)/ruff check common worker service migrations tests bench
+	$(BIN)/mypy
+
+bench-replay: $(STAMP)
+	$(BIN)/python bench/replay.py
+
+pose-basis: $(STAMP)
+	$(BIN)/python -m worker.pose_basis_build
+
+clean:
+	rm -rf $(VENV) var .pytest_cache .mypy_cache .ruff_cache

@@ -1,0 +1,56 @@
+"""Settings from ``HOI_REFINE_*`` environment variables (pydantic-settings).
+
+``get_settings()`` is cached so every module sees one object; tests call ``get_settings.cache_clear()``
+after changing the environment.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="HOI_REFINE_", extra="ignore")
+
+    # --- storage -------------------------------------------------------------------------------
+    #: SQLAlchemy URL. Unset: a SQLite file under ``var_dir``. PostgreSQL: ``postgresql+psycopg://...``.
+    database_url: str | None = None
+    #: Working directory for the SQLite file, caches and local results.
+    var_dir: Path = Path("var")
+    #: Convex-decomposition cache (content-hashed); defaults to ``var_dir/cache``.
+    cache_dir: Path | None = None
+
+    # --- data ----------------------------------------------------------------------------------
+    #: Folder with YCB meshes + objects.json for DexYCB-style NPZ files that name their object.
+    ycb_dir: Path | None = None
+    #: Folder with MANO_RIGHT.pkl / MANO_LEFT.pkl (optional; licensed, never shipped).
+    mano_dir: Path | None = None
+    #: Sequences longer than this are rejected at validation.
+    max_frames: int = Field(default=3000, gt=0)
+
+    # --- service -------------------------------------------------------------------------------
+    max_request_bytes: int = Field(default=64 * 1024 * 1024, gt=0)
+    max_active_jobs_per_key: int = Field(default=100, gt=0)
+    #: Seconds a worker's lease lasts without a heartbeat.
+    lease_seconds: float = Field(default=30.0, gt=0)
+    #: Attempts before a job whose leases keep expiring is FAILED.
+    max_attempts: int = Field(default=3, gt=0)
+    #: Base of the exponential backoff before a requeued job may be claimed again.
+    retry_backoff_seconds: float = Field(default=2.0, ge=0)
+
+    def resolved_cache_dir(self) -> Path:
+        return self.cache_dir if self.cache_dir is not None else self.var_dir / "cache"
+
+    def resolved_database_url(self) -> str:
+        if self.database_url:
+            return self.database_url
+        return f"sqlite:///{(self.var_dir / 'hoi-refine.sqlite3').resolve()}"
+
+
+@lru_cache(maxsize=1)
+def get_settings() -> Settings:
+    return Settings()

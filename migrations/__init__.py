@@ -1,0 +1,1 @@
+"""hoi-refine migrations package."""

@@ -1,0 +1,1 @@
+"""hoi-refine service package."""
