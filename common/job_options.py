@@ -1,0 +1,42 @@
+"""Options of one refinement job: the contract between the API, the bulk tool, the CLI and the worker.
+
+Everything here is optional; ``None`` means "the refinement's documented default" (see ``worker.refine``).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+#: Loss terms of DESIGN §1.5; each weight may be set (0 disables the term, for ablations).
+LossName = Literal[
+    "object_pose",
+    "object_velocity",
+    "hand_joints",
+    "fingertip_contact",
+    "control_consistency",
+    "hand_velocity",
+]
+LOSS_NAMES: tuple[str, ...] = LossName.__args__  # type: ignore[attr-defined]
+
+
+class JobOptions(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    seed: int = Field(default=0, ge=0, le=2**31 - 1, description="CMA-ES seed; same input+options+seed => same bytes")
+    keyframe_interval: int | None = Field(
+        default=None, ge=1, le=240, description="Frames between control keyframes; default round(fps / 6)"
+    )
+    max_generations: int | None = Field(default=None, ge=1, le=1000, description="CMA-ES generations per window")
+    popsize: int | None = Field(default=None, ge=2, le=256, description="CMA-ES population size")
+    loss_weights: dict[LossName, float] = Field(
+        default_factory=dict, description="Overrides of the default loss weights (each >= 0)"
+    )
+    free_wrist_translation: bool = Field(default=False, description="Also optimise a 3-D wrist translation offset")
+    priority: int = Field(default=0, ge=-100, le=100, description="Higher runs first (queue only)")
+
+    def model_post_init(self, __context: object) -> None:
+        for name, weight in self.loss_weights.items():
+            if not weight >= 0:  # also rejects NaN
+                raise ValueError(f"loss_weights.{name} must be >= 0, got {weight}")
