@@ -1,0 +1,151 @@
+"""Database models: jobs, their inputs and results, the append-only event log, and API keys (DESIGN §2).
+
+The schema changes only through an Alembic migration (``migrations/versions``); ``alembic check`` in
+``tests/migration`` proves these models and the migrations agree. Queue queries live in ``common.queue``
+only; other modules read these classes for their column names, never to write SQL.
+
+Times are timezone-aware UTC in Python. SQLite has no time zone type, so ``UTCDateTime`` stores naive UTC
+there and re-attaches UTC on the way out; comparisons in SQL stay correct because every value is UTC.
+"""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import Any
+
+import sqlalchemy as sa
+from sqlalchemy.engine import Dialect
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
+from sqlalchemy.types import TypeDecorator
+
+#: Job states (DESIGN §2): QUEUED -> RUNNING -> SUCCEEDED | FAILED | CANCELLED.
+JOB_STATES: tuple[str, ...] = ("QUEUED", "RUNNING", "SUCCEEDED", "FAILED", "CANCELLED")
+TERMINAL_STATES: frozenset[str] = frozenset({"SUCCEEDED", "FAILED", "CANCELLED"})
+ACTIVE_STATES: frozenset[str] = frozenset({"QUEUED", "RUNNING"})
+
+NAMING_CONVENTION = {
+    "ix": "ix_%(column_0_label)s",
+    "uq": "uq_%(table_name)s_%(column_0_name)s",
+    "ck": "ck_%(table_name)s_%(constraint_name)s",
+    "fk": "fk_%(table_name)s_%(column_0_name)s_%(referred_table_name)s",
+    "pk": "pk_%(table_name)s",
+}
+
+
+class UTCDateTime(TypeDecorator[datetime]):
+    """Aware UTC datetimes on every backend (naive UTC inside SQLite)."""
+
+    impl = sa.DateTime(timezone=True)
+    cache_ok = True
+
+    def process_bind_param(self, value: datetime | None, dialect: Dialect) -> datetime | None:
+        if value is None:
+            return None
+        if value.tzinfo is None:
+            raise ValueError("UTCDateTime needs an aware datetime")
+        value = value.astimezone(UTC)
+        return value.replace(tzinfo=None) if dialect.name == "sqlite" else value
+
+    def process_result_value(self, value: datetime | None, dialect: Dialect) -> datetime | None:
+        if value is None:
+            return None
+        return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
+
+
+def utcnow() -> datetime:
+    return datetime.now(UTC)
+
+
+class Base(DeclarativeBase):
+    metadata = sa.MetaData(naming_convention=NAMING_CONVENTION)
+    type_annotation_map = {datetime: UTCDateTime, dict[str, Any]: sa.JSON, list[Any]: sa.JSON}
+
+
+class ApiKey(Base):
+    """A client's bearer key; only its SHA-256 is stored (the plaintext is shown once at creation)."""
+
+    __tablename__ = "api_keys"
+
+    id: Mapped[str] = mapped_column(sa.String(32), primary_key=True)
+    name: Mapped[str] = mapped_column(sa.String(200))
+    key_hash: Mapped[str] = mapped_column(sa.String(64), unique=True)
+    #: First characters of the key, so an operator can tell keys apart in ``keys list``.
+    prefix: Mapped[str] = mapped_column(sa.String(16))
+    created_at: Mapped[datetime]
+    revoked_at: Mapped[datetime | None]
+
+
+class Job(Base):
+    __tablename__ = "jobs"
+    __table_args__ = (
+        sa.CheckConstraint(f"state IN ({', '.join(repr(s) for s in JOB_STATES)})", name="state"),
+        sa.UniqueConstraint("owner_key_id", "idempotency_key", name="uq_jobs_owner_idempotency"),
+        # claim: the oldest, highest-priority QUEUED job.
+        sa.Index("ix_jobs_claim", "state", "priority", "created_at"),
+        # listing: keyset pagination per owner, newest first.
+        sa.Index("ix_jobs_owner_created", "owner_key_id", "created_at", "id"),
+        sa.Index("ix_jobs_lease", "state", "lease_expires_at"),
+    )
+
+    id: Mapped[str] = mapped_column(sa.String(32), primary_key=True)
+    owner_key_id: Mapped[str] = mapped_column(sa.String(32), sa.ForeignKey("api_keys.id"))
+    name: Mapped[str] = mapped_column(sa.String(200))
+    state: Mapped[str] = mapped_column(sa.String(16))
+    priority: Mapped[int] = mapped_column(sa.Integer, default=0)
+    #: 1 on the first run; +1 each time an expired lease or a retryable failure requeues the job.
+    attempt: Mapped[int] = mapped_column(sa.Integer, default=1)
+    idempotency_key: Mapped[str | None] = mapped_column(sa.String(200))
+    #: SHA-256 over the sequence bytes and the canonical options JSON (Idempotency-Key comparison).
+    payload_hash: Mapped[str] = mapped_column(sa.String(64))
+    options: Mapped[dict[str, Any]]
+    num_frames: Mapped[int] = mapped_column(sa.Integer)
+    cancel_requested: Mapped[bool] = mapped_column(sa.Boolean, default=False)
+    worker_id: Mapped[str | None] = mapped_column(sa.String(200))
+    lease_token: Mapped[str | None] = mapped_column(sa.String(32))
+    lease_expires_at: Mapped[datetime | None]
+    #: Requeue backoff: claim ignores the job before this time.
+    not_before: Mapped[datetime | None]
+    progress: Mapped[dict[str, Any] | None]
+    #: Error history, one entry per failed attempt: {attempt, at, error}.
+    errors: Mapped[list[Any]]
+    created_at: Mapped[datetime]
+    #: When the job last entered QUEUED (queue-wait metric).
+    queued_at: Mapped[datetime]
+    started_at: Mapped[datetime | None]
+    finished_at: Mapped[datetime | None]
+    updated_at: Mapped[datetime]
+
+
+class JobInput(Base):
+    """The submitted sequence as native NPZ bytes (already zlib-compressed by ``np.savez_compressed``)."""
+
+    __tablename__ = "job_inputs"
+
+    job_id: Mapped[str] = mapped_column(sa.String(32), sa.ForeignKey("jobs.id", ondelete="CASCADE"), primary_key=True)
+    payload: Mapped[bytes] = mapped_column(sa.LargeBinary)
+    size_bytes: Mapped[int] = mapped_column(sa.Integer)
+
+
+class JobResult(Base):
+    """The result NPZ (compressed, ``common.result_format``) with its summary JSON beside it."""
+
+    __tablename__ = "job_results"
+
+    job_id: Mapped[str] = mapped_column(sa.String(32), sa.ForeignKey("jobs.id", ondelete="CASCADE"), primary_key=True)
+    result: Mapped[bytes] = mapped_column(sa.LargeBinary)
+    size_bytes: Mapped[int] = mapped_column(sa.Integer)
+    summary: Mapped[dict[str, Any]]
+    created_at: Mapped[datetime]
+
+
+class JobEvent(Base):
+    """Append-only log of state changes. No foreign key: a deleted job's history stays readable."""
+
+    __tablename__ = "job_events"
+    __table_args__ = (sa.Index("ix_job_events_job", "job_id", "id"),)
+
+    id: Mapped[int] = mapped_column(sa.BigInteger().with_variant(sa.Integer, "sqlite"), primary_key=True)
+    job_id: Mapped[str] = mapped_column(sa.String(32))
+    at: Mapped[datetime]
+    kind: Mapped[str] = mapped_column(sa.String(32))
+    detail: Mapped[dict[str, Any]]
