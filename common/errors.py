@@ -132,3 +132,12 @@ class ResultMismatchError(HoiRefineError):
     """``verify`` re-simulated a result and the object trajectory differs."""
 
     title = "Result does not reproduce"
+
+
+class ApiError(HoiRefineError):
+    """The hoi-refine service answered a client request with an error it will not recover from by retrying."""
+
+    def __init__(self, message: str, status: int | None = None, problem: dict[str, object] | None = None) -> None:
+        super().__init__(message)
+        self.status = status
+        self.problem = dict(problem or {})
