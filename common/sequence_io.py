@@ -362,10 +362,17 @@ def sequence_from_json_dict(
 
 
 def load_sequence(path: Path | str, max_frames: int | None = None) -> Sequence:
-    """Read a sequence file, choosing the format by suffix (``.npz`` or ``.json``)."""
+    """Read a sequence file, choosing the format by suffix (``.npz`` or ``.json``), or a DexYCB sequence folder."""
     path = Path(path)
+    if path.is_dir() or path.name == "meta.yml":
+        # DexYCB native layout: <root>/<subject>/<sequence>/{meta.yml,pose.npz}
+        from common.dexycb_native import is_dexycb_sequence_dir, load_dexycb_native
+
+        seq_dir = path if path.is_dir() else path.parent
+        if is_dexycb_sequence_dir(seq_dir):
+            return load_dexycb_native(seq_dir, max_frames=max_frames)
     if not path.is_file():
-        raise UnsupportedFormatError(f"{path} is not a file")
+        raise UnsupportedFormatError(f"{path} is not a file (nor a DexYCB sequence folder with meta.yml + pose.npz)")
     suffix = path.suffix.lower()
     if suffix == ".npz":
         seq = sequence_from_npz_bytes(path.read_bytes(), max_frames=max_frames, source_path=path)
