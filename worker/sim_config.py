@@ -1,0 +1,56 @@
+"""Simulation settings (DESIGN §1.4, the paper's values as defaults); re-exported by ``worker.scene``."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+#: contype / conaffinity bits: the hand collides with the object only, the object with hand and table.
+HAND_BIT, OBJECT_BIT, TABLE_BIT = 1, 2, 4
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Every physics setting of a scene. Defaults are DESIGN §1.4; the rest are documented choices."""
+
+    timestep: float = 1.0 / 240.0
+    integrator: str = "implicitfast"
+    solver: str = "Newton"
+    iterations: int = 10
+    noslip_iterations: int = 10
+    cone: str = "pyramidal"
+    contact_solimp: tuple[float, float, float] = (0.9, 0.99, 0.001)
+    contact_solref: tuple[float, float] = (0.003, 1.0)
+    weld_solimp: tuple[float, float, float] = (0.8, 0.95, 0.01)
+    weld_solref: tuple[float, float] = (0.01, 1.0)
+    #: Finger position servos (N·m/rad, N·m·s/rad). With implicitfast the kv term is integrated implicitly, so
+    #: the light finger segments stay stable; the servo behaves like a first-order lag of kv/kp = 60 ms.
+    finger_kp: float = 50.0
+    finger_kv: float = 3.0
+    #: Hinge armature (kg·m²) and passive damping; small, they only regularise the light segments.
+    hinge_armature: float = 1e-4
+    hinge_damping: float = 0.0
+    #: Hand tissue density (kg/m³) -> segment masses from the capsule volumes.
+    hand_density: float = 1100.0
+    #: Cancel gravity on the hand (the wrist is kinematic; finger weight would only bias the servos).
+    hand_gravcomp: bool = True
+    #: Sliding, torsional, rolling friction of hand-object contacts (condim 4 uses the first two).
+    hand_friction: tuple[float, float, float] = (1.0, 0.005, 0.0001)
+    hand_condim: int = 4
+    #: Object friction when the sequence gives none; table friction.
+    object_friction: float = 1.0
+    table_friction: float = 0.8
+    object_condim: int = 4
+    #: Seconds the hand holds its frame-0 pose (fingers settle, object comes to rest) before frame 0 is recorded.
+    settle_seconds: float = 0.1
+    #: A frame-0 object whose lowest point is within this distance of the table is placed exactly on it.
+    snap_to_table_m: float = 0.015
+
+    def substeps_per_frame(self, fps: float) -> int:
+        """Physics steps per video frame (8 at 30 fps with the 1/240 s timestep)."""
+        if fps <= 0:
+            raise ValueError(f"fps must be positive, got {fps}")
+        return max(1, round(1.0 / (fps * self.timestep)))
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
