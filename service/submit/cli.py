@@ -1,0 +1,120 @@
+"""``hoi-refine submit PATH... --api URL --key KEY [--format ...] [--concurrency N] [--wait] [--out DIR]``.
+
+Job options use the same flags as the local refine command (``--seed``, ``--keyframe-interval``,
+``--max-generations``, ``--popsize``, ``--weights name=value,...``, ``--priority``). ``--api`` and ``--key``
+default to ``HOI_REFINE_API_URL`` / ``HOI_REFINE_API_KEY`` so a key need not appear in the shell history.
+Heavy imports stay inside the handler so ``hoi-refine --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+from typing import Any
+
+from common.errors import ConfigurationError, InputError
+from common.job_options import LOSS_NAMES, JobOptions
+
+DEFAULT_OUT = Path("hoi-refine-submit")
+
+
+def parse_weights(text: str) -> dict[str, float]:
+    """``name=value,...`` -> loss weights; names from ``common.job_options.LOSS_NAMES``."""
+    weights: dict[str, float] = {}
+    for item in filter(None, (part.strip() for part in text.split(","))):
+        name, sep, value = item.partition("=")
+        name = name.strip()
+        if not sep or name not in LOSS_NAMES:
+            raise argparse.ArgumentTypeError(
+                f"--weights wants name=value pairs with names from {', '.join(LOSS_NAMES)}; got {item!r}"
+            )
+        try:
+            weights[name] = float(value)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"--weights: {name} needs a number, got {value!r}") from None
+    return weights
+
+
+def add_job_option_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("job options (see common.job_options.JobOptions)")
+    g.add_argument("--seed", type=int, default=0, help="CMA-ES seed (default 0)")
+    g.add_argument("--keyframe-interval", type=int, default=None, help="frames between keyframes (default fps/6)")
+    g.add_argument("--max-generations", type=int, default=None, help="CMA-ES generations per window")
+    g.add_argument("--popsize", type=int, default=None, help="CMA-ES population size")
+    g.add_argument("--weights", type=parse_weights, default={}, help="loss weights, e.g. object_pose=2,hand_joints=0.5")
+    g.add_argument("--free-wrist-translation", action="store_true", help="also optimise a wrist translation offset")
+    g.add_argument("--priority", type=int, default=0, help="queue priority, -100..100 (higher runs first)")
+
+
+def job_options_from_args(args: argparse.Namespace) -> JobOptions:
+    from pydantic import ValidationError
+
+    try:
+        return JobOptions(
+            seed=args.seed,
+            keyframe_interval=args.keyframe_interval,
+            max_generations=args.max_generations,
+            popsize=args.popsize,
+            loss_weights=args.weights,
+            free_wrist_translation=args.free_wrist_translation,
+            priority=args.priority,
+        )
+    except ValidationError as exc:
+        problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'options'}: {e['msg']}" for e in exc.errors())
+        raise InputError(f"invalid job options: {problems}") from None
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def register(subparsers: Any) -> None:
+    p = subparsers.add_parser(
+        "submit",
+        help="submit a whole dataset (files, folders, a DexYCB root) to a hoi-refine service",
+        description=(
+            "Find the sequences under PATH... (native .npz/.json files, DexYCB development NPZs, folders searched "
+            "recursively, DexYCB release roots), validate each locally, and submit it with an Idempotency-Key "
+            "derived from its content and the options. Progress is kept in OUT/manifest.json: after a crash or "
+            "Ctrl-C, run the same command again to resume without submitting anything twice. With --wait, "
+            "results and contacts are downloaded into OUT/results/. Exit status: 0 all done, 1 some failed, "
+            "130 interrupted."
+        ),
+    )
+    p.add_argument("paths", nargs="+", type=Path, metavar="PATH", help="sequence files or folders")
+    p.add_argument("--api", default=os.environ.get("HOI_REFINE_API_URL"), help="service URL ($HOI_REFINE_API_URL)")
+    p.add_argument("--key", default=os.environ.get("HOI_REFINE_API_KEY"), help="API key ($HOI_REFINE_API_KEY)")
+    p.add_argument("--format", dest="fmt", choices=("auto", "npz", "json", "dexycb"), default="auto")
+    p.add_argument("--concurrency", type=_positive_int, default=4, help="parallel requests (default 4)")
+    p.add_argument("--wait", action="store_true", help="wait for every job and download results + contacts")
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"manifest + results folder (default {DEFAULT_OUT})")
+    p.add_argument("--poll-interval", type=float, default=2.0, help="longest pause between polls of a job (s)")
+    add_job_option_arguments(p)
+    p.set_defaults(func=_cmd_submit)
+
+
+def _cmd_submit(args: argparse.Namespace) -> int:
+    from common.settings import get_settings
+    from service.submit.runner import SubmitConfig, run_submit
+
+    if not args.api:
+        raise ConfigurationError("no service URL: pass --api URL or set HOI_REFINE_API_URL")
+    if not args.key:
+        raise ConfigurationError("no API key: pass --key KEY or set HOI_REFINE_API_KEY")
+    cfg = SubmitConfig(
+        paths=list(args.paths),
+        api_url=args.api,
+        api_key=args.key,
+        out_dir=args.out,
+        options=job_options_from_args(args),
+        fmt=args.fmt,
+        concurrency=args.concurrency,
+        wait=args.wait,
+        poll_interval_s=max(0.05, args.poll_interval),
+        max_frames=get_settings().max_frames,
+    )
+    return run_submit(cfg).exit_code

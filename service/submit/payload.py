@@ -1,0 +1,86 @@
+"""What one sequence is uploaded as, and the Idempotency-Key derived from it.
+
+The upload is the native NPZ (``common.sequence_io``), re-packed so that the same sequence always gives the
+same bytes: ``np.savez_compressed`` stamps every zip entry with the current time, so two runs a second
+apart would send different bodies under one Idempotency-Key and a server that fingerprints the body would
+call it a reused key. The key itself is computed from the arrays (name, dtype, shape, raw bytes), not from
+the zip container, so it does not depend on zlib's version either.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import zipfile
+from typing import Any
+
+import numpy as np
+
+from common.job_options import JobOptions
+from common.sequence import Sequence
+from common.sequence_io import sequence_from_npz_bytes, sequence_to_npz_bytes
+
+#: Bumped if the key derivation changes (old manifests then resubmit instead of colliding).
+KEY_SCHEME = b"hoi-refine-submit/1"
+#: Zip entries get this timestamp (the earliest a zip can hold) so that the bytes are reproducible.
+_ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)
+#: Meta entries that describe where a file lay on this machine, not what it holds: left out of the upload
+#: so that moving or re-mounting a dataset does not change the key.
+_LOCAL_META = ("source_path",)
+
+
+def options_json(options: JobOptions) -> str:
+    """Canonical JSON of the options: every field (defaults included), sorted keys, no spaces."""
+    return json.dumps(options.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
+
+
+def _npz_arrays(blob: bytes) -> dict[str, np.ndarray]:
+    with np.load(io.BytesIO(blob), allow_pickle=False) as data:
+        return {name: data[name] for name in data.files}
+
+
+def deterministic_npz(arrays: dict[str, Any]) -> bytes:
+    """An NPZ (deflated, entries in name order, fixed timestamps) that ``np.load`` reads like any other."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for name in sorted(arrays):
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=_ZIP_EPOCH)
+            info.compress_type = zipfile.ZIP_DEFLATED
+            info.external_attr = 0o600 << 16
+            with zf.open(info, "w", force_zip64=True) as fid:
+                np.lib.format.write_array(fid, np.asanyarray(arrays[name]), allow_pickle=False)
+    return buf.getvalue()
+
+
+def content_digest(npz_blob: bytes) -> str:
+    """sha256 over the arrays of an NPZ (name, dtype, shape, C-order bytes), independent of the container."""
+    h = hashlib.sha256()
+    for name, arr in sorted(_npz_arrays(npz_blob).items()):
+        a = np.ascontiguousarray(arr)
+        h.update(name.encode())
+        h.update(b"\0" + a.dtype.str.encode() + b"\0" + repr(a.shape).encode() + b"\0")
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def sequence_payload(seq: Sequence, max_frames: int | None = None) -> bytes:
+    """The reproducible native-NPZ upload for ``seq``, checked by parsing it back as the server will."""
+    meta = {k: v for k, v in seq.meta.items() if k not in _LOCAL_META}
+    original = seq.meta
+    seq.meta = meta
+    try:
+        blob = deterministic_npz(_npz_arrays(sequence_to_npz_bytes(seq)))
+    finally:
+        seq.meta = original
+    # Parse it back: what fails here would fail on the server, and must never be sent.
+    sequence_from_npz_bytes(blob, max_frames=max_frames)
+    return blob
+
+
+def idempotency_key(payload: bytes, options: JobOptions) -> str:
+    """sha256 of (canonical sequence content + canonical options JSON), hex: same input => same job."""
+    h = hashlib.sha256(KEY_SCHEME + b"\0")
+    h.update(content_digest(payload).encode() + b"\0")
+    h.update(options_json(options).encode())
+    return h.hexdigest()

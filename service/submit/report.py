@@ -1,0 +1,106 @@
+"""What the user sees: the live progress bar and the closing summary (states, mean raw vs refined metrics)."""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from typing import Any
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from service.submit.manifest import FAILED_STATES, Entry
+
+#: Metrics of DESIGN §1.8 in table order: (key in the result summary, label, format).
+METRICS: tuple[tuple[str, str, str], ...] = (
+    ("E_t", "E_t (cm)", "{:.2f}"),
+    ("E_r", "E_r (deg)", "{:.2f}"),
+    ("E_j", "E_j (cm)", "{:.2f}"),
+    ("E_ft", "E_ft (cm)", "{:.2f}"),
+    ("success", "success rate", "{:.0%}"),
+)
+STATE_ORDER = ("PENDING", "QUEUED", "RUNNING", "SUCCEEDED", "FAILED", "CANCELLED", "REJECTED", "INVALID")
+
+
+def counts(entries: list[Entry]) -> dict[str, int]:
+    """Progress counters: submitted (has a job), running, done (succeeded + downloaded if waiting), failed."""
+    return {
+        "submitted": sum(e.job_id is not None for e in entries),
+        "running": sum(e.state == "RUNNING" for e in entries),
+        "done": sum(e.state == "SUCCEEDED" for e in entries),
+        "failed": sum(e.state in FAILED_STATES for e in entries),
+    }
+
+
+def make_progress(console: Console) -> Progress:
+    return Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=console,
+        transient=False,
+    )
+
+
+def describe(entries: list[Entry]) -> str:
+    c = counts(entries)
+    return f"submitted {c['submitted']} · running {c['running']} · done {c['done']} · failed {c['failed']}"
+
+
+def _number(value: Any) -> float | None:
+    if isinstance(value, bool):
+        return float(value)
+    if isinstance(value, (int, float)) and math.isfinite(value):
+        return float(value)
+    return None
+
+
+def metric_means(entries: list[Entry]) -> dict[str, dict[str, float | None]]:
+    """Mean of each metric over succeeded entries that have it, for ``raw`` and ``refined``."""
+    out: dict[str, dict[str, float | None]] = {}
+    for stage in ("raw", "refined"):
+        out[stage] = {}
+        for key, _, _ in METRICS:
+            values = [
+                v
+                for e in entries
+                if e.state == "SUCCEEDED" and e.metrics
+                for v in [_number((e.metrics.get(stage) or {}).get(key))]
+                if v is not None
+            ]
+            out[stage][key] = sum(values) / len(values) if values else None
+    return out
+
+
+def summary_tables(entries: list[Entry]) -> tuple[Table, Table]:
+    states = Counter(e.state for e in entries)
+    jobs = Table(title="Jobs by state")
+    jobs.add_column("state")
+    jobs.add_column("count", justify="right")
+    for state in sorted(states, key=lambda s: (STATE_ORDER.index(s) if s in STATE_ORDER else 99, s)):
+        jobs.add_row(state, str(states[state]))
+    jobs.add_row("total", str(len(entries)), style="bold")
+
+    with_metrics = sum(1 for e in entries if e.state == "SUCCEEDED" and e.metrics)
+    means = metric_means(entries)
+    metrics = Table(title=f"Mean metrics over {with_metrics} succeeded sequences")
+    metrics.add_column("metric")
+    metrics.add_column("raw replay", justify="right")
+    metrics.add_column("refined", justify="right")
+    for key, label, fmt in METRICS:
+        cells = [fmt.format(v) if v is not None else "-" for v in (means["raw"][key], means["refined"][key])]
+        metrics.add_row(label, *cells)
+    return jobs, metrics
+
+
+def print_summary(console: Console, entries: list[Entry]) -> None:
+    jobs, metrics = summary_tables(entries)
+    console.print(jobs)
+    console.print(metrics)
+    problems = [e for e in entries if e.state in FAILED_STATES or (e.error and e.state == "PENDING")]
+    for e in problems[:20]:
+        console.print(f"[red]{e.state}[/red] {e.label}: {e.error or 'no detail'}", highlight=False)
+    if len(problems) > 20:
+        console.print(f"... and {len(problems) - 20} more (see the manifest)")

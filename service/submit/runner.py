@@ -1,0 +1,304 @@
+"""Bulk submission: discover, validate, submit, track and download, resumable through the manifest.
+
+Two bounded thread pools share one HTTP client: one prepares and submits (load + validate + pack + POST),
+the other polls jobs and, with ``wait``, downloads results and contacts as soon as each job succeeds, so
+downloads start while later sequences are still being submitted. Worker threads record every change in the
+manifest themselves (atomic save under a lock); the main thread only schedules, draws progress and turns
+Ctrl-C into a clean stop: no new work starts, requests in flight finish and are recorded, retries' waits
+end at once, and the user is told to run the same command again.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+
+from common.errors import ApiError, HoiRefineError
+from common.job_options import JobOptions
+from common.result_format import read_summary
+from service.submit.client import ApiClient, Stopped
+from service.submit.discovery import Source, SourceFormat, discover, load_source
+from service.submit.manifest import FAILED_STATES, TERMINAL_JOB_STATES, Entry, Manifest, write_atomic
+from service.submit.payload import idempotency_key, options_json, sequence_payload
+from service.submit.report import counts, describe, make_progress, print_summary
+
+RESULTS_DIR = "results"
+EXIT_OK, EXIT_FAILED, EXIT_INTERRUPTED = 0, 1, 130
+
+#: Called in the main thread after each step: ``(event, entry)`` with event one of submitted, invalid,
+#: rejected, error, state, downloaded. Tests use it to interrupt a run part-way.
+EventHook = Callable[[str, Entry], None]
+
+
+@dataclass
+class SubmitConfig:
+    paths: list[Path]
+    api_url: str
+    api_key: str
+    out_dir: Path
+    options: JobOptions = field(default_factory=JobOptions)
+    fmt: SourceFormat = "auto"
+    concurrency: int = 4
+    wait: bool = False
+    #: Longest pause between two polls of one job (the server's ``Retry-After`` may shorten it).
+    poll_interval_s: float = 2.0
+    max_frames: int | None = None
+
+
+@dataclass
+class SubmitOutcome:
+    entries: list[Entry]
+    interrupted: bool
+    exit_code: int
+    counts: dict[str, int]
+
+
+def _fingerprint(src: Source, options: JobOptions) -> str:
+    """Cheap change detector (sizes + mtimes + options) so a re-run need not re-read unchanged inputs."""
+    files = [src.path] if src.path.is_file() else sorted(p for p in src.path.iterdir() if p.is_file())
+    h = hashlib.sha256(options_json(options).encode())
+    for f in files:
+        st = f.stat()
+        h.update(f"{f.name}:{st.st_size}:{st.st_mtime_ns};".encode())
+    return h.hexdigest()[:32]
+
+
+class _Run:
+    def __init__(self, cfg: SubmitConfig, client: ApiClient, manifest: Manifest, stop: threading.Event) -> None:
+        self.cfg, self.client, self.manifest, self.stop = cfg, client, manifest, stop
+        self.results_dir = cfg.out_dir / RESULTS_DIR
+
+    # ------------------------------------------------------------------ submit side (worker threads)
+    def prepare_and_submit(self, entry: Entry, src: Source) -> str:
+        fp = _fingerprint(src, self.cfg.options)
+        try:
+            seq = load_source(src, max_frames=self.cfg.max_frames)
+            payload = sequence_payload(seq, max_frames=self.cfg.max_frames)
+        except HoiRefineError as exc:
+            self.manifest.update(entry, state="INVALID", error=str(exc), job_id=None, key=None)
+            return "invalid"
+        key = idempotency_key(payload, self.cfg.options)
+        if entry.job_id is not None and entry.key == key and entry.state not in ("INVALID", "REJECTED"):
+            self.manifest.update(entry, fingerprint=fp)  # unchanged since it was submitted: just track it
+            return "state"
+        if entry.key != key or entry.state in ("INVALID", "REJECTED"):
+            self.manifest.reset(entry, key)
+        self.manifest.update(entry, key=key, sequence=seq.name)
+        if self.stop.is_set():
+            return "stopped"
+        try:
+            doc = self.client.submit(payload, f"{src.label}.npz", self.cfg.options, key)
+        except ApiError as exc:
+            if exc.status is not None and 400 <= exc.status < 500:
+                self.manifest.update(entry, state="REJECTED", error=str(exc), posts=entry.posts + 1)
+                return "rejected"
+            self.manifest.update(entry, error=str(exc), posts=entry.posts + 1)  # stays PENDING: re-run retries
+            return "error"
+        self.manifest.update(
+            entry,
+            job_id=doc["id"],
+            state=str(doc.get("state") or "QUEUED"),
+            attempt=doc.get("attempt"),
+            error=None,
+            posts=entry.posts + 1,
+            fingerprint=fp,
+        )
+        return "submitted"
+
+    # ------------------------------------------------------------------ tracking side (worker threads)
+    def poll(self, entry: Entry, download: bool) -> tuple[str, float | None]:
+        assert entry.job_id is not None
+        doc, hint = self.client.job(entry.job_id)
+        state = str(doc.get("state", entry.state))
+        error = _job_error(doc) if state in ("FAILED", "CANCELLED") else None
+        metrics = _job_metrics(doc) or entry.metrics
+        self.manifest.update(entry, state=state, attempt=doc.get("attempt", entry.attempt), error=error,
+                             metrics=metrics)
+        if state == "SUCCEEDED" and download:
+            self.download(entry)
+            return "downloaded", hint
+        return "state", hint
+
+    def download(self, entry: Entry) -> None:
+        assert entry.job_id is not None
+        self.results_dir.mkdir(parents=True, exist_ok=True)
+        result_rel = f"{RESULTS_DIR}/{entry.label}.result.npz"
+        contacts_rel = f"{RESULTS_DIR}/{entry.label}.contacts.json"
+        blob = self.client.result(entry.job_id)
+        summary = read_summary(blob)  # also proves the file is a readable result before it is kept
+        write_atomic(self.cfg.out_dir / result_rel, blob)
+        self.manifest.update(entry, files={**entry.files, "result": result_rel},
+                             metrics=summary.get("metrics") or entry.metrics)
+        contacts = self.client.contacts(entry.job_id)
+        write_atomic(self.cfg.out_dir / contacts_rel, json.dumps(contacts).encode())
+        self.manifest.update(entry, files={**entry.files, "contacts": contacts_rel})
+
+    def downloaded(self, entry: Entry) -> bool:
+        """Succeeded, and its result and contacts are on disk (nothing left to do for it)."""
+        return (
+            entry.state == "SUCCEEDED"
+            and {"result", "contacts"} <= entry.files.keys()
+            and all((self.cfg.out_dir / p).is_file() for p in entry.files.values())
+        )
+
+
+def _job_error(doc: dict[str, Any]) -> str:
+    err = doc.get("error") or doc.get("errors") or doc.get("detail")
+    return json.dumps(err) if err is not None and not isinstance(err, str) else (err or doc.get("state", "failed"))
+
+
+def _job_metrics(doc: dict[str, Any]) -> dict[str, Any] | None:
+    for holder in (doc.get("summary"), doc):
+        if isinstance(holder, dict) and isinstance(holder.get("metrics"), dict):
+            return dict(holder["metrics"])
+    return None
+
+
+def run_submit(
+    cfg: SubmitConfig,
+    *,
+    client: ApiClient | None = None,
+    console: Console | None = None,
+    stop: threading.Event | None = None,
+    on_event: EventHook | None = None,
+) -> SubmitOutcome:
+    """Submit every sequence under ``cfg.paths``; with ``cfg.wait`` also wait and download. Resumable."""
+    console = console or Console(stderr=True)
+    stop = stop or threading.Event()
+    cfg.out_dir.mkdir(parents=True, exist_ok=True)
+    manifest = Manifest.load_or_create(cfg.out_dir)
+    opts = json.loads(options_json(cfg.options))
+    if manifest.meta.get("options") not in (None, opts):
+        console.print("[yellow]options differ from the manifest's: changed inputs get new jobs[/yellow]")
+    manifest.meta.update({"api": cfg.api_url, "options": opts, "format": cfg.fmt})
+    sources = discover(cfg.paths, cfg.fmt, exclude=[cfg.out_dir])
+    entries = [(manifest.get_or_add(s.ident, s.label, s.kind), s) for s in sources]
+    manifest.save()
+    own_client = client is None
+    client = client or ApiClient(cfg.api_url, cfg.api_key, stop=stop, pool_size=2 * cfg.concurrency)
+    client.stop = stop
+    run = _Run(cfg, client, manifest, stop)
+
+    fp_cache = {e.source: _fingerprint(s, cfg.options) for e, s in entries}
+    to_submit = [
+        (e, s) for e, s in entries
+        if not (e.job_id and e.state not in ("INVALID", "REJECTED") and e.fingerprint == fp_cache[e.source])
+        and not run.downloaded(e)
+    ]  # fmt: skip
+    submitting = {e.source for e, _ in to_submit}
+    visible = [e for e, _ in entries]
+    console.print(
+        f"{len(entries)} sequences: {sum(run.downloaded(e) for e in visible)} already done, "
+        f"{len(to_submit)} to check and submit, out: {cfg.out_dir}",
+        highlight=False,
+    )
+
+    interrupted = False
+    polls_due: dict[str, float] = {}
+    polled_once: set[str] = set()
+    gave_up: set[str] = set()  # polling/downloading failed after retries: left for the next run
+    futures: dict[Future[Any], tuple[str, Entry]] = {}
+    submit_pool = ThreadPoolExecutor(max_workers=cfg.concurrency, thread_name_prefix="submit")
+    poll_pool = ThreadPoolExecutor(max_workers=cfg.concurrency, thread_name_prefix="poll")
+
+    def needs_tracking(e: Entry) -> bool:
+        if e.job_id is None or e.source in submitting or e.source in gave_up:
+            return False
+        if cfg.wait:
+            return not run.downloaded(e) and e.state not in ("FAILED", "CANCELLED")
+        return e.source not in polled_once and e.state not in TERMINAL_JOB_STATES
+
+    def finished_count() -> int:
+        if cfg.wait:
+            return sum(run.downloaded(e) or e.state in FAILED_STATES for e in visible)
+        return sum(e.job_id is not None or e.state in FAILED_STATES for e in visible)
+
+    progress = make_progress(console)
+    try:
+        with progress:
+            bar = progress.add_task(describe(visible), total=len(visible), completed=finished_count())
+            for e, s in to_submit:
+                futures[submit_pool.submit(run.prepare_and_submit, e, s)] = ("submit", e)
+            while True:
+                if stop.is_set():
+                    interrupted = True
+                    break
+                now = time.monotonic()
+                in_flight = {e.source for kind, e in futures.values() if kind == "poll"}
+                for e in visible:
+                    if needs_tracking(e) and e.source not in in_flight and polls_due.get(e.source, 0.0) <= now:
+                        polls_due[e.source] = float("inf")
+                        futures[poll_pool.submit(run.poll, e, cfg.wait)] = ("poll", e)
+                if not futures:
+                    break
+                done, _ = wait(list(futures), timeout=0.2, return_when=FIRST_COMPLETED)
+                for fut in done:
+                    kind, e = futures.pop(fut)
+                    event = _settle(fut, kind, e, manifest, console)
+                    if kind == "submit":
+                        submitting.discard(e.source)
+                        polls_due[e.source] = time.monotonic() + min(0.5, cfg.poll_interval_s)
+                    elif event == "error":
+                        gave_up.add(e.source)
+                    else:
+                        polled_once.add(e.source)
+                        hint = fut.result()[1] if event in ("state", "downloaded") else None
+                        delay = cfg.poll_interval_s if hint is None else min(max(hint, 0.05), cfg.poll_interval_s)
+                        polls_due[e.source] = time.monotonic() + delay
+                    if on_event is not None and event != "stopped":
+                        on_event(event, e)
+                progress.update(bar, description=describe(visible), completed=finished_count())
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        stop.set()  # ends every retry wait; requests in flight complete and are recorded
+        submit_pool.shutdown(wait=True, cancel_futures=True)
+        poll_pool.shutdown(wait=True, cancel_futures=True)
+        if own_client:
+            client.close()
+        manifest.save()
+
+    print_summary(console, visible)
+    if interrupted:
+        console.print(
+            f"[yellow]Interrupted.[/yellow] {finished_count()} of {len(visible)} finished; the manifest "
+            f"({manifest.path}) is up to date. Run the same command again to resume.",
+            highlight=False,
+        )
+    if cfg.wait:
+        failed = any(not run.downloaded(e) for e in visible)
+    else:
+        failed = any(e.state in FAILED_STATES or e.job_id is None for e in visible)
+    code = EXIT_INTERRUPTED if interrupted else EXIT_FAILED if failed else EXIT_OK
+    return SubmitOutcome(entries=visible, interrupted=interrupted, exit_code=code, counts=counts(visible))
+
+
+def _settle(fut: Future[Any], kind: str, entry: Entry, manifest: Manifest, console: Console) -> str:
+    """The event a finished task stands for; unexpected errors are recorded on the entry, not raised."""
+    try:
+        result = fut.result()
+    except Stopped:
+        return "stopped"
+    except ApiError as exc:  # retries exhausted while polling/downloading: try again on the next run
+        manifest.update(entry, error=str(exc))
+        console.print(f"[red]error[/red] {entry.label}: {exc}", highlight=False)
+        return "error"
+    except (HoiRefineError, OSError, ValueError) as exc:
+        manifest.update(entry, error=f"{type(exc).__name__}: {exc}")
+        console.print(f"[red]error[/red] {entry.label}: {exc}", highlight=False)
+        return "error"
+    if kind == "submit":
+        assert isinstance(result, str)
+        if result in ("invalid", "rejected"):
+            console.print(f"[red]{result}[/red] {entry.label}: {entry.error}", highlight=False)
+        return result
+    return str(result[0])
