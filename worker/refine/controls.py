@@ -1,0 +1,195 @@
+"""From keyframe offsets to per-substep hinge targets and wrist poses (DESIGN §1.3, issue #3 item 1).
+
+Per hand, the controls at fractional frame time t are
+
+    q(t)      = clip(q_ref(t) + B10^T (sigma * dtheta(t)), joint limits)   hinge position-servo targets
+    R_w(t)    = exp(omega_scale * domega(t)) * R_ref(t)                     wrist orientation (mocap)
+    p_w(t)    = p_ref(t) [+ translation_scale * dp(t)]                      wrist position (mocap)
+
+with delta(t) = [dtheta (10), domega (3)(, dp (3))] the Catmull-Rom interpolation of the keyframes
+(``spline``). dtheta is in units of each PCA component's standard deviation ("normalised to unit
+variance"), so one CMA-ES step size fits every coordinate. The reference itself is interpolated linearly
+(positions, angles) and by slerp (wrist) between frames.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from worker.refine.spline import FloatArray, catmull_rom_weights, num_keyframes
+
+IntArray = npt.NDArray[np.int64]
+
+N_POSE = 10
+N_ROT = 3
+N_TRANS = 3
+#: Radians of wrist rotation per unit of the optimised rotation coordinates.
+OMEGA_SCALE = 0.05
+#: Metres of wrist translation per unit of the optimised translation coordinates (option).
+TRANSLATION_SCALE = 0.01
+
+
+def quat_mul(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Hamilton product of wxyz quaternions, broadcasting over leading dimensions."""
+    aw, ax, ay, az = np.moveaxis(a, -1, 0)
+    bw, bx, by, bz = np.moveaxis(b, -1, 0)
+    return np.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        axis=-1,
+    )
+
+
+def quat_exp(rotvec: FloatArray) -> FloatArray:
+    """wxyz quaternion of a rotation vector (axis * angle), broadcasting over leading dimensions."""
+    angle = np.linalg.norm(rotvec, axis=-1, keepdims=True)
+    half = 0.5 * angle
+    # sin(x/2)/x -> 1/2 as x -> 0; the series keeps small angles exact.
+    small = angle < 1e-8
+    scale = np.where(small, 0.5 - angle**2 / 48.0, np.sin(half) / np.where(small, 1.0, angle))
+    return np.concatenate([np.cos(half), rotvec * scale], axis=-1)
+
+
+def slerp_frames(quats: FloatArray, times: FloatArray) -> FloatArray:
+    """Slerp a (T, 4) per-frame quaternion track at fractional frame ``times``."""
+    t_max = quats.shape[0] - 1
+    times = np.clip(times, 0, t_max)
+    i0 = np.minimum(np.floor(times).astype(np.int64), max(t_max - 1, 0))
+    i1 = np.minimum(i0 + 1, t_max)
+    u = (times - i0)[:, None]
+    q0, q1 = quats[i0], quats[i1]
+    dot = np.sum(q0 * q1, axis=1, keepdims=True)
+    q1 = np.where(dot < 0, -q1, q1)
+    dot = np.abs(dot).clip(max=1.0)
+    theta = np.arccos(dot)
+    sin_t = np.sin(theta)
+    near = sin_t < 1e-6
+    w0 = np.where(near, 1 - u, np.sin((1 - u) * theta) / np.where(near, 1.0, sin_t))
+    w1 = np.where(near, u, np.sin(u * theta) / np.where(near, 1.0, sin_t))
+    out = w0 * q0 + w1 * q1
+    return out / np.linalg.norm(out, axis=1, keepdims=True)
+
+
+def lerp_frames(values: FloatArray, times: FloatArray) -> FloatArray:
+    """Linear interpolation of a (T, ...) per-frame track at fractional frame ``times``."""
+    t_max = values.shape[0] - 1
+    times = np.clip(times, 0, t_max)
+    i0 = np.minimum(np.floor(times).astype(np.int64), max(t_max - 1, 0))
+    i1 = np.minimum(i0 + 1, t_max)
+    u = (times - i0).reshape((-1,) + (1,) * (values.ndim - 1))
+    return (1 - u) * values[i0] + u * values[i1]
+
+
+@dataclass
+class PoseBasis10:
+    """The first 10 PCA components over the 45 hinge angles and their standard deviations."""
+
+    components: FloatArray  # (10, 45)
+    stddev: FloatArray  # (10,)
+
+    def __post_init__(self) -> None:
+        if self.components.ndim != 2 or self.components.shape[0] != N_POSE:
+            raise ValueError(f"components must have shape (10, n_hinges), got {self.components.shape}")
+        if self.stddev.shape != (N_POSE,):
+            raise ValueError(f"stddev must have shape (10,), got {self.stddev.shape}")
+
+
+@dataclass
+class HandControlSpace:
+    """One hand's reference, sampled at every physics substep, and the map offsets -> controls."""
+
+    side: str
+    q_ref: FloatArray  # (T, H) hinge angles, H = 45 for the MANO-topology hand
+    wrist_pos: FloatArray  # (T, 3)
+    wrist_quat: FloatArray  # (T, 4) wxyz
+    q_limits: FloatArray  # (H, 2)
+    basis: PoseBasis10
+    interval: int
+    substeps: int
+    free_translation: bool = False
+
+    def __post_init__(self) -> None:
+        if self.q_ref.ndim != 2:
+            raise ValueError(f"q_ref must have shape (T, n_hinges), got {self.q_ref.shape}")
+        t, h = self.q_ref.shape
+        for name, arr, shape in (
+            ("wrist_pos", self.wrist_pos, (t, 3)),
+            ("wrist_quat", self.wrist_quat, (t, 4)),
+            ("q_limits", self.q_limits, (h, 2)),
+            ("basis.components", self.basis.components, (N_POSE, h)),
+        ):
+            if arr.shape != shape:
+                raise ValueError(f"{name} must have shape {shape}, got {arr.shape}")
+        self.num_frames = t
+        self.n_keyframes = num_keyframes(t, self.interval)
+        # Sample times: every substep start, plus the last frame itself.
+        n_sub = (t - 1) * self.substeps + 1
+        times = np.arange(n_sub, dtype=np.float64) / self.substeps
+        self._q_sub = lerp_frames(self.q_ref, times)
+        self._p_sub = lerp_frames(self.wrist_pos, times)
+        self._r_sub = slerp_frames(self.wrist_quat, times)
+        self._weights = catmull_rom_weights(times, self.interval, self.n_keyframes)
+        self._pose_map = self.basis.components.T * self.basis.stddev  # (45, 10): unit coeffs -> radians
+
+    @property
+    def dim(self) -> int:
+        """Offset coordinates per keyframe: 13, or 16 with a free wrist translation."""
+        return N_POSE + N_ROT + (N_TRANS if self.free_translation else 0)
+
+    def zero_keyframes(self) -> FloatArray:
+        return np.zeros((self.n_keyframes, self.dim))
+
+    def offsets(self, keyframes: FloatArray, s0: int, s1: int, j: int | None = None,
+                candidates: FloatArray | None = None) -> FloatArray:
+        """Interpolated offsets (C, s1 - s0, dim) on substeps [s0, s1).
+
+        With ``j`` and ``candidates`` (C, dim), keyframe j is replaced by each candidate in turn (one
+        CMA-ES population); otherwise C = 1 with ``keyframes`` as given.
+        """
+        if keyframes.shape != (self.n_keyframes, self.dim):
+            raise ValueError(f"keyframes must have shape {(self.n_keyframes, self.dim)}, got {keyframes.shape}")
+        w = self._weights[s0:s1]
+        if j is None or candidates is None:
+            return (w @ keyframes)[None]
+        if candidates.ndim != 2 or candidates.shape[1] != self.dim:
+            raise ValueError(f"candidates must have shape (C, {self.dim}), got {candidates.shape}")
+        others = keyframes.copy()
+        others[j] = 0.0
+        base = w @ others  # (n, dim)
+        return base[None] + w[:, j][None, :, None] * candidates[:, None, :]
+
+    def controls(self, offsets: FloatArray, s0: int) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Hinge targets (C, n, 45), wrist positions (C, n, 3), wrist quaternions (C, n, 4) on substeps
+        [s0, s0 + n) for offsets (C, n, dim) from ``offsets``."""
+        n = offsets.shape[1]
+        q = self._q_sub[s0 : s0 + n][None] + offsets[..., :N_POSE] @ self._pose_map.T
+        q = np.clip(q, self.q_limits[:, 0], self.q_limits[:, 1])
+        rot = quat_exp(OMEGA_SCALE * offsets[..., N_POSE : N_POSE + N_ROT])
+        quat = quat_mul(rot, np.broadcast_to(self._r_sub[s0 : s0 + n], rot.shape))
+        pos = np.broadcast_to(self._p_sub[s0 : s0 + n], (offsets.shape[0], n, 3)).copy()
+        if self.free_translation:
+            pos += TRANSLATION_SCALE * offsets[..., N_POSE + N_ROT :]
+        return q, pos, quat
+
+    def frame_controls(self, keyframes: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Per-frame hinge targets (T, 45), wrist positions (T, 3), quaternions (T, 4) for the result."""
+        idx = np.arange(self.num_frames) * self.substeps
+        offs = (self._weights[idx] @ keyframes)[None]
+        q, p, r = self._controls_at(offs, idx)
+        return q[0], p[0], r[0]
+
+    def _controls_at(self, offsets: FloatArray, idx: IntArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        q = self._q_sub[idx][None] + offsets[..., :N_POSE] @ self._pose_map.T
+        q = np.clip(q, self.q_limits[:, 0], self.q_limits[:, 1])
+        quat = quat_mul(quat_exp(OMEGA_SCALE * offsets[..., N_POSE : N_POSE + N_ROT]), self._r_sub[idx][None])
+        pos = self._p_sub[idx][None] + (
+            TRANSLATION_SCALE * offsets[..., N_POSE + N_ROT :] if self.free_translation else 0.0
+        )
+        return q, pos, quat

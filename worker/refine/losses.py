@@ -1,0 +1,225 @@
+"""Refinement losses over recorded simulation arrays (DESIGN §1.5, issue #3 item 2).
+
+Every term is a per-frame quantity summed over the window's frames, made dimensionless by a documented
+scale so the default weights read as "how much one scale unit of error costs":
+
+* ``object_pose``: eta * geodesic(R_sim, R_ref) / 0.1 rad + (1 - eta) * ||p_sim - p_ref|| / 1 cm, eta = 0.5.
+* ``object_velocity``: ||v_sim - v_ref|| / 0.1 m/s + ||w_sim - w_ref|| / 1 rad/s, the reference from
+  central finite differences of the recorded poses.
+* ``hand_joints``: weighted mean over keypoints of ||k_sim - k_ref|| / 1 cm, fingertips weighted x2
+  (frames where the reference hand is valid).
+* ``fingertip_contact``: for fingertips that touch the object in the reference (within 1 cm of its surface),
+  the distance between the simulated fingertip expressed in the simulated object frame and the reference
+  object-local contact point, / 1 cm (averaged over the targets of the frame).
+* ``control_consistency``: ||delta(f) - delta(f-1)||^2 in the optimiser's unit-variance coordinates.
+* ``hand_velocity``: mean squared hinge velocity / (10 rad/s)^2.
+
+Each weight can be set to 0 (ablation) through ``JobOptions.loss_weights`` / ``--weights``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from common.job_options import LOSS_NAMES
+from worker.refine.controls import quat_mul
+from worker.refine.spline import FloatArray
+
+BoolArray = npt.NDArray[np.bool_]
+
+#: Documented default weights (JobOptions.loss_weights overrides them one by one).
+DEFAULT_WEIGHTS: dict[str, float] = {
+    "object_pose": 1.0,
+    "object_velocity": 0.05,
+    "hand_joints": 0.3,
+    "fingertip_contact": 0.3,
+    "control_consistency": 0.05,
+    "hand_velocity": 0.01,
+}
+assert set(DEFAULT_WEIGHTS) == set(LOSS_NAMES)
+
+POSE_ETA = 0.5
+ROT_SCALE = 0.1  # rad
+POS_SCALE = 0.01  # m
+LINVEL_SCALE = 0.1  # m/s
+ANGVEL_SCALE = 1.0  # rad/s
+FINGERTIP_WEIGHT = 2.0
+CONTACT_THRESHOLD = 0.01  # m, reference fingertip-to-surface distance that counts as touching
+HINGE_VEL_SCALE = 10.0  # rad/s
+
+
+def resolve_weights(overrides: dict[str, float] | None) -> dict[str, float]:
+    out = dict(DEFAULT_WEIGHTS)
+    for name, value in (overrides or {}).items():
+        if name not in out:
+            raise ValueError(f"unknown loss weight {name!r}; known: {', '.join(LOSS_NAMES)}")
+        if not value >= 0:
+            raise ValueError(f"loss weight {name} must be >= 0, got {value}")
+        out[name] = float(value)
+    return out
+
+
+def quat_geodesic(q1: FloatArray, q2: FloatArray) -> FloatArray:
+    """Rotation angle (rad) between wxyz quaternions, broadcasting."""
+    dot = np.abs(np.sum(q1 * q2, axis=-1)) / (np.linalg.norm(q1, axis=-1) * np.linalg.norm(q2, axis=-1))
+    return 2.0 * np.arccos(np.clip(dot, -1.0, 1.0))
+
+
+def quat_conj(q: FloatArray) -> FloatArray:
+    return q * np.array([1.0, -1.0, -1.0, -1.0])
+
+
+def rotate(q: FloatArray, v: FloatArray) -> FloatArray:
+    """Rotate vectors v (..., 3) by wxyz quaternions q (..., 4)."""
+    qv = np.concatenate([np.zeros((*v.shape[:-1], 1)), v], axis=-1)
+    return quat_mul(quat_mul(q, qv), quat_conj(q))[..., 1:]
+
+
+def finite_difference_velocity(pos: FloatArray, quat: FloatArray, fps: float) -> FloatArray:
+    """(T, 6) world linear and angular velocity of a pose track by central differences."""
+    t = pos.shape[0]
+    if t < 2:
+        return np.zeros((t, 6))
+    lin = np.gradient(pos, 1.0 / fps, axis=0)
+    # Angular velocity from q(t+1) q(t-1)^-1 over 2 dt (one-sided at the ends).
+    nxt = np.r_[np.arange(1, t), t - 1]
+    prv = np.r_[0, np.arange(0, t - 1)]
+    dq = quat_mul(quat[nxt], quat_conj(quat[prv]))
+    dq = np.where(dq[:, :1] < 0, -dq, dq)
+    angle = 2 * np.arctan2(np.linalg.norm(dq[:, 1:], axis=1), dq[:, 0])
+    axis = dq[:, 1:] / np.maximum(np.linalg.norm(dq[:, 1:], axis=1, keepdims=True), 1e-12)
+    span = (nxt - prv) / fps
+    ang = axis * (angle / span)[:, None]
+    return np.concatenate([lin, ang], axis=1)
+
+
+@dataclass
+class HandTargets:
+    """One hand's reference for the losses."""
+
+    keypoints: FloatArray  # (T, J, 3) world
+    valid: BoolArray  # (T,)
+    fingertips: tuple[int, ...]  # keypoint indices
+    contact_mask: BoolArray  # (T, n_tips) fingertip touches the object in the reference
+    contact_local: FloatArray  # (T, n_tips, 3) where, in the object frame
+
+    def __post_init__(self) -> None:
+        t, j, _ = self.keypoints.shape
+        n = len(self.fingertips)
+        if self.valid.shape != (t,):
+            raise ValueError(f"valid must have shape ({t},), got {self.valid.shape}")
+        if self.contact_mask.shape != (t, n) or self.contact_local.shape != (t, n, 3):
+            raise ValueError(f"contact_mask/contact_local must be ({t}, {n})/({t}, {n}, 3)")
+        w = np.ones(j)
+        w[list(self.fingertips)] = FINGERTIP_WEIGHT
+        self.joint_weights = w / w.sum()
+
+
+@dataclass
+class ObjectTargets:
+    pos: FloatArray  # (T, 3) world
+    quat: FloatArray  # (T, 4) world wxyz
+    vel: FloatArray  # (T, 6) world linear, angular
+
+
+def contact_targets(
+    keypoints: FloatArray,
+    valid: BoolArray,
+    obj_pos: FloatArray,
+    obj_quat: FloatArray,
+    surface_distance: SurfaceDistance,
+    fingertips: tuple[int, ...],
+    threshold: float = CONTACT_THRESHOLD,
+) -> tuple[BoolArray, FloatArray]:
+    """Fingertips within ``threshold`` of the object surface in the reference, and their object-local points."""
+    tips = keypoints[:, list(fingertips)]  # (T, n, 3)
+    local = rotate(quat_conj(obj_quat)[:, None], tips - obj_pos[:, None])
+    dist = surface_distance(local.reshape(-1, 3)).reshape(local.shape[:2])
+    mask = (dist <= threshold) & valid[:, None]
+    return mask, local
+
+
+class SurfaceDistance:
+    """Unsigned distance of object-frame points to the object surface (vertex-sampled, via a KD-tree)."""
+
+    def __init__(self, surface_points: FloatArray) -> None:
+        from scipy.spatial import cKDTree
+
+        self._tree = cKDTree(surface_points)
+
+    def __call__(self, points: FloatArray) -> FloatArray:
+        dist, _ = self._tree.query(points)
+        return np.asarray(dist, dtype=np.float64)
+
+
+@dataclass
+class WindowRecord:
+    """What a batch of C rollouts recorded on the window's frames (F frames)."""
+
+    frames: npt.NDArray[np.int64]  # (F,) sequence frame indices
+    obj_pos: FloatArray  # (C, F, 3)
+    obj_quat: FloatArray  # (C, F, 4)
+    obj_vel: FloatArray  # (C, F, 6) world linear, angular
+    keypoints: dict[str, FloatArray]  # side -> (C, F, J, 3)
+    hinge_vel: dict[str, FloatArray]  # side -> (C, F, H)
+    offsets: dict[str, FloatArray]  # side -> (C, F + 1, dim), delta at frames[0] - 1 .. frames[-1]
+
+
+def object_terms(rec: WindowRecord, ref: ObjectTargets) -> dict[str, FloatArray]:
+    f = rec.frames
+    geo = quat_geodesic(rec.obj_quat, ref.quat[f][None])
+    dpos = np.linalg.norm(rec.obj_pos - ref.pos[f][None], axis=-1)
+    pose = POSE_ETA * geo / ROT_SCALE + (1 - POSE_ETA) * dpos / POS_SCALE
+    dv = rec.obj_vel - ref.vel[f][None]
+    vel = np.linalg.norm(dv[..., :3], axis=-1) / LINVEL_SCALE + np.linalg.norm(dv[..., 3:], axis=-1) / ANGVEL_SCALE
+    return {"object_pose": pose.sum(axis=1), "object_velocity": vel.sum(axis=1)}
+
+
+def hand_terms(rec: WindowRecord, side: str, ref: HandTargets) -> dict[str, FloatArray]:
+    f = rec.frames
+    kp = rec.keypoints[side]
+    valid = ref.valid[f].astype(np.float64)
+    err = np.linalg.norm(kp - ref.keypoints[f][None], axis=-1) / POS_SCALE  # (C, F, J)
+    joints = (err @ ref.joint_weights * valid).sum(axis=1)
+    mask = ref.contact_mask[f]  # (F, n)
+    if mask.any():
+        tips = kp[:, :, list(ref.fingertips)]
+        local = rotate(quat_conj(rec.obj_quat)[:, :, None], tips - rec.obj_pos[:, :, None])
+        d = np.linalg.norm(local - ref.contact_local[f][None], axis=-1) / POS_SCALE  # (C, F, n)
+        per_frame = (d * mask).sum(axis=2) / np.maximum(mask.sum(axis=1), 1)
+        contact = per_frame.sum(axis=1)
+    else:
+        contact = np.zeros(kp.shape[0])
+    offs = rec.offsets[side]
+    consistency = (np.diff(offs, axis=1) ** 2).sum(axis=(1, 2))
+    hvel = (np.mean(rec.hinge_vel[side] ** 2, axis=2) / HINGE_VEL_SCALE**2).sum(axis=1)
+    return {
+        "hand_joints": joints,
+        "fingertip_contact": contact,
+        "control_consistency": consistency,
+        "hand_velocity": hvel,
+    }
+
+
+def window_losses(
+    rec: WindowRecord,
+    obj: ObjectTargets,
+    hands: dict[str, HandTargets],
+    weights: dict[str, float],
+) -> tuple[dict[str, FloatArray], dict[str, FloatArray]]:
+    """Per-hand objectives (C,) (shared object terms + that hand's terms) and the weighted terms (C,).
+
+    Bimanual: each hand's CMA-ES minimises the object terms plus its own hand terms (issue #3 item 7).
+    """
+    terms = {k: weights[k] * v for k, v in object_terms(rec, obj).items()}
+    shared = terms["object_pose"] + terms["object_velocity"]
+    per_hand: dict[str, FloatArray] = {}
+    for side, ref in hands.items():
+        ht = {k: weights[k] * v for k, v in hand_terms(rec, side, ref).items()}
+        per_hand[side] = shared + sum(ht.values())
+        for k, v in ht.items():
+            terms[k] = terms.get(k, 0.0) + v
+    return per_hand, terms

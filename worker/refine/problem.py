@@ -1,0 +1,257 @@
+"""The simulation-backed window problem: controls -> rollouts -> recorded frames -> losses.
+
+``SimLayout`` names what the refinement drives and reads in a compiled model (found by the MJCF naming
+conventions of ``worker.hand_mjcf``: actuators ``{side}_{hinge}``, mocap body ``{side}_mocap``, keypoint
+``framepos`` sensors ``{side}_kp{j}``), so tests can use tiny inline MJCF models with the same names.
+``SimWindowProblem`` implements ``windowed.WindowProblem`` on a ``ParallelEvaluator``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+import numpy.typing as npt
+
+from worker.refine.controls import HandControlSpace
+from worker.refine.evaluator import CONTROL_SPEC, ParallelEvaluator, SimState
+from worker.refine.losses import HandTargets, ObjectTargets, WindowRecord, rotate, window_losses
+from worker.refine.spline import FloatArray, keyframe_window
+
+IntArray = npt.NDArray[np.int64]
+
+
+@dataclass
+class HandHandles:
+    side: str
+    actuator_ids: IntArray  # (H,) in hinge order
+    hinge_dof_adrs: IntArray  # (H,)
+    mocap_id: int
+    keypoint_sensor_adrs: IntArray  # (J, 3) sensordata indices of the keypoint framepos sensors
+    body_ids: frozenset[int]
+
+
+@dataclass
+class SimLayout:
+    model: mujoco.MjModel
+    substeps: int
+    object_body_id: int
+    object_qpos_adr: int
+    object_dof_adr: int
+    hands: dict[str, HandHandles]
+
+    @staticmethod
+    def from_model(
+        model: mujoco.MjModel, sides: list[str], hinge_names: list[str], object_body: str, substeps: int,
+        n_keypoints: int = 21,
+    ) -> SimLayout:
+        def obj_id(kind: mujoco.mjtObj, name: str) -> int:
+            i = mujoco.mj_name2id(model, kind, name)
+            if i < 0:
+                raise ValueError(f"model has no {kind.name} named {name!r}")
+            return int(i)
+
+        hands = {}
+        for side in sides:
+            acts = np.array([obj_id(mujoco.mjtObj.mjOBJ_ACTUATOR, f"{side}_{h}") for h in hinge_names])
+            joints = [obj_id(mujoco.mjtObj.mjOBJ_JOINT, f"{side}_{h}") for h in hinge_names]
+            sens = [obj_id(mujoco.mjtObj.mjOBJ_SENSOR, f"{side}_kp{j}") for j in range(n_keypoints)]
+            mocap_body = obj_id(mujoco.mjtObj.mjOBJ_BODY, f"{side}_mocap")
+            root = int(model.jnt_bodyid[joints[0]])
+            while model.body_parentid[root] != 0:
+                root = int(model.body_parentid[root])
+            bodies = frozenset(int(b) for b in range(model.nbody) if _is_descendant(model, b, root))
+            hands[side] = HandHandles(
+                side=side,
+                actuator_ids=acts,
+                hinge_dof_adrs=np.array([int(model.jnt_dofadr[j]) for j in joints]),
+                mocap_id=int(model.body_mocapid[mocap_body]),
+                keypoint_sensor_adrs=np.array([int(model.sensor_adr[s]) + np.arange(3) for s in sens]),
+                body_ids=bodies,
+            )
+        body = obj_id(mujoco.mjtObj.mjOBJ_BODY, object_body)
+        jnt = int(model.body_jntadr[body])
+        if jnt < 0 or model.jnt_type[jnt] != mujoco.mjtJoint.mjJNT_FREE:
+            raise ValueError(f"object body {object_body!r} must have a free joint")
+        return SimLayout(model, substeps, body, int(model.jnt_qposadr[jnt]), int(model.jnt_dofadr[jnt]), hands)
+
+
+def _is_descendant(model: mujoco.MjModel, body: int, root: int) -> bool:
+    while body > 0:
+        if body == root:
+            return True
+        body = int(model.body_parentid[body])
+    return False
+
+
+class SimWindowProblem:
+    """Windowed refinement of one sequence on a compiled model (implements ``windowed.WindowProblem``)."""
+
+    def __init__(
+        self,
+        layout: SimLayout,
+        spaces: dict[str, HandControlSpace],
+        obj: ObjectTargets,
+        hands: dict[str, HandTargets],
+        weights: dict[str, float],
+        evaluator: ParallelEvaluator,
+        initial: SimState,
+    ) -> None:
+        self.layout, self.spaces, self.obj, self.hand_targets = layout, spaces, obj, hands
+        self.weights, self.evaluator, self.initial = weights, evaluator, initial
+        self.sides = tuple(spaces)
+        first = spaces[self.sides[0]]
+        self.n_keyframes = first.n_keyframes
+        self.interval, self.substeps, self.num_frames = first.interval, first.substeps, first.num_frames
+        m = layout.model
+        self._nq, self._nv = m.nq, m.nv
+        self._ncontrol = m.nu + 7 * m.nmocap
+
+    # ------------------------------------------------------------------ WindowProblem
+    def dim(self, side: str) -> int:
+        return self.spaces[side].dim
+
+    def start_state(self) -> SimState:
+        return self.initial
+
+    def window(self, j: int) -> tuple[int, int]:
+        return keyframe_window(j, self.n_keyframes, self.interval, self.num_frames)
+
+    def evaluate(
+        self, j: int, state: SimState, keyframes: dict[str, FloatArray], candidates: dict[str, FloatArray]
+    ) -> dict[str, FloatArray]:
+        f0, f1 = self.window(j)
+        control, offsets = self.build_control(keyframes, f0, f1, j, candidates)
+        states, sensors = self.evaluator.rollout(state, control)
+        rec = self._record(f0, f1, states, sensors, offsets)
+        per_hand, _ = window_losses(rec, self.obj, self.hand_targets, self.weights)
+        return per_hand
+
+    def probe(self, j: int, state: SimState, keyframes: dict[str, FloatArray]) -> tuple[dict[str, float], bool]:
+        f0, f1 = self.window(j)
+        control, offsets = self.build_control(keyframes, f0, f1)
+        touched = False
+        obj_body = self.layout.object_body_id
+        hand_bodies = frozenset().union(*(h.body_ids for h in self.layout.hands.values()))
+        m = self.layout.model
+
+        def hook(i: int, d: mujoco.MjData) -> None:
+            nonlocal touched
+            if touched:
+                return
+            for c in d.contact[: d.ncon]:
+                b1, b2 = int(m.geom_bodyid[c.geom1]), int(m.geom_bodyid[c.geom2])
+                if (b1 == obj_body and b2 in hand_bodies) or (b2 == obj_body and b1 in hand_bodies):
+                    touched = True
+                    return
+
+        # The same rollout as a one-candidate evaluation, stepped in Python to see contacts.
+        states, sensors = self._step_recording(state, control[0], hook)
+        rec = self._record(f0, f1, states[None], sensors[None], offsets)
+        per_hand, _ = window_losses(rec, self.obj, self.hand_targets, self.weights)
+        return {s: float(v[0]) for s, v in per_hand.items()}, touched
+
+    def commit(self, j: int, state: SimState, keyframes: dict[str, FloatArray]) -> SimState:
+        f0, _ = self.window(j)
+        f_next = self.window(j + 1)[0] if j + 1 < self.n_keyframes else f0
+        if f_next == f0:
+            return state
+        control, _ = self.build_control(keyframes, f0, f_next, extra_step=False)
+        return self.evaluator.step_python(state, control[0])
+
+    # ------------------------------------------------------------------ controls and records
+    def build_control(
+        self,
+        keyframes: dict[str, FloatArray],
+        f0: int,
+        f1: int,
+        j: int | None = None,
+        candidates: dict[str, FloatArray] | None = None,
+        extra_step: bool = True,
+    ) -> tuple[FloatArray, dict[str, FloatArray]]:
+        """Control vectors (C, n, ncontrol) for frames f0 -> f1 and the per-frame offsets (C, F + 1, dim).
+
+        ``extra_step`` adds one substep past f1 so the sensors of frame f1 get recorded (see evaluator).
+        """
+        s0, s1 = f0 * self.substeps, f1 * self.substeps + (1 if extra_step else 0)
+        s1_ref = min(s1, (self.num_frames - 1) * self.substeps + 1)
+        n = s1 - s0
+        m = self.layout.model
+        n_cand = 1 if candidates is None else len(next(iter(candidates.values())))
+        control = np.zeros((n_cand, n, self._ncontrol))
+        pos_at, quat_at = m.nu, m.nu + 3 * m.nmocap
+        control[:, :, quat_at::4] = 1.0  # identity quaternions for mocap bodies the hands do not drive
+        frame_offsets = {}
+        for side, space in self.spaces.items():
+            h = self.layout.hands[side]
+            cand = None if candidates is None else candidates[side]
+            offs = space.offsets(keyframes[side], s0, s1_ref, j, cand)
+            if s1_ref < s1:  # past the last frame: hold the last controls
+                offs = np.concatenate([offs, np.repeat(offs[:, -1:], s1 - s1_ref, axis=1)], axis=1)
+            q, p, r = space.controls(offs, s0) if s1_ref == s1 else _held(space, offs, s0, s1_ref)
+            control[:, :, h.actuator_ids] = q
+            control[:, :, pos_at + 3 * h.mocap_id : pos_at + 3 * h.mocap_id + 3] = p
+            control[:, :, quat_at + 4 * h.mocap_id : quat_at + 4 * h.mocap_id + 4] = r
+            # Offsets at frames f0 .. f1 for the control-consistency term (differences over f0+1 .. f1).
+            frame_idx = np.minimum(np.arange(f0, f1 + 1) * self.substeps - s0, n - 1)
+            frame_offsets[side] = offs[:, frame_idx]
+        return control, frame_offsets
+
+    def _step_recording(
+        self, state: SimState, control: FloatArray, hook: object = None
+    ) -> tuple[FloatArray, FloatArray]:
+        """Python-stepped rollout recording what ``mujoco.rollout`` records (state after, sensors at start)."""
+        m = self.layout.model
+        nstate = mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_FULLPHYSICS)
+        states = np.empty((control.shape[0], nstate))
+        sensors = np.empty((control.shape[0], m.nsensordata))
+
+        def record(i: int, d: mujoco.MjData) -> None:
+            mujoco.mj_getState(m, d, states[i], mujoco.mjtState.mjSTATE_FULLPHYSICS)
+            sensors[i] = d.sensordata
+            if callable(hook):
+                hook(i, d)
+
+        self.evaluator.step_python(state, control, record)
+        return states, sensors
+
+    def _record(
+        self, f0: int, f1: int, states: FloatArray, sensors: FloatArray, offsets: dict[str, FloatArray]
+    ) -> WindowRecord:
+        """Decode frames f0+1..f1 from per-substep states/sensors of a window rollout."""
+        s = self.substeps
+        frames = np.arange(f0 + 1, f1 + 1)
+        after = (frames - f0) * s - 1  # state after this step = state at the frame time
+        at = (frames - f0) * s  # sensors of the next step = computed at the frame time
+        nq = self._nq
+        qpos = states[:, after, 1 : 1 + nq]
+        qvel = states[:, after, 1 + nq : 1 + nq + self._nv]
+        oq, od = self.layout.object_qpos_adr, self.layout.object_dof_adr
+        obj_quat = qpos[..., oq + 3 : oq + 7]
+        # Free-joint angular velocity is in the body frame; the losses and results use world frame.
+        ang_world = rotate(obj_quat, qvel[..., od + 3 : od + 6])
+        keypoints, hinge_vel = {}, {}
+        for side, h in self.layout.hands.items():
+            keypoints[side] = sensors[:, at][..., h.keypoint_sensor_adrs]
+            hinge_vel[side] = qvel[..., h.hinge_dof_adrs]
+        return WindowRecord(
+            frames=frames,
+            obj_pos=qpos[..., oq : oq + 3],
+            obj_quat=obj_quat,
+            obj_vel=np.concatenate([qvel[..., od : od + 3], ang_world], axis=-1),
+            keypoints=keypoints,
+            hinge_vel=hinge_vel,
+            offsets=offsets,
+        )
+
+
+def _held(space: HandControlSpace, offs: FloatArray, s0: int, s1_ref: int) -> tuple[FloatArray, ...]:
+    """Controls where the last substeps lie past the reference: evaluate what exists, hold the last."""
+    n_ref = s1_ref - s0
+    q, p, r = space.controls(offs[:, :n_ref], s0)
+    extra = offs.shape[1] - n_ref
+    return tuple(np.concatenate([a, np.repeat(a[:, -1:], extra, axis=1)], axis=1) for a in (q, p, r))
+
+
+__all__ = ["CONTROL_SPEC", "HandHandles", "SimLayout", "SimWindowProblem"]
