@@ -141,3 +141,9 @@ class ApiError(HoiRefineError):
         super().__init__(message)
         self.status = status
         self.problem = dict(problem or {})
+
+
+class InvalidRequestError(SequenceValidationError):
+    """A request parameter other than the sequence is wrong (e.g. ``page_token``); ``problems`` names each."""
+
+    title = "Invalid request"

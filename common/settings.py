@@ -41,6 +41,12 @@ class Settings(BaseSettings):
     max_attempts: int = Field(default=3, gt=0)
     #: Base of the exponential backoff before a requeued job may be claimed again.
     retry_backoff_seconds: float = Field(default=2.0, ge=0)
+    #: Retry-After (s) sent with 429 when a key has ``max_active_jobs_per_key`` jobs queued or running.
+    active_jobs_retry_after_seconds: int = Field(default=30, gt=0)
+    #: Retry-After (s) sent with the status of a job that is not finished (client polling interval).
+    poll_retry_after_seconds: int = Field(default=2, gt=0)
+    #: How long ``hoi-refine serve`` waits for the database at start-up.
+    database_wait_seconds: float = Field(default=60.0, gt=0)
 
     def resolved_cache_dir(self) -> Path:
         return self.cache_dir if self.cache_dir is not None else self.var_dir / "cache"

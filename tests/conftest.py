@@ -32,3 +32,7 @@ def dexycb_dev_files(shared_data: Path) -> list[Path]:
     if not files:
         pytest.skip("no DexYCB development files under ../shared/data")
     return files
+
+
+# Queue/API/migration fixtures (database per test on SQLite and PostgreSQL), see tests/queue_fixtures.py.
+pytest_plugins = ["tests.queue_fixtures"]

@@ -1,0 +1,517 @@
+"""The job queue: the one class that owns every queue query (DESIGN §2, §4; like procrastinate's ``JobManager``).
+
+Guarantees: a job is RUNNING under exactly one lease token at a time; every worker write (heartbeat,
+complete, fail, acknowledge_cancel, release) names its token and changes nothing when the token no longer
+holds the job (``LeaseLostError``), so a worker whose lease expired cannot overwrite the requeued run:
+at-least-once execution, exactly-once effect on the result. Every state change appends a ``job_events`` row
+in the same transaction.
+
+Claiming: PostgreSQL picks the row with ``FOR UPDATE SKIP LOCKED`` (concurrent claimers skip each other's
+rows instead of queueing on them); SQLite runs the same ``UPDATE ... WHERE id = (SELECT ...) RETURNING`` in a
+``BEGIN IMMEDIATE`` transaction, which takes the database write lock up front so two claimers cannot both
+read the same QUEUED row. Order: priority (high first), then age.
+"""
+
+from __future__ import annotations
+
+import base64
+import builtins
+import hashlib
+import json
+import secrets
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+from datetime import datetime, timedelta
+from typing import Any, cast
+
+import sqlalchemy as sa
+from sqlalchemy.engine import Connection, Engine, Row
+
+from common import api_keys
+from common.database import IMMEDIATE
+from common.db_models import ACTIVE_STATES, ApiKey, Job, JobEvent, JobInput, JobResult, utcnow
+from common.errors import (
+    ConflictError,
+    FieldProblem,
+    IdempotencyMismatchError,
+    InvalidRequestError,
+    LeaseLostError,
+    LimitExceededError,
+    NotFoundError,
+)
+from common.job_options import JobOptions
+from common.queue_types import ApiKeyRecord, ClaimedJob, JobEventRecord, JobRecord, QueueStats
+from common.settings import Settings, get_settings
+
+# Core tables of the mapped models: the queue speaks SQL expressions, never ORM sessions.
+jobs = cast(sa.Table, Job.__table__)
+inputs = cast(sa.Table, JobInput.__table__)
+results = cast(sa.Table, JobResult.__table__)
+events = cast(sa.Table, JobEvent.__table__)
+keys = cast(sa.Table, ApiKey.__table__)
+
+MAX_PAGE_SIZE = 500
+
+
+def payload_hash(payload: bytes, options: JobOptions) -> str:
+    """SHA-256 over the sequence bytes and the canonical options JSON (what an Idempotency-Key must match)."""
+    options_json = json.dumps(options.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(payload + b"\x00" + options_json.encode()).hexdigest()
+
+
+class JobQueue:
+    """Submit, claim, heartbeat, complete, fail, cancel, retry, requeue; owner-scoped reads; API keys."""
+
+    def __init__(self, engine: Engine, settings: Settings | None = None) -> None:
+        self.engine = engine
+        self.settings = settings if settings is not None else get_settings()
+        self._postgres = engine.dialect.name == "postgresql"
+
+    # ------------------------------------------------------------------ transactions
+    @contextmanager
+    def _write(self) -> Iterator[Connection]:
+        """A write transaction (BEGIN IMMEDIATE on SQLite, see ``common.database``)."""
+        with self.engine.connect() as conn:
+            conn.execution_options(**{IMMEDIATE: True})
+            with conn.begin():
+                yield conn
+
+    @contextmanager
+    def _read(self) -> Iterator[Connection]:
+        with self.engine.connect() as conn, conn.begin():
+            yield conn
+
+    def _locked(self, query: sa.Select[Any], skip_locked: bool = False) -> sa.Select[Any]:
+        # SQLite has no row locks; its BEGIN IMMEDIATE already holds the whole database.
+        return query.with_for_update(skip_locked=skip_locked) if self._postgres else query
+
+    @staticmethod
+    def _event(conn: Connection, job_id: str, kind: str, now: datetime, **detail: Any) -> None:
+        conn.execute(sa.insert(events).values(job_id=job_id, at=now, kind=kind, detail=detail))
+
+    # ------------------------------------------------------------------ submission
+    def submit(
+        self,
+        owner_key_id: str,
+        payload: bytes,
+        options: JobOptions,
+        idempotency_key: str | None,
+        name: str,
+        num_frames: int,
+    ) -> tuple[JobRecord, bool]:
+        """Queue a job; returns (job, created). Same Idempotency-Key + same payload -> the first job."""
+        digest = payload_hash(payload, options)
+        try:
+            with self._write() as conn:
+                if self._postgres:
+                    # Serialise one owner's submissions: the idempotency lookup and the active-jobs limit
+                    # below then see every committed sibling (SQLite's BEGIN IMMEDIATE already does this).
+                    conn.execute(sa.select(sa.func.pg_advisory_xact_lock(sa.func.hashtext(owner_key_id))))
+                if idempotency_key is not None:
+                    existing = self._by_idempotency_key(conn, owner_key_id, idempotency_key)
+                    if existing is not None:
+                        return self._idempotent_match(existing, digest), False
+                active = conn.execute(
+                    sa.select(sa.func.count())
+                    .select_from(jobs)
+                    .where(jobs.c.owner_key_id == owner_key_id, jobs.c.state.in_(ACTIVE_STATES))
+                ).scalar_one()
+                if active >= self.settings.max_active_jobs_per_key:
+                    raise LimitExceededError(
+                        f"this API key already has {active} active jobs (limit "
+                        f"{self.settings.max_active_jobs_per_key}); wait for some to finish",
+                        retry_after=self.settings.active_jobs_retry_after_seconds,
+                    )
+                now = utcnow()
+                job_id = uuid.uuid4().hex
+                conn.execute(
+                    sa.insert(jobs).values(
+                        id=job_id, owner_key_id=owner_key_id, name=name[:200], state="QUEUED",
+                        priority=options.priority, attempt=1, idempotency_key=idempotency_key,
+                        payload_hash=digest, options=options.model_dump(mode="json"), num_frames=num_frames,
+                        cancel_requested=False, errors=[], created_at=now, queued_at=now, updated_at=now,
+                    )
+                )  # fmt: skip
+                conn.execute(sa.insert(inputs).values(job_id=job_id, payload=payload, size_bytes=len(payload)))
+                self._event(conn, job_id, "submitted", now, priority=options.priority, num_frames=num_frames)
+                record = self._get(conn, job_id, None)
+            return record, True
+        except sa.exc.IntegrityError:
+            # A concurrent submission with the same key won the unique constraint; answer with its job.
+            if idempotency_key is None:
+                raise
+            with self._read() as conn:
+                existing = self._by_idempotency_key(conn, owner_key_id, idempotency_key)
+            if existing is None:
+                raise
+            return self._idempotent_match(existing, digest), False
+
+    def _by_idempotency_key(self, conn: Connection, owner_key_id: str, key: str) -> JobRecord | None:
+        row = conn.execute(
+            self._job_select().where(jobs.c.owner_key_id == owner_key_id, jobs.c.idempotency_key == key)
+        ).first()
+        return None if row is None else self._record(row)
+
+    @staticmethod
+    def _idempotent_match(existing: JobRecord, digest: str) -> JobRecord:
+        if existing.payload_hash != digest:
+            raise IdempotencyMismatchError(
+                f"Idempotency-Key was already used for job {existing.id} with a different sequence or options"
+            )
+        return existing
+
+    # ------------------------------------------------------------------ worker side
+    def claim(
+        self, worker_id: str, lease_seconds: float | None = None, now: datetime | None = None
+    ) -> ClaimedJob | None:
+        """Take the next runnable job (highest priority, oldest first) under a fresh lease, or None."""
+        now = now or utcnow()
+        lease = timedelta(seconds=lease_seconds if lease_seconds is not None else self.settings.lease_seconds)
+        token = secrets.token_hex(16)
+        pick = self._locked(
+            sa.select(jobs.c.id)
+            .where(jobs.c.state == "QUEUED", sa.or_(jobs.c.not_before.is_(None), jobs.c.not_before <= now))
+            .order_by(jobs.c.priority.desc(), jobs.c.created_at, jobs.c.id)
+            .limit(1),
+            skip_locked=True,
+        )
+        with self._write() as conn:
+            row = conn.execute(
+                sa.update(jobs)
+                .where(jobs.c.id == pick.scalar_subquery(), jobs.c.state == "QUEUED")
+                .values(
+                    state="RUNNING", lease_token=token, lease_expires_at=now + lease, worker_id=worker_id,
+                    started_at=now, updated_at=now, progress=None,
+                )
+                .returning(jobs.c.id, jobs.c.attempt, jobs.c.options, jobs.c.name, jobs.c.queued_at)
+            ).first()
+            if row is None:
+                return None
+            payload = conn.execute(sa.select(inputs.c.payload).where(inputs.c.job_id == row.id)).scalar_one()
+            wait_s = (now - row.queued_at).total_seconds()
+            self._event(conn, row.id, "claimed", now, worker_id=worker_id, attempt=row.attempt, wait_s=wait_s)
+        return ClaimedJob(
+            job_id=row.id, lease_token=token, attempt=row.attempt, payload=bytes(payload),
+            options=JobOptions.model_validate(row.options), name=row.name, lease_expires_at=now + lease,
+        )  # fmt: skip
+
+    def heartbeat(
+        self, job_id: str, lease_token: str, progress: dict[str, Any] | None = None, lease_seconds: float | None = None
+    ) -> bool:
+        """Renew the lease and store progress; returns the cancel flag. ``LeaseLostError`` if the token lost it."""
+        now = utcnow()
+        lease = timedelta(seconds=lease_seconds if lease_seconds is not None else self.settings.lease_seconds)
+        values: dict[str, Any] = {"lease_expires_at": now + lease, "updated_at": now}
+        if progress is not None:
+            values["progress"] = progress
+        with self._write() as conn:
+            flag = conn.execute(
+                sa.update(jobs)
+                .where(jobs.c.id == job_id, jobs.c.lease_token == lease_token, jobs.c.state == "RUNNING")
+                .values(**values)
+                .returning(jobs.c.cancel_requested)
+            ).scalar()
+        if flag is None:
+            raise LeaseLostError(f"job {job_id}: lease token no longer holds the job")
+        return bool(flag)
+
+    def _lease_row(self, conn: Connection, job_id: str, lease_token: str) -> Row[Any]:
+        row = conn.execute(
+            self._locked(
+                sa.select(jobs.c.attempt, jobs.c.errors, jobs.c.cancel_requested, jobs.c.worker_id).where(
+                    jobs.c.id == job_id, jobs.c.lease_token == lease_token, jobs.c.state == "RUNNING"
+                )
+            )
+        ).first()
+        if row is None:
+            raise LeaseLostError(f"job {job_id}: lease token no longer holds the job")
+        return row
+
+    def _settle(self, conn: Connection, job_id: str, lease_token: str, **values: Any) -> None:
+        """End a lease: the row was locked by ``_lease_row`` in this transaction."""
+        conn.execute(
+            sa.update(jobs)
+            .where(jobs.c.id == job_id, jobs.c.lease_token == lease_token)
+            .values(lease_token=None, lease_expires_at=None, updated_at=values.pop("now"), **values)
+        )
+
+    def complete(self, job_id: str, lease_token: str, result: bytes, summary: dict[str, Any]) -> None:
+        """Store the result and mark SUCCEEDED (token-checked)."""
+        now = utcnow()
+        with self._write() as conn:
+            self._lease_row(conn, job_id, lease_token)
+            conn.execute(sa.delete(results).where(results.c.job_id == job_id))
+            conn.execute(
+                sa.insert(results).values(
+                    job_id=job_id, result=result, size_bytes=len(result), summary=summary, created_at=now
+                )
+            )
+            self._settle(conn, job_id, lease_token, now=now, state="SUCCEEDED", finished_at=now)
+            self._event(conn, job_id, "succeeded", now, result_bytes=len(result))
+
+    def fail(self, job_id: str, lease_token: str, error: str, retryable: bool = False) -> None:
+        """Record an error; retryable errors requeue with backoff until ``max_attempts``, then FAILED."""
+        now = utcnow()
+        with self._write() as conn:
+            row = self._lease_row(conn, job_id, lease_token)
+            self._after_attempt(conn, job_id, lease_token, row, error, retryable, now)
+
+    def _after_attempt(
+        self, conn: Connection, job_id: str, token: str, row: Row[Any], error: str, retryable: bool, now: datetime
+    ) -> str:
+        """Requeue (attempt + 1, backoff), cancel or fail a job whose attempt ended in ``error``."""
+        errors = [*row.errors, {"attempt": row.attempt, "at": now.isoformat(), "error": error, "worker": row.worker_id}]
+        if row.cancel_requested:
+            state, extra = "CANCELLED", {"finished_at": now}
+        elif retryable and row.attempt < self.settings.max_attempts:
+            # DESIGN §2 backoff: retry_backoff_seconds * 2**(attempt-1) before the next claim.
+            delay = self.settings.retry_backoff_seconds * 2 ** (row.attempt - 1)
+            state = "QUEUED"
+            extra = {"attempt": row.attempt + 1, "not_before": now + timedelta(seconds=delay), "queued_at": now}
+        else:
+            state, extra = "FAILED", {"finished_at": now}
+        self._settle(conn, job_id, token, now=now, state=state, errors=errors, **extra)
+        kind = {"QUEUED": "requeued", "FAILED": "failed", "CANCELLED": "cancelled"}[state]
+        self._event(conn, job_id, kind, now, attempt=row.attempt, error=error)
+        return state
+
+    def acknowledge_cancel(self, job_id: str, lease_token: str) -> None:
+        """The worker saw the cancel flag and stopped: RUNNING -> CANCELLED."""
+        now = utcnow()
+        with self._write() as conn:
+            row = self._lease_row(conn, job_id, lease_token)
+            if not row.cancel_requested:
+                raise ConflictError(f"job {job_id}: cancellation was not requested")
+            self._settle(conn, job_id, lease_token, now=now, state="CANCELLED", finished_at=now)
+            self._event(conn, job_id, "cancelled", now, attempt=row.attempt)
+
+    def release(self, job_id: str, lease_token: str) -> None:
+        """Graceful shutdown: give the job back (QUEUED, same attempt), or CANCELLED if that was asked."""
+        now = utcnow()
+        with self._write() as conn:
+            row = self._lease_row(conn, job_id, lease_token)
+            if row.cancel_requested:
+                self._settle(conn, job_id, lease_token, now=now, state="CANCELLED", finished_at=now)
+                self._event(conn, job_id, "cancelled", now, attempt=row.attempt)
+            else:
+                self._settle(conn, job_id, lease_token, now=now, state="QUEUED", not_before=None, queued_at=now)
+                self._event(conn, job_id, "released", now, attempt=row.attempt, worker_id=row.worker_id)
+
+    def requeue_expired(self, now: datetime | None = None) -> int:
+        """Requeue RUNNING jobs whose lease ran out (attempt + 1, backoff); FAILED after max attempts."""
+        now = now or utcnow()
+        with self._write() as conn:
+            rows = conn.execute(
+                self._locked(
+                    sa.select(
+                        jobs.c.id, jobs.c.lease_token, jobs.c.attempt, jobs.c.errors, jobs.c.cancel_requested,
+                        jobs.c.worker_id,
+                    ).where(jobs.c.state == "RUNNING", jobs.c.lease_expires_at < now),
+                    skip_locked=True,
+                )
+            ).all()  # fmt: skip
+            for row in rows:
+                msg = f"lease expired (worker {row.worker_id} stopped heartbeating)"
+                self._after_attempt(conn, row.id, row.lease_token, row, msg, True, now)
+        return len(rows)
+
+    # ------------------------------------------------------------------ owner-scoped reads and actions
+    def get(self, owner_key_id: str | None, job_id: str) -> JobRecord:
+        """The job with its summary; ``NotFoundError`` when missing or owned by another key (None = any)."""
+        with self._read() as conn:
+            return self._get(conn, job_id, owner_key_id)
+
+    def list(
+        self, owner_key_id: str | None, state: str | None = None, page_size: int = 50, page_token: str | None = None
+    ) -> tuple[builtins.list[JobRecord], str | None]:
+        """Newest first, keyset-paginated on (created_at, id); returns (jobs, next_page_token)."""
+        page_size = max(1, min(page_size, MAX_PAGE_SIZE))
+        query = self._job_select(with_summary=False)
+        if owner_key_id is not None:
+            query = query.where(jobs.c.owner_key_id == owner_key_id)
+        if state is not None:
+            query = query.where(jobs.c.state == state)
+        if page_token is not None:
+            created, last_id = _decode_page_token(page_token)
+            query = query.where(
+                sa.or_(jobs.c.created_at < created, sa.and_(jobs.c.created_at == created, jobs.c.id < last_id))
+            )
+        query = query.order_by(jobs.c.created_at.desc(), jobs.c.id.desc()).limit(page_size + 1)
+        with self._read() as conn:
+            page = [self._record(r) for r in conn.execute(query)]
+        more = len(page) > page_size
+        page = page[:page_size]
+        return page, (_encode_page_token(page[-1].created_at, page[-1].id) if more else None)
+
+    def cancel(self, owner_key_id: str | None, job_id: str) -> JobRecord:
+        """QUEUED -> CANCELLED now; RUNNING -> cancel flag (the worker stops at its next heartbeat)."""
+        now = utcnow()
+        with self._write() as conn:
+            state = self._owned_state(conn, owner_key_id, job_id)
+            if state == "QUEUED":
+                values = {"state": "CANCELLED", "finished_at": now, "updated_at": now}
+                conn.execute(sa.update(jobs).where(jobs.c.id == job_id).values(**values))
+                self._event(conn, job_id, "cancelled", now)
+            elif state == "RUNNING":
+                conn.execute(
+                    sa.update(jobs).where(jobs.c.id == job_id).values(cancel_requested=True, updated_at=now)
+                )
+                self._event(conn, job_id, "cancel_requested", now)
+            elif state != "CANCELLED":
+                raise ConflictError(f"job {job_id} is {state}; only QUEUED or RUNNING jobs can be cancelled")
+            return self._get(conn, job_id, owner_key_id)
+
+    def retry(self, owner_key_id: str | None, job_id: str) -> JobRecord:
+        """FAILED -> QUEUED with a fresh attempt budget (the error history is kept)."""
+        now = utcnow()
+        with self._write() as conn:
+            state = self._owned_state(conn, owner_key_id, job_id)
+            if state != "FAILED":
+                raise ConflictError(f"job {job_id} is {state}; only FAILED jobs can be retried")
+            conn.execute(
+                sa.update(jobs)
+                .where(jobs.c.id == job_id)
+                .values(
+                    state="QUEUED", attempt=1, not_before=None, cancel_requested=False, progress=None,
+                    queued_at=now, started_at=None, finished_at=None, updated_at=now,
+                )
+            )  # fmt: skip
+            self._event(conn, job_id, "retried", now)
+            return self._get(conn, job_id, owner_key_id)
+
+    def delete(self, owner_key_id: str | None, job_id: str) -> None:
+        """Delete a finished job with its input and result (its events stay)."""
+        now = utcnow()
+        with self._write() as conn:
+            state = self._owned_state(conn, owner_key_id, job_id)
+            if state in ACTIVE_STATES:
+                raise ConflictError(f"job {job_id} is {state}; cancel it first (only finished jobs can be deleted)")
+            conn.execute(sa.delete(inputs).where(inputs.c.job_id == job_id))
+            conn.execute(sa.delete(results).where(results.c.job_id == job_id))
+            conn.execute(sa.delete(jobs).where(jobs.c.id == job_id))
+            self._event(conn, job_id, "deleted", now, state=state)
+
+    def get_result(self, owner_key_id: str | None, job_id: str) -> tuple[bytes, dict[str, Any]]:
+        """(result NPZ bytes, summary) of a SUCCEEDED job; ``ConflictError`` before that."""
+        with self._read() as conn:
+            job = self._get(conn, job_id, owner_key_id)
+            row = conn.execute(sa.select(results.c.result, results.c.summary).where(results.c.job_id == job_id)).first()
+        if job.state != "SUCCEEDED" or row is None:
+            raise ConflictError(f"job {job_id} is {job.state}; a result exists only once it has SUCCEEDED")
+        return bytes(row.result), dict(row.summary)
+
+    def get_payload(self, job_id: str) -> bytes:
+        with self._read() as conn:
+            blob = conn.execute(sa.select(inputs.c.payload).where(inputs.c.job_id == job_id)).scalar()
+        if blob is None:
+            raise NotFoundError(f"job {job_id} has no stored input")
+        return bytes(blob)
+
+    def events(self, owner_key_id: str | None, job_id: str) -> builtins.list[JobEventRecord]:
+        with self._read() as conn:
+            if owner_key_id is not None:
+                self._get(conn, job_id, owner_key_id)
+            rows = conn.execute(sa.select(events).where(events.c.job_id == job_id).order_by(events.c.id)).all()
+        return [JobEventRecord(r.id, r.job_id, r.at, r.kind, dict(r.detail)) for r in rows]
+
+    # ------------------------------------------------------------------ counts
+    def count_active(self, owner_key_id: str) -> int:
+        with self._read() as conn:
+            return int(
+                conn.execute(
+                    sa.select(sa.func.count())
+                    .select_from(jobs)
+                    .where(jobs.c.owner_key_id == owner_key_id, jobs.c.state.in_(ACTIVE_STATES))
+                ).scalar_one()
+            )
+
+    def stats(self, recent: int = 1000) -> QueueStats:
+        """Jobs per state, claims so far, and queue-wait / run seconds of the ``recent`` latest started jobs."""
+        with self._read() as conn:
+            per_state = conn.execute(sa.select(jobs.c.state, sa.func.count()).group_by(jobs.c.state)).all()
+            claims = conn.execute(sa.select(sa.func.count()).where(events.c.kind == "claimed")).scalar_one()
+            rows = conn.execute(
+                sa.select(jobs.c.queued_at, jobs.c.started_at, jobs.c.finished_at)
+                .where(jobs.c.started_at.is_not(None))
+                .order_by(jobs.c.started_at.desc())
+                .limit(recent)
+            ).all()
+        waits = [(r.started_at - r.queued_at).total_seconds() for r in rows if r.started_at >= r.queued_at]
+        runs = [(r.finished_at - r.started_at).total_seconds() for r in rows if r.finished_at is not None]
+        return QueueStats({str(k): int(v) for k, v in per_state}, int(claims), waits, runs)
+
+    # ------------------------------------------------------------------ API keys
+    def create_api_key(self, name: str) -> tuple[str, str]:
+        """(key_id, plaintext). Only the key's SHA-256 is stored; the plaintext cannot be shown again."""
+        key_id, plaintext = uuid.uuid4().hex, api_keys.new_key()
+        with self._write() as conn:
+            conn.execute(
+                sa.insert(keys).values(
+                    id=key_id, name=name[:200], key_hash=api_keys.hash_key(plaintext),
+                    prefix=api_keys.display_prefix(plaintext), created_at=utcnow(),
+                )
+            )  # fmt: skip
+        return key_id, plaintext
+
+    def authenticate(self, plaintext: str) -> str:
+        """The key id of a valid, unrevoked key; ``AuthenticationError`` otherwise."""
+        with self._read() as conn:
+            key_id = conn.execute(
+                sa.select(keys.c.id).where(keys.c.key_hash == api_keys.hash_key(plaintext), keys.c.revoked_at.is_(None))
+            ).scalar()
+        return api_keys.require_key(key_id)
+
+    def list_api_keys(self) -> builtins.list[ApiKeyRecord]:
+        with self._read() as conn:
+            rows = conn.execute(sa.select(keys).order_by(keys.c.created_at)).all()
+        return [ApiKeyRecord(r.id, r.name, r.prefix, r.created_at, r.revoked_at) for r in rows]
+
+    # ------------------------------------------------------------------ row helpers
+    @staticmethod
+    def _job_select(with_summary: bool = True) -> sa.Select[Any]:
+        if not with_summary:
+            return sa.select(jobs, sa.null().label("summary"))
+        return sa.select(jobs, results.c.summary).select_from(jobs.outerjoin(results, results.c.job_id == jobs.c.id))
+
+    def _get(self, conn: Connection, job_id: str, owner_key_id: str | None) -> JobRecord:
+        row = conn.execute(self._job_select().where(jobs.c.id == job_id)).first()
+        # Another key's job answers exactly like a missing one, so ids cannot be probed.
+        if row is None or (owner_key_id is not None and row.owner_key_id != owner_key_id):
+            raise NotFoundError(f"no job {job_id}")
+        return self._record(row)
+
+    def _owned_state(self, conn: Connection, owner_key_id: str | None, job_id: str) -> str:
+        query = sa.select(jobs.c.state, jobs.c.owner_key_id).where(jobs.c.id == job_id)
+        row = conn.execute(self._locked(query)).first()
+        if row is None or (owner_key_id is not None and row.owner_key_id != owner_key_id):
+            raise NotFoundError(f"no job {job_id}")
+        return str(row.state)
+
+    def _record(self, row: Row[Any]) -> JobRecord:
+        m = row._mapping
+        return JobRecord(
+            id=m["id"], owner_key_id=m["owner_key_id"], name=m["name"], state=m["state"], priority=m["priority"],
+            attempt=m["attempt"], max_attempts=self.settings.max_attempts, options=dict(m["options"]),
+            num_frames=m["num_frames"], cancel_requested=bool(m["cancel_requested"]), progress=m["progress"],
+            errors=list(m["errors"]), idempotency_key=m["idempotency_key"], payload_hash=m["payload_hash"],
+            worker_id=m["worker_id"], lease_expires_at=m["lease_expires_at"], not_before=m["not_before"],
+            created_at=m["created_at"], queued_at=m["queued_at"], started_at=m["started_at"],
+            finished_at=m["finished_at"], updated_at=m["updated_at"], summary=m["summary"],
+        )  # fmt: skip
+
+
+def _encode_page_token(created_at: datetime, job_id: str) -> str:
+    return base64.urlsafe_b64encode(f"{created_at.isoformat()}|{job_id}".encode()).decode().rstrip("=")
+
+
+def _decode_page_token(token: str) -> tuple[datetime, str]:
+    try:
+        raw = base64.urlsafe_b64decode(token + "=" * (-len(token) % 4)).decode()
+        created, job_id = raw.split("|", 1)
+        when = datetime.fromisoformat(created)
+        if when.tzinfo is None or not job_id:
+            raise ValueError("incomplete token")
+        return when, job_id
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise InvalidRequestError([FieldProblem("page_token", "is not a token this service issued")]) from exc

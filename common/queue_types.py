@@ -1,0 +1,84 @@
+"""What ``common.queue.JobQueue`` hands out: plain, immutable records (no ORM objects escape the queue)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from datetime import datetime
+from typing import Any
+
+from common.job_options import JobOptions
+
+
+@dataclass(frozen=True)
+class JobRecord:
+    """One job as the API and the CLI see it."""
+
+    id: str
+    owner_key_id: str
+    name: str
+    state: str
+    priority: int
+    attempt: int
+    max_attempts: int
+    options: dict[str, Any]
+    num_frames: int
+    cancel_requested: bool
+    progress: dict[str, Any] | None
+    errors: list[dict[str, Any]]
+    idempotency_key: str | None
+    payload_hash: str
+    worker_id: str | None
+    lease_expires_at: datetime | None
+    not_before: datetime | None
+    created_at: datetime
+    queued_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+    updated_at: datetime
+    #: The result's summary (metrics, config, versions) once SUCCEEDED; None before, or when not loaded.
+    summary: dict[str, Any] | None = None
+
+    @property
+    def is_terminal(self) -> bool:
+        return self.state in ("SUCCEEDED", "FAILED", "CANCELLED")
+
+
+@dataclass(frozen=True)
+class ClaimedJob:
+    """What a worker gets from ``claim``: everything needed to run the job and to prove its lease."""
+
+    job_id: str
+    lease_token: str
+    attempt: int
+    payload: bytes
+    options: JobOptions
+    name: str
+    lease_expires_at: datetime
+
+
+@dataclass(frozen=True)
+class JobEventRecord:
+    id: int
+    job_id: str
+    at: datetime
+    kind: str
+    detail: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class ApiKeyRecord:
+    id: str
+    name: str
+    prefix: str
+    created_at: datetime
+    revoked_at: datetime | None
+
+
+@dataclass(frozen=True)
+class QueueStats:
+    """Figures for ``/metrics``: jobs per state, claims so far, and recent durations in seconds."""
+
+    jobs_by_state: dict[str, int]
+    claims_total: int
+    queue_wait_seconds: list[float]
+    run_seconds: list[float]
