@@ -25,8 +25,8 @@ TINY = """
   <option timestep="0.004166666666666667" integrator="implicitfast" iterations="10" noslip_iterations="10"/>
   <worldbody>
     <geom name="table" type="plane" size="1 1 0.01" contype="4" conaffinity="2"/>
-    <body name="right_mocap" mocap="true" pos="-0.1 0 0.03"/>
-    <body name="right_palm" pos="-0.1 0 0.03">
+    <body name="right_mocap" mocap="true" pos="-0.035 0 0.03"/>
+    <body name="right_palm" pos="-0.035 0 0.03">
       <freejoint name="right_root"/>
       <geom type="box" size="0.01 0.04 0.02" contype="1" conaffinity="2" density="1000"/>
       <site name="right_kp0"/>
@@ -61,11 +61,11 @@ TINY = """
 FPS, SUBSTEPS, FRAMES = 30.0, 8, 21
 
 
-def tiny_setup(push: float = 0.06) -> tuple[SimLayout, HandControlSpace, SimState]:
+def tiny_setup(push: float = 0.03) -> tuple[SimLayout, HandControlSpace, SimState]:
     model = mujoco.MjModel.from_xml_string(TINY)
     layout = SimLayout.from_model(model, ["right"], ["h0", "h1"], "object", SUBSTEPS, n_keypoints=3)
     t = np.arange(FRAMES) / (FRAMES - 1)
-    wrist = np.stack([-0.1 + push * t, np.zeros(FRAMES), np.full(FRAMES, 0.03)], axis=1)
+    wrist = np.stack([-0.035 + push * t, np.zeros(FRAMES), np.full(FRAMES, 0.03)], axis=1)
     quat = np.tile([1.0, 0, 0, 0], (FRAMES, 1))
     # Only the 10 PCA coordinates are irrelevant here (2 hinges); the wrist rotation is what moves the box.
     basis = PoseBasis10(np.zeros((10, 2)), np.ones(10))
@@ -110,7 +110,7 @@ def test_controls_shape_errors_name_the_argument() -> None:
                          np.zeros((3, 2)), PoseBasis10(np.zeros((10, 2)), np.ones(10)), 5, 8)
 
 
-def _problem(threads: int = 1, ref_push: float = 0.06) -> tuple[SimWindowProblem, ParallelEvaluator]:
+def _problem(threads: int = 1, ref_push: float = 0.03) -> tuple[SimWindowProblem, ParallelEvaluator]:
     layout, space, start = tiny_setup()
     ev = ParallelEvaluator(layout.model, threads)
     # Reference object motion = what a known control (the reference hand) produces in simulation.
@@ -156,7 +156,7 @@ def test_rollout_matches_python_stepping_and_ignores_history() -> None:
 def test_windowed_cma_recovers_a_known_push() -> None:
     # The reference pushes the box 2 cm further than the controls do; the window loop must find wrist motion
     # that reproduces it (here only the 3 rotation coordinates matter, plus free translation when enabled).
-    problem, ev = _problem(ref_push=0.08)
+    problem, ev = _problem(ref_push=0.05)
     problem.spaces["right"].free_translation = True
     with ev:
         kf0 = {"right": problem.spaces["right"].zero_keyframes()}
