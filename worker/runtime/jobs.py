@@ -1,0 +1,106 @@
+"""Job functions a worker can run: the refinement, and a physics-free self-test job.
+
+A job function takes (payload bytes, options, progress, should_stop) and returns (result bytes,
+summary); see ``worker.runtime.loop.JobFunction``. The refinement keeps one evaluator (a pool of C
+MjData) per actor where the refinement allows it, so consecutive jobs reuse the threads and buffers.
+
+The self-test job exercises the runtime (claim, heartbeat, cancel, crash recovery) in seconds without
+MuJoCo: it "optimises" for ``max_generations`` generations of ``selftest_generation_seconds`` each and
+returns a small deterministic NPZ derived from the payload and seed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import os
+import time
+from typing import Any
+
+import numpy as np
+
+from common.errors import ConfigurationError, JobCancelledError
+from common.job_options import JobOptions
+from worker.runtime.loop import JobFunction, ProgressFn, StopFn
+
+#: Seconds per self-test "generation" (environment, so tests can set it for Ray actors too).
+SELFTEST_GENERATION_ENV = "HOI_REFINE_SELFTEST_GENERATION_SECONDS"
+
+
+def _progress_dict(value: Any) -> dict[str, Any]:
+    """The refinement's progress record as a JSON-ready dict (it may be a dataclass or a dict)."""
+    if isinstance(value, dict):
+        raw = value
+    elif hasattr(value, "to_dict"):
+        raw = value.to_dict()
+    elif hasattr(value, "__dataclass_fields__"):
+        from dataclasses import asdict
+
+        raw = asdict(value)
+    else:
+        raw = {"detail": str(value)}
+    out: dict[str, Any] = {}
+    for key, item in raw.items():
+        if isinstance(item, np.generic):
+            item = item.item()
+        if item is None or isinstance(item, bool | int | float | str):
+            out[str(key)] = item
+    return out
+
+
+class RefineJob:
+    """Runs ``worker.refine.run.refine_sequence`` on a native-NPZ payload with ``threads`` threads."""
+
+    def __init__(self, threads: int) -> None:
+        if threads < 1:
+            raise ValueError(f"threads must be >= 1, got {threads}")
+        self.threads = threads
+
+    def __call__(
+        self, payload: bytes, options: JobOptions, progress: ProgressFn, should_stop: StopFn
+    ) -> tuple[bytes, dict[str, Any]]:
+        from common.sequence_io import sequence_from_npz_bytes
+        from worker.refine.run import refine_sequence
+
+        seq = sequence_from_npz_bytes(payload)
+        outcome = refine_sequence(
+            seq,
+            options,
+            threads=self.threads,
+            progress=lambda p: progress(_progress_dict(p)),
+            should_stop=should_stop,
+        )
+        return outcome.to_npz_bytes(), dict(outcome.summary)
+
+
+class SelfTestJob:
+    """Physics-free job for runtime tests; honours ``should_stop`` once per generation like the refinement."""
+
+    def __init__(self, threads: int = 1) -> None:
+        self.threads = threads
+
+    def __call__(
+        self, payload: bytes, options: JobOptions, progress: ProgressFn, should_stop: StopFn
+    ) -> tuple[bytes, dict[str, Any]]:
+        generations = options.max_generations or 5
+        seconds = float(os.environ.get(SELFTEST_GENERATION_ENV, "0.2"))
+        digest = hashlib.sha256(payload + options.seed.to_bytes(4, "little")).digest()
+        t0 = time.monotonic()
+        for gen in range(generations):
+            if should_stop():
+                raise JobCancelledError(f"stopped at generation {gen}")
+            time.sleep(seconds)
+            progress({"window": 1, "windows": 1, "generation": gen + 1, "evaluations": (gen + 1) * 8})
+        values = np.frombuffer(digest, dtype=np.uint8).astype(np.float64)
+        buf = io.BytesIO()
+        np.savez(buf, values=values)
+        summary = {"kind": "selftest", "generations": generations, "wall_s": time.monotonic() - t0}
+        return buf.getvalue(), summary
+
+
+def make_job_function(kind: str, threads: int) -> JobFunction:
+    if kind == "refine":
+        return RefineJob(threads)
+    if kind == "selftest":
+        return SelfTestJob(threads)
+    raise ConfigurationError(f"unknown worker job kind {kind!r} (expected 'refine' or 'selftest')")

@@ -1,0 +1,240 @@
+"""The worker loop: claim a job, run it under a heartbeat, write the outcome, take the next (issue #5.1).
+
+This is the part of a Ray worker actor that knows nothing of Ray: ``worker.runtime.actor`` wraps it, and
+tests drive it directly against a real queue. The job itself is a pluggable function, so the loop can be
+tested with a cheap job and the refinement plugged in by ``worker.runtime.jobs``.
+
+Every write goes through the queue with the claim's lease token, so a worker whose lease expired (it was
+paused, partitioned, or presumed dead and its job re-run elsewhere) can never overwrite anything: the
+queue raises ``LeaseLostError`` and the loop moves on (DESIGN §2: exactly-once effect on the result).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from common.errors import HoiRefineError, JobCancelledError, LeaseLostError
+from common.job_options import JobOptions
+from worker.runtime.backoff import Backoff, WorkerStopping, call_with_backoff, is_unreachable
+from worker.runtime.heartbeat import Heartbeat
+
+log = logging.getLogger(__name__)
+
+ProgressFn = Callable[[dict[str, Any]], None]
+StopFn = Callable[[], bool]
+
+
+class ClaimedJobLike(Protocol):
+    job_id: str
+    lease_token: str
+    attempt: int
+    payload: bytes
+    options: JobOptions
+    name: str
+
+
+class QueueLike(Protocol):
+    """The subset of ``common.queue.JobQueue`` a worker uses."""
+
+    def claim(self, worker_id: str, lease_seconds: float | None = None) -> Any: ...
+    def heartbeat(self, job_id: str, lease_token: str, progress: dict[str, Any] | None = None) -> bool: ...
+    def complete(self, job_id: str, lease_token: str, result: bytes, summary: dict[str, Any]) -> Any: ...
+    def fail(self, job_id: str, lease_token: str, error: str, retryable: bool = False) -> Any: ...
+    def acknowledge_cancel(self, job_id: str, lease_token: str) -> Any: ...
+    def release(self, job_id: str, lease_token: str) -> Any: ...
+    def requeue_expired(self, now: Any = None) -> int: ...
+
+
+class JobFunction(Protocol):
+    """Runs one job: returns (result bytes, summary); calls ``progress`` freely and ``should_stop`` once
+    per unit of work (a CMA-ES generation), raising ``JobCancelledError`` when it returns True."""
+
+    def __call__(
+        self, payload: bytes, options: JobOptions, progress: ProgressFn, should_stop: StopFn
+    ) -> tuple[bytes, dict[str, Any]]: ...
+
+
+@dataclass
+class CurrentJob:
+    job_id: str
+    lease_token: str
+    attempt: int
+    started: float = field(default_factory=time.monotonic)
+
+
+class WorkerLoop:
+    """Claims and runs jobs one at a time until ``stop()``; see the module docstring."""
+
+    def __init__(
+        self,
+        queue: QueueLike,
+        job_fn: JobFunction,
+        worker_id: str,
+        lease_seconds: float,
+        idle_poll_seconds: float = 1.0,
+        backoff: Backoff | None = None,
+        heartbeat_interval: float | None = None,
+        extra_progress: dict[str, Any] | None = None,
+    ) -> None:
+        if not lease_seconds > 0:
+            raise ValueError(f"lease_seconds must be > 0, got {lease_seconds}")
+        self.queue = queue
+        self.job_fn = job_fn
+        self.worker_id = worker_id
+        self.lease_seconds = float(lease_seconds)
+        # lease / 3: two renewals may fail before the lease runs out (DESIGN §2).
+        self.heartbeat_interval = heartbeat_interval or self.lease_seconds / 3.0
+        self.idle_poll_seconds = idle_poll_seconds
+        self.backoff = backoff or Backoff()
+        self.extra_progress = dict(extra_progress or {})
+        self.stop_event = threading.Event()
+        self.jobs_done: dict[str, int] = {}
+        self._lock = threading.Lock()
+        self._current: CurrentJob | None = None
+        self._heartbeat: Heartbeat | None = None
+
+    # ------------------------------------------------------------------ control (any thread)
+
+    def stop(self) -> None:
+        """Graceful stop: the running job (if any) stops within one generation and is released."""
+        self.stop_event.set()
+        with self._lock:
+            if self._heartbeat is not None:
+                self._heartbeat.request_stop()
+
+    def current(self) -> CurrentJob | None:
+        with self._lock:
+            return self._current
+
+    def status(self) -> dict[str, Any]:
+        cur = self.current()
+        return {
+            "worker_id": self.worker_id,
+            "pid": os.getpid(),
+            "job_id": cur.job_id if cur else None,
+            "lease_token": cur.lease_token if cur else None,
+            "jobs_done": dict(self.jobs_done),
+        }
+
+    # ------------------------------------------------------------------ loop
+
+    def run(self, max_jobs: int | None = None) -> dict[str, int]:
+        """Loop until ``stop()`` (or ``max_jobs`` outcomes other than idle); returns outcome counts."""
+        log.info("worker %s (pid %d) started", self.worker_id, os.getpid())
+        done = 0
+        while not self.stop_event.is_set():
+            try:
+                outcome = self.run_once()
+            except WorkerStopping:
+                break
+            if outcome == "idle":
+                self.stop_event.wait(self.idle_poll_seconds)
+                continue
+            done += 1
+            if max_jobs is not None and done >= max_jobs:
+                break
+        log.info("worker %s stopped after %s", self.worker_id, self.jobs_done)
+        return dict(self.jobs_done)
+
+    def _db(self, what: str, fn: Callable[[], Any]) -> Any:
+        return call_with_backoff(fn, what, self.backoff, stop=self.stop_event, logger=log)
+
+    def run_once(self) -> str:
+        """Claim and run at most one job; returns its outcome or ``"idle"``."""
+        # Expired leases of dead workers go back to QUEUED before we look for work (issue #5.2).
+        requeued = self._db("requeue_expired", self.queue.requeue_expired)
+        if requeued:
+            log.info("requeued %d job(s) whose lease expired", requeued)
+        claimed = self._db("claim", lambda: self.queue.claim(self.worker_id, lease_seconds=self.lease_seconds))
+        if claimed is None:
+            return "idle"
+        outcome = self._run_claimed(claimed)
+        self.jobs_done[outcome] = self.jobs_done.get(outcome, 0) + 1
+        return outcome
+
+    def _run_claimed(self, job: ClaimedJobLike) -> str:
+        log.info("claimed job %s (attempt %d) %r", job.job_id, job.attempt, job.name)
+        base = {**self.extra_progress, "worker_id": self.worker_id, "pid": os.getpid(), "attempt": job.attempt}
+        hb = Heartbeat(
+            lambda progress: bool(self.queue.heartbeat(job.job_id, job.lease_token, progress)),
+            interval=self.heartbeat_interval,
+            lease_seconds=self.lease_seconds,
+            base_progress=base,
+        )
+        with self._lock:
+            self._current = CurrentJob(job.job_id, job.lease_token, job.attempt)
+            self._heartbeat = hb
+        if self.stop_event.is_set():
+            hb.request_stop()
+        # First beat at once: the job's progress shows which process runs it before any work is done.
+        hb.beat()
+        hb.start()
+        try:
+            return self._execute(job, hb)
+        finally:
+            hb.stop()
+            with self._lock:
+                self._current = None
+                self._heartbeat = None
+
+    def _execute(self, job: ClaimedJobLike, hb: Heartbeat) -> str:
+        t0 = time.monotonic()
+        try:
+            if hb.should_stop():
+                raise JobCancelledError("stopped before start")
+            result, summary = self.job_fn(job.payload, job.options, hb.update, hb.should_stop)
+        except JobCancelledError:
+            return self._after_stop(job, hb)
+        except Exception as exc:
+            if hb.lease_lost:
+                log.warning("job %s errored after its lease was lost; nothing written", job.job_id)
+                return "lost"
+            # Input errors and project errors are deterministic: retrying cannot help. Anything else
+            # (a crash in a dependency, memory) may be transient: the queue retries up to max attempts.
+            retryable = not isinstance(exc, HoiRefineError)
+            log.exception("job %s failed (retryable=%s)", job.job_id, retryable)
+            error = _error_text(exc)
+            return self._write(job, "failed", lambda: self.queue.fail(job.job_id, job.lease_token, error, retryable))
+        log.info("job %s computed in %.1f s", job.job_id, time.monotonic() - t0)
+        return self._write(
+            job, "succeeded", lambda: self.queue.complete(job.job_id, job.lease_token, result, summary)
+        )
+
+    def _after_stop(self, job: ClaimedJobLike, hb: Heartbeat) -> str:
+        if hb.lease_lost:
+            log.warning("job %s stopped: lease lost, nothing written", job.job_id)
+            return "lost"
+        if hb.cancel_requested:
+            log.info("job %s cancelled", job.job_id)
+            return self._write(job, "cancelled", lambda: self.queue.acknowledge_cancel(job.job_id, job.lease_token))
+        log.info("job %s released (worker stopping)", job.job_id)
+        return self._write(job, "released", lambda: self.queue.release(job.job_id, job.lease_token))
+
+    def _write(self, job: ClaimedJobLike, outcome: str, fn: Callable[[], Any]) -> str:
+        """A token-checked write; a lost lease means another attempt owns the job now."""
+        next_delay = self.backoff.delays()
+        while True:
+            try:
+                fn()
+                return outcome
+            except LeaseLostError as exc:
+                log.warning("job %s: lease lost before writing %s (%s); nothing written", job.job_id, outcome, exc)
+                return "lost"
+            except Exception as exc:
+                if not is_unreachable(exc):
+                    raise
+                delay = next_delay()
+                log.warning("database unreachable writing %s of job %s; retry in %.1f s", outcome, job.job_id, delay)
+                # Not interruptible by stop(): the result is worth waiting for while the lease may live.
+                time.sleep(delay)
+
+
+def _error_text(exc: BaseException) -> str:
+    text = f"{type(exc).__name__}: {exc}"
+    return text[:2000]

@@ -1,0 +1,218 @@
+"""The Ray driver: starts (or joins) Ray, runs N worker actors, restarts their loops, stops them cleanly.
+
+``hoi-refine worker`` and ``hoi-refine up`` both use ``WorkerPool``. Between polls the driver also calls
+``requeue_expired`` so a job held by a dead worker goes back to QUEUED soon after its lease runs out, even
+while every live worker is busy (issue #5.2).
+
+Graceful stop (SIGINT/SIGTERM): each actor is told to stop; its running job stops within one CMA-ES
+generation and is released to QUEUED without consuming an attempt. Whatever an actor still holds after
+the grace period is released by the driver with the lease token the actor reported, so no job is left
+RUNNING; only then is Ray shut down.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+import uuid
+from dataclasses import dataclass, field
+from typing import Any
+
+from common.errors import LeaseLostError
+from common.settings import get_settings
+from worker.runtime.backoff import is_unreachable
+
+log = logging.getLogger(__name__)
+
+ENV_PREFIX = "HOI_REFINE_"
+
+
+@dataclass
+class PoolConfig:
+    workers: int = 1
+    threads_per_worker: int = 1
+    ray_address: str | None = None
+    job_kind: str = "refine"
+    #: Forward actor logs to this process's stderr.
+    log_to_driver: bool = True
+    #: Seconds actors get to release their jobs on stop.
+    stop_grace_seconds: float = 20.0
+
+    def __post_init__(self) -> None:
+        if self.workers < 1:
+            raise ValueError(f"workers must be >= 1, got {self.workers}")
+        if self.threads_per_worker < 1:
+            raise ValueError(f"threads_per_worker must be >= 1, got {self.threads_per_worker}")
+
+
+@dataclass
+class _Slot:
+    worker_id: str
+    actor: Any
+    run_ref: Any = None
+    restarts: int = 0
+    last_status: dict[str, Any] = field(default_factory=dict)
+
+
+def actor_environment() -> dict[str, str]:
+    """The driver's ``HOI_REFINE_*`` settings with paths made absolute (actors run elsewhere)."""
+    settings = get_settings()
+    env = {k: v for k, v in os.environ.items() if k.startswith(ENV_PREFIX)}
+    env[f"{ENV_PREFIX}DATABASE_URL"] = settings.resolved_database_url()
+    env[f"{ENV_PREFIX}VAR_DIR"] = str(settings.var_dir.resolve())
+    return env
+
+
+class WorkerPool:
+    def __init__(self, config: PoolConfig) -> None:
+        self.config = config
+        self.slots: list[_Slot] = []
+        self.started_ray = False
+        self._queue: Any = None
+        self._last_requeue = 0.0
+
+    # ------------------------------------------------------------------ start
+
+    def start(self) -> None:
+        import ray
+
+        from common.database import create_engine_for
+        from common.queue import JobQueue
+        from worker.runtime.actor import remote_worker_class
+
+        settings = get_settings()
+        self._queue = JobQueue(create_engine_for(settings.resolved_database_url()), settings=settings)
+        cfg = self.config
+        if not ray.is_initialized():
+            if cfg.ray_address:
+                ray.init(address=cfg.ray_address, log_to_driver=cfg.log_to_driver)
+            else:
+                # Lean local start (2-core machines): no dashboard, exactly the CPUs the actors need.
+                ray.init(
+                    num_cpus=cfg.workers * cfg.threads_per_worker,
+                    include_dashboard=False,
+                    log_to_driver=cfg.log_to_driver,
+                    configure_logging=False,
+                )
+            self.started_ray = True
+        cls = remote_worker_class(cfg.threads_per_worker)
+        env = actor_environment()
+        host = os.uname().nodename
+        for i in range(cfg.workers):
+            worker_id = f"{host}-{os.getpid()}-w{i + 1}-{uuid.uuid4().hex[:6]}"
+            actor = cls.remote(worker_id, cfg.threads_per_worker, env, cfg.job_kind)
+            self.slots.append(_Slot(worker_id, actor))
+        for slot in self.slots:
+            slot.run_ref = slot.actor.run.remote()
+        log.info(
+            "started %d worker actor(s) x %d thread(s) on Ray%s",
+            cfg.workers,
+            cfg.threads_per_worker,
+            f" at {cfg.ray_address}" if cfg.ray_address else " (local)",
+        )
+
+    def actor_pids(self, timeout: float = 30.0) -> dict[str, int]:
+        import ray
+
+        return {s.worker_id: int(ray.get(s.actor.pid.remote(), timeout=timeout)) for s in self.slots}
+
+    # ------------------------------------------------------------------ supervise
+
+    def poll(self, timeout: float = 1.0) -> None:
+        """Wait up to ``timeout`` s; restart the loop of any actor whose ``run`` ended (crash or return)."""
+        import ray
+
+        refs = [s.run_ref for s in self.slots if s.run_ref is not None]
+        if refs:
+            ready, _ = ray.wait(refs, num_returns=len(refs), timeout=timeout)
+        else:
+            ready = []
+            time.sleep(timeout)
+        for slot in self.slots:
+            if slot.run_ref is None or slot.run_ref not in ready:
+                continue
+            try:
+                counts = ray.get(slot.run_ref)
+                log.warning("worker %s returned %s; starting its loop again", slot.worker_id, counts)
+            except Exception as exc:  # RayActorError: the process died; Ray restarts it (max_restarts=-1)
+                slot.restarts += 1
+                log.warning(
+                    "worker %s died (%s); Ray restarts it (restart %d)", slot.worker_id, type(exc).__name__,
+                    slot.restarts,
+                )
+            slot.run_ref = slot.actor.run.remote()
+        self._requeue_expired()
+
+    def _requeue_expired(self) -> None:
+        lease = get_settings().lease_seconds
+        now = time.monotonic()
+        if self._queue is None or now - self._last_requeue < lease / 3.0:
+            return
+        self._last_requeue = now
+        try:
+            n = self._queue.requeue_expired()
+        except Exception as exc:
+            if not is_unreachable(exc):
+                raise
+            log.warning("database unreachable during requeue_expired (%s); will retry", type(exc).__name__)
+            return
+        if n:
+            log.info("requeued %d job(s) whose lease expired", n)
+
+    def run_until(self, stop: threading.Event, poll_seconds: float = 1.0) -> None:
+        while not stop.is_set():
+            self.poll(poll_seconds)
+
+    # ------------------------------------------------------------------ stop
+
+    def stop(self) -> None:
+        """Stop every actor, release what they still hold, shut Ray down (if we started it)."""
+        import ray
+
+        if not self.slots:
+            return
+        grace = self.config.stop_grace_seconds
+        log.info("stopping %d worker(s): running jobs are released to the queue", len(self.slots))
+        for slot in self.slots:
+            try:
+                slot.actor.stop.remote()
+            except Exception as exc:
+                log.warning("could not signal worker %s: %s", slot.worker_id, exc)
+        refs = [s.run_ref for s in self.slots if s.run_ref is not None]
+        deadline = time.monotonic() + grace
+        pending = refs
+        while pending and time.monotonic() < deadline:
+            _, pending = ray.wait(pending, num_returns=len(pending), timeout=min(1.0, grace))
+        # Whatever is still held (an actor stuck in a long simulation step) is released by us.
+        for slot in self.slots:
+            if slot.run_ref is not None and slot.run_ref not in pending:
+                continue
+            self._release_leftover(slot)
+        for slot in self.slots:
+            try:
+                ray.kill(slot.actor, no_restart=True)
+            except Exception as exc:
+                log.debug("kill %s: %s", slot.worker_id, exc)
+        self.slots = []
+        if self.started_ray:
+            ray.shutdown()
+            self.started_ray = False
+        log.info("workers stopped")
+
+    def _release_leftover(self, slot: _Slot) -> None:
+        import ray
+
+        try:
+            status = ray.get(slot.actor.status.remote(), timeout=5.0)
+        except Exception as exc:
+            log.warning("worker %s did not report its job (%s); its lease will expire", slot.worker_id, exc)
+            return
+        if not status.get("job_id"):
+            return
+        try:
+            self._queue.release(status["job_id"], status["lease_token"])
+            log.info("released job %s held by worker %s", status["job_id"], slot.worker_id)
+        except LeaseLostError:
+            pass  # the actor wrote its outcome after all
