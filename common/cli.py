@@ -17,6 +17,7 @@ from common.errors import HoiRefineError
 SUBCOMMAND_MODULES: tuple[str, ...] = (
     "worker.cli_local",
     "service.submit.cli",
+    "worker.cli_runtime",
 )
 
 
