@@ -12,12 +12,13 @@ from rich.table import Table
 
 from service.submit.manifest import FAILED_STATES, Entry
 
-#: Metrics of DESIGN §1.8 in table order: (key in the result summary, label, format).
+#: Metrics of DESIGN §1.8 in table order: (key in the result summary, label, format). The worker writes
+#: unit-suffixed keys (``worker.cli_refine.format_metrics_table``); bare names are read as a fallback.
 METRICS: tuple[tuple[str, str, str], ...] = (
-    ("E_t", "E_t (cm)", "{:.2f}"),
-    ("E_r", "E_r (deg)", "{:.2f}"),
-    ("E_j", "E_j (cm)", "{:.2f}"),
-    ("E_ft", "E_ft (cm)", "{:.2f}"),
+    ("E_t_cm", "E_t (cm)", "{:.2f}"),
+    ("E_r_deg", "E_r (deg)", "{:.2f}"),
+    ("E_j_cm", "E_j (cm)", "{:.2f}"),
+    ("E_ft_cm", "E_ft (cm)", "{:.2f}"),
     ("success", "success rate", "{:.0%}"),
 )
 STATE_ORDER = ("PENDING", "QUEUED", "RUNNING", "SUCCEEDED", "FAILED", "CANCELLED", "REJECTED", "INVALID")
@@ -57,6 +58,15 @@ def _number(value: Any) -> float | None:
     return None
 
 
+def _metric(stage: Any, key: str) -> float | None:
+    if not isinstance(stage, dict):
+        return None
+    for name in (key, key.rsplit("_", 1)[0]):  # E_t_cm, then E_t
+        if name in stage:
+            return _number(stage[name])
+    return None
+
+
 def metric_means(entries: list[Entry]) -> dict[str, dict[str, float | None]]:
     """Mean of each metric over succeeded entries that have it, for ``raw`` and ``refined``."""
     out: dict[str, dict[str, float | None]] = {}
@@ -67,7 +77,7 @@ def metric_means(entries: list[Entry]) -> dict[str, dict[str, float | None]]:
                 v
                 for e in entries
                 if e.state == "SUCCEEDED" and e.metrics
-                for v in [_number((e.metrics.get(stage) or {}).get(key))]
+                for v in [_metric(e.metrics.get(stage), key)]
                 if v is not None
             ]
             out[stage][key] = sum(values) / len(values) if values else None
