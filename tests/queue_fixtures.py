@@ -125,3 +125,4 @@ def owner(queue: JobQueue) -> str:
 def submit_tiny(queue: JobQueue, owner: str, seed: int = 0, key: str | None = None, priority: int = 0) -> str:
     job, _ = queue.submit(owner, tiny_payload(seed), JobOptions(seed=seed, priority=priority), key, "tiny", 5)
     return job.id
+
