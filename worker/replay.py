@@ -1,0 +1,157 @@
+"""Raw replay (DESIGN §1.8): drive the hand along the retargeted reference with no optimisation.
+
+``raw_replay(seq)`` retargets every hand, builds the scene, simulates the object from its frame-0 pose and
+returns trajectories, contacts, metrics and timings; ``replay_result_bytes`` writes it in the
+``common.result_format`` layout (summary: ``metrics.raw``, config, versions, timings, IK residual).
+"""
+
+from __future__ import annotations
+
+import platform
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import mujoco
+import numpy as np
+
+from common.result_format import write_result_npz
+from common.sequence import Sequence
+from worker.metrics import compute_metrics, scalar_metrics
+from worker.retarget import HandReference, retarget_sequence
+from worker.scene import Scene, SimConfig, build_scene
+from worker.simulation import (
+    Controls,
+    HandTargets,
+    RolloutRecord,
+    initial_state,
+    rollout,
+    substep_controls,
+)
+
+
+@dataclass
+class ReplayResult:
+    """Everything a raw replay produced. ``timings`` in seconds; ``steps`` counts settle + rollout steps."""
+
+    sequence: str
+    references: list[HandReference]
+    scene: Scene
+    controls: Controls
+    record: RolloutRecord
+    object_pose_ref: np.ndarray
+    metrics: dict[str, Any]
+    timings: dict[str, float] = field(default_factory=dict)
+    steps: int = 0
+
+    @property
+    def contacts(self) -> dict[str, np.ndarray]:
+        assert self.record.contacts is not None
+        return self.record.contacts
+
+    def ik_residual_mm(self) -> dict[str, float]:
+        return {r.side: r.mean_residual_mm() for r in self.references}
+
+
+def versions() -> dict[str, str]:
+    import importlib.metadata as md
+
+    out = {"python": platform.python_version(), "mujoco": mujoco.__version__, "numpy": np.__version__}
+    try:
+        out["hoi-refine"] = md.version("hoi-refine")
+    except md.PackageNotFoundError:  # pragma: no cover - running from a source tree without install
+        out["hoi-refine"] = "unknown"
+    return out
+
+
+def raw_replay(seq: Sequence, config: SimConfig | None = None, record_contacts: bool = True) -> ReplayResult:
+    """Retarget, build the scene and replay the reference open-loop; see the module docstring."""
+    config = config or SimConfig()
+    t0 = time.perf_counter()
+    references = retarget_sequence(seq)
+    t1 = time.perf_counter()
+    scene = build_scene(seq, references, config)
+    data = scene.make_data()
+    t2 = time.perf_counter()
+    targets: dict[str, HandTargets] = {r.side: HandTargets.from_reference(r) for r in references}
+    state0, settle_steps = initial_state(scene, data, targets)
+    controls = substep_controls(scene, targets)
+    record = rollout(
+        scene, data, state0, controls.ctrl, controls.mocap_pos, controls.mocap_quat, record_contacts=record_contacts
+    )
+    t3 = time.perf_counter()
+    object_ref = seq.object_pose_world()
+    metrics = compute_metrics(
+        record.object_pose,
+        object_ref,
+        record.keypoints,
+        {r.side: r.keypoints for r in references},
+        {r.side: r.valid for r in references},
+    )
+    steps = settle_steps + record.steps
+    timings = {
+        "retarget_s": t1 - t0,
+        "build_scene_s": t2 - t1,
+        "simulate_s": t3 - t2,
+        "total_s": time.perf_counter() - t0,
+        "steps_per_second": steps / max(t3 - t2, 1e-9),
+    }
+    return ReplayResult(
+        sequence=seq.name,
+        references=references,
+        scene=scene,
+        controls=controls,
+        record=record,
+        object_pose_ref=object_ref,
+        metrics=metrics,
+        timings=timings,
+        steps=steps,
+    )
+
+
+def replay_summary(result: ReplayResult) -> dict[str, Any]:
+    """The JSON summary stored in the result file."""
+    cfg = result.scene.config.to_dict()
+    return {
+        "kind": "replay",
+        "sequence": result.sequence,
+        "fps": result.scene.fps,
+        "frames": int(result.record.object_pose.shape[0]),
+        "metrics": {"raw": scalar_metrics(result.metrics)},
+        "config": {k: list(v) if isinstance(v, tuple) else v for k, v in cfg.items()},
+        "versions": versions(),
+        "timings": result.timings,
+        "simulated_steps": result.steps,
+        "ik_residual_mm": result.ik_residual_mm(),
+        "hand_length_m": {r.side: r.geometry.hand_length for r in result.references},
+        "object_collision": result.scene.object_collision,
+        "num_contacts": len(result.contacts["contact_frame"]),
+    }
+
+
+def replay_arrays(result: ReplayResult) -> dict[str, np.ndarray]:
+    """The result-file arrays of a replay (``common.result_format`` keys)."""
+    rec = result.record
+    arrays: dict[str, np.ndarray] = {
+        "object_pose_sim": rec.object_pose,
+        "object_vel_sim": rec.object_vel,
+        "object_pose_ref": result.object_pose_ref,
+    }
+    for ref in result.references:
+        s = ref.side
+        arrays[f"{s}_q_target"] = ref.q
+        arrays[f"{s}_wrist_pos"] = ref.wrist_pos
+        arrays[f"{s}_wrist_quat"] = ref.wrist_quat
+        arrays[f"{s}_keypoints_sim"] = rec.keypoints[s]
+        arrays[f"{s}_keypoints_ref"] = ref.keypoints
+        arrays[f"{s}_valid"] = ref.valid
+        arrays[f"{s}_ik_residual_mm"] = ref.residual_mm
+    for key, val in result.metrics["per_frame"].items():
+        arrays[f"metrics_raw_{key}"] = val
+    arrays.update(result.contacts)
+    return arrays
+
+
+def replay_result_bytes(result: ReplayResult) -> bytes:
+    """Serialise a replay with ``common.result_format.write_result_npz``."""
+    return write_result_npz(replay_arrays(result), replay_summary(result))

@@ -1,0 +1,240 @@
+"""Single-threaded rollouts of a ``Scene`` (DESIGN §1.4): initial state, per-substep controls, stepping.
+
+One ``MjData`` per thread: ``rollout`` starts by restoring a full-physics state (``mj_setState`` with
+``mjSTATE_FULLPHYSICS``, which includes the solver warmstart), so a rollout from a saved state is
+bit-identical whatever that ``MjData`` ran before. The object is only ever placed at frame 0
+(``initial_state``); afterwards it moves only through contact.
+
+Controls (``substep_controls``): hinge targets and wrist positions are interpolated linearly between frames,
+wrist rotations by slerp; substep s of frame f uses the fraction (s + 1) / substeps_per_frame towards frame
+f + 1, so the last substep of a frame reaches the next frame's targets exactly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from worker.contacts import ContactRecorder
+from worker.hand_model import JOINT_LOWER, JOINT_UPPER, FloatArray, quat_to_matrix
+from worker.retarget import HandReference
+from worker.scene import Scene
+
+STATE_SPEC = mujoco.mjtState.mjSTATE_FULLPHYSICS
+
+
+@dataclass
+class HandTargets:
+    """Per-frame targets of one hand: ``q`` (F,45), ``wrist_pos`` (F,3), ``wrist_quat`` (F,4) wxyz."""
+
+    q: FloatArray
+    wrist_pos: FloatArray
+    wrist_quat: FloatArray
+
+    @classmethod
+    def from_reference(cls, ref: HandReference, start: int = 0, end: int | None = None) -> HandTargets:
+        sl = slice(start, end)
+        return cls(q=ref.q[sl].copy(), wrist_pos=ref.wrist_pos[sl].copy(), wrist_quat=ref.wrist_quat[sl].copy())
+
+    def __post_init__(self) -> None:
+        f = self.q.shape[0]
+        for name, shape in (("q", (f, 45)), ("wrist_pos", (f, 3)), ("wrist_quat", (f, 4))):
+            if getattr(self, name).shape != shape:
+                raise ValueError(f"HandTargets.{name} must have shape {shape}, got {getattr(self, name).shape}")
+
+
+@dataclass
+class Controls:
+    """Per-substep inputs: ``ctrl`` (S,nu), ``mocap_pos`` (S,nmocap,3), ``mocap_quat`` (S,nmocap,4)."""
+
+    ctrl: FloatArray
+    mocap_pos: FloatArray
+    mocap_quat: FloatArray
+
+    @property
+    def num_steps(self) -> int:
+        return int(self.ctrl.shape[0])
+
+
+@dataclass
+class RolloutRecord:
+    """What a rollout recorded per frame (F = steps / substeps_per_frame + 1; frame 0 = the start state).
+
+    ``object_pose`` (F,7) world x y z qw qx qy qz; ``object_vel`` (F,6) linear then angular, world frame;
+    ``keypoints`` side -> (F,21,3) world; ``final_state`` full-physics state after the last step; ``states``
+    (F, nstate) when requested; ``contacts`` columns (``common.result_format.CONTACT_KEYS``) when requested;
+    ``steps`` physics steps taken.
+    """
+
+    object_pose: FloatArray
+    object_vel: FloatArray
+    keypoints: dict[str, FloatArray]
+    final_state: FloatArray
+    steps: int
+    states: FloatArray | None = None
+    contacts: dict[str, np.ndarray] | None = None
+
+
+def slerp(q0: FloatArray, q1: FloatArray, t: FloatArray) -> FloatArray:
+    """Spherical interpolation of wxyz quaternions (...,4) at fractions t (...); shortest path."""
+    dot = np.sum(q0 * q1, axis=-1)
+    q1 = np.where(dot[..., None] < 0, -q1, q1)
+    dot = np.abs(dot)
+    theta = np.arccos(np.clip(dot, -1.0, 1.0))
+    sin = np.sin(theta)
+    small = sin < 1e-8
+    w0 = np.where(small, 1 - t, np.sin((1 - t) * theta) / np.where(small, 1.0, sin))
+    w1 = np.where(small, t, np.sin(t * theta) / np.where(small, 1.0, sin))
+    out = w0[..., None] * q0 + w1[..., None] * q1
+    return np.asarray(out / np.linalg.norm(out, axis=-1, keepdims=True))
+
+
+def substep_controls(scene: Scene, targets: dict[str, HandTargets]) -> Controls:
+    """Per-substep controls taking the hands from frame 0 to frame F-1 of ``targets`` ((F-1)·spf steps)."""
+    model = scene.model
+    missing = set(scene.hands) - set(targets)
+    if missing:
+        raise ValueError(f"targets lack hands {sorted(missing)}")
+    frames = {t.q.shape[0] for t in targets.values()}
+    if len(frames) != 1 or min(frames) < 2:
+        raise ValueError(f"every hand needs the same number (>= 2) of target frames, got {sorted(frames)}")
+    n_frames = frames.pop()
+    spf = scene.substeps_per_frame
+    steps = (n_frames - 1) * spf
+    f = np.repeat(np.arange(n_frames - 1), spf)
+    alpha = np.tile((np.arange(spf) + 1.0) / spf, n_frames - 1)
+    ctrl = np.zeros((steps, model.nu))
+    mocap_pos = np.zeros((steps, model.nmocap, 3))
+    mocap_quat = np.zeros((steps, model.nmocap, 4))
+    mocap_quat[..., 0] = 1.0
+    for side, h in scene.hands.items():
+        t = targets[side]
+        q = (1 - alpha)[:, None] * t.q[f] + alpha[:, None] * t.q[f + 1]
+        ctrl[:, h.actuator_ids] = np.clip(q, JOINT_LOWER, JOINT_UPPER)
+        mocap_pos[:, h.mocap_id] = (1 - alpha)[:, None] * t.wrist_pos[f] + alpha[:, None] * t.wrist_pos[f + 1]
+        mocap_quat[:, h.mocap_id] = slerp(t.wrist_quat[f], t.wrist_quat[f + 1], alpha)
+    return Controls(ctrl=ctrl, mocap_pos=mocap_pos, mocap_quat=mocap_quat)
+
+
+def state_size(scene: Scene) -> int:
+    return int(mujoco.mj_stateSize(scene.model, STATE_SPEC))
+
+
+def get_state(scene: Scene, data: mujoco.MjData) -> FloatArray:
+    out = np.empty(state_size(scene))
+    mujoco.mj_getState(scene.model, data, out, STATE_SPEC)
+    return out
+
+
+def set_state(scene: Scene, data: mujoco.MjData, state: FloatArray) -> None:
+    mujoco.mj_setState(scene.model, data, np.asarray(state, dtype=np.float64), STATE_SPEC)
+
+
+def pose_hands(scene: Scene, data: mujoco.MjData, targets: dict[str, HandTargets], frame: int = 0) -> None:
+    """Put every hand exactly at its target pose of ``frame`` (root, hinges, mocap and servo targets)."""
+    for side, h in scene.hands.items():
+        t = targets[side]
+        q = np.clip(t.q[frame], JOINT_LOWER, JOINT_UPPER)
+        data.qpos[h.root_qpos_adr : h.root_qpos_adr + 3] = t.wrist_pos[frame]
+        data.qpos[h.root_qpos_adr + 3 : h.root_qpos_adr + 7] = t.wrist_quat[frame]
+        data.qpos[h.qpos_adr] = q
+        data.ctrl[h.actuator_ids] = q
+        data.mocap_pos[h.mocap_id] = t.wrist_pos[frame]
+        data.mocap_quat[h.mocap_id] = t.wrist_quat[frame]
+
+
+def initial_state(scene: Scene, data: mujoco.MjData, targets: dict[str, HandTargets]) -> tuple[FloatArray, int]:
+    """The frame-0 state: hands at their frame-0 targets, object at ``scene.object_init_pose`` at rest, then
+    ``config.settle_seconds`` of simulation with the hands held (the object settles on the table by physics
+    alone). Returns (full-physics state with time reset to 0, settle steps taken)."""
+    model = scene.model
+    mujoco.mj_resetData(model, data)
+    pose_hands(scene, data, targets, 0)
+    a = scene.object_qpos_adr
+    data.qpos[a : a + 7] = scene.object_init_pose
+    mujoco.mj_forward(model, data)
+    n_settle = round(scene.config.settle_seconds / model.opt.timestep)
+    for _ in range(n_settle):
+        mujoco.mj_step(model, data)
+    data.time = 0.0
+    return get_state(scene, data), n_settle
+
+
+def _record_frame(scene: Scene, data: mujoco.MjData, rec: dict[str, FloatArray], i: int) -> None:
+    a, d = scene.object_qpos_adr, scene.object_dof_adr
+    rec["pose"][i] = data.qpos[a : a + 7]
+    rot = quat_to_matrix(data.qpos[a + 3 : a + 7])
+    rec["vel"][i, :3] = data.qvel[d : d + 3]
+    rec["vel"][i, 3:] = rot @ data.qvel[d + 3 : d + 6]  # free-joint angular velocity is in the body frame
+    for side, h in scene.hands.items():
+        rec[side][i] = data.site_xpos[h.keypoint_site_ids]
+
+
+def rollout(
+    scene: Scene,
+    data: mujoco.MjData,
+    state: FloatArray,
+    ctrl: FloatArray,
+    mocap_pos: FloatArray,
+    mocap_quat: FloatArray,
+    record_contacts: bool = False,
+    record_states: bool = False,
+    frame_offset: int = 0,
+) -> RolloutRecord:
+    """Step from ``state`` through the S substeps of ``ctrl`` (S,nu) / ``mocap_pos`` (S,nmocap,3) /
+    ``mocap_quat`` (S,nmocap,4); record every ``substeps_per_frame`` steps (see ``RolloutRecord``).
+
+    Contacts of a frame are those of its last substep (solved forces); their frame numbers are
+    ``frame_offset + i``. Keypoints and object pose are read after a kinematics pass at the frame's state.
+    """
+    model = scene.model
+    steps = ctrl.shape[0]
+    spf = scene.substeps_per_frame
+    if ctrl.shape != (steps, model.nu):
+        raise ValueError(f"ctrl must have shape (S, {model.nu}), got {ctrl.shape}")
+    if mocap_pos.shape != (steps, model.nmocap, 3):
+        raise ValueError(f"mocap_pos must have shape ({steps}, {model.nmocap}, 3), got {mocap_pos.shape}")
+    if mocap_quat.shape != (steps, model.nmocap, 4):
+        raise ValueError(f"mocap_quat must have shape ({steps}, {model.nmocap}, 4), got {mocap_quat.shape}")
+    if steps % spf:
+        raise ValueError(f"ctrl must cover whole frames: {steps} steps is not a multiple of {spf}")
+    n_frames = steps // spf + 1
+    rec: dict[str, FloatArray] = {"pose": np.zeros((n_frames, 7)), "vel": np.zeros((n_frames, 6))}
+    for side in scene.hands:
+        rec[side] = np.zeros((n_frames, 21, 3))
+    states = np.zeros((n_frames, state_size(scene))) if record_states else None
+    recorder = ContactRecorder(scene) if record_contacts else None
+
+    set_state(scene, data, state)
+    if recorder is not None:
+        mujoco.mj_forward(model, data)  # frame-0 contacts; the state is restored below (forward is not pure)
+        recorder.add(data, frame_offset)
+        set_state(scene, data, state)
+    mujoco.mj_kinematics(model, data)
+    _record_frame(scene, data, rec, 0)
+    if states is not None:
+        states[0] = state
+    for s in range(steps):
+        data.ctrl[:] = ctrl[s]
+        data.mocap_pos[:] = mocap_pos[s]
+        data.mocap_quat[:] = mocap_quat[s]
+        mujoco.mj_step(model, data)
+        if (s + 1) % spf == 0:
+            i = (s + 1) // spf
+            if recorder is not None:
+                recorder.add(data, frame_offset + i)
+            if states is not None:
+                mujoco.mj_getState(model, data, states[i], STATE_SPEC)
+            mujoco.mj_kinematics(model, data)
+            _record_frame(scene, data, rec, i)
+    return RolloutRecord(
+        object_pose=rec["pose"],
+        object_vel=rec["vel"],
+        keypoints={side: rec[side] for side in scene.hands},
+        final_state=get_state(scene, data),
+        steps=steps,
+        states=states,
+        contacts=None if recorder is None else recorder.columns(),
+    )
