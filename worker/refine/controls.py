@@ -146,16 +146,21 @@ class HandControlSpace:
     def zero_keyframes(self) -> FloatArray:
         return np.zeros((self.n_keyframes, self.dim))
 
-    def offsets(self, keyframes: FloatArray, s0: int, s1: int, j: int | None = None,
+    @property
+    def last_sample(self) -> int:
+        """Index of the last reference sample (the last frame); later substeps hold it."""
+        return (self.num_frames - 1) * self.substeps
+
+    def offsets(self, keyframes: FloatArray, idx: IntArray, j: int | None = None,
                 candidates: FloatArray | None = None) -> FloatArray:
-        """Interpolated offsets (C, s1 - s0, dim) on substeps [s0, s1).
+        """Interpolated offsets (C, len(idx), dim) at reference samples ``idx`` (substep times idx / S).
 
         With ``j`` and ``candidates`` (C, dim), keyframe j is replaced by each candidate in turn (one
         CMA-ES population); otherwise C = 1 with ``keyframes`` as given.
         """
         if keyframes.shape != (self.n_keyframes, self.dim):
             raise ValueError(f"keyframes must have shape {(self.n_keyframes, self.dim)}, got {keyframes.shape}")
-        w = self._weights[s0:s1]
+        w = self._weights[idx]
         if j is None or candidates is None:
             return (w @ keyframes)[None]
         if candidates.ndim != 2 or candidates.shape[1] != self.dim:
@@ -165,31 +170,20 @@ class HandControlSpace:
         base = w @ others  # (n, dim)
         return base[None] + w[:, j][None, :, None] * candidates[:, None, :]
 
-    def controls(self, offsets: FloatArray, s0: int) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Hinge targets (C, n, 45), wrist positions (C, n, 3), wrist quaternions (C, n, 4) on substeps
-        [s0, s0 + n) for offsets (C, n, dim) from ``offsets``."""
-        n = offsets.shape[1]
-        q = self._q_sub[s0 : s0 + n][None] + offsets[..., :N_POSE] @ self._pose_map.T
+    def controls(self, offsets: FloatArray, idx: IntArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Hinge targets (C, n, H), wrist positions (C, n, 3), wrist quaternions (C, n, 4) at reference
+        samples ``idx`` (n,) for offsets (C, n, dim) from ``offsets``."""
+        q = self._q_sub[idx][None] + offsets[..., :N_POSE] @ self._pose_map.T
         q = np.clip(q, self.q_limits[:, 0], self.q_limits[:, 1])
         rot = quat_exp(OMEGA_SCALE * offsets[..., N_POSE : N_POSE + N_ROT])
-        quat = quat_mul(rot, np.broadcast_to(self._r_sub[s0 : s0 + n], rot.shape))
-        pos = np.broadcast_to(self._p_sub[s0 : s0 + n], (offsets.shape[0], n, 3)).copy()
+        quat = quat_mul(rot, np.broadcast_to(self._r_sub[idx][None], rot.shape))
+        pos = np.broadcast_to(self._p_sub[idx][None], (offsets.shape[0], len(idx), 3)).copy()
         if self.free_translation:
             pos += TRANSLATION_SCALE * offsets[..., N_POSE + N_ROT :]
         return q, pos, quat
 
     def frame_controls(self, keyframes: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Per-frame hinge targets (T, 45), wrist positions (T, 3), quaternions (T, 4) for the result."""
+        """Per-frame hinge targets (T, H), wrist positions (T, 3), quaternions (T, 4) for the result."""
         idx = np.arange(self.num_frames) * self.substeps
-        offs = (self._weights[idx] @ keyframes)[None]
-        q, p, r = self._controls_at(offs, idx)
+        q, p, r = self.controls(self.offsets(keyframes, idx), idx)
         return q[0], p[0], r[0]
-
-    def _controls_at(self, offsets: FloatArray, idx: IntArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-        q = self._q_sub[idx][None] + offsets[..., :N_POSE] @ self._pose_map.T
-        q = np.clip(q, self.q_limits[:, 0], self.q_limits[:, 1])
-        quat = quat_mul(quat_exp(OMEGA_SCALE * offsets[..., N_POSE : N_POSE + N_ROT]), self._r_sub[idx][None])
-        pos = self._p_sub[idx][None] + (
-            TRANSLATION_SCALE * offsets[..., N_POSE + N_ROT :] if self.free_translation else 0.0
-        )
-        return q, pos, quat

@@ -9,14 +9,15 @@ conventions of ``worker.hand_mjcf``: actuators ``{side}_{hinge}``, mocap body ``
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import mujoco
 import numpy as np
 import numpy.typing as npt
 
 from worker.refine.controls import HandControlSpace
-from worker.refine.evaluator import CONTROL_SPEC, ParallelEvaluator, SimState
-from worker.refine.losses import HandTargets, ObjectTargets, WindowRecord, rotate, window_losses
+from worker.refine.evaluator import ParallelEvaluator, SimState
+from worker.refine.losses import HandTargets, ObjectTargets, WindowRecord, window_losses
 from worker.refine.spline import FloatArray, keyframe_window
 
 IntArray = npt.NDArray[np.int64]
@@ -34,18 +35,39 @@ class HandHandles:
 
 @dataclass
 class SimLayout:
+    """What the refinement drives and reads. ``object_sensor_adr``: 13 sensordata values from there,
+    world framepos (3), framequat (4), framelinvel (3), frameangvel (3) of the object body."""
+
     model: mujoco.MjModel
     substeps: int
     object_body_id: int
-    object_qpos_adr: int
-    object_dof_adr: int
+    object_sensor_adr: int
     hands: dict[str, HandHandles]
+
+    @staticmethod
+    def from_scene(scene: Any) -> SimLayout:
+        """From a ``worker.scene.Scene``."""
+        hands = {
+            side: HandHandles(
+                side=side,
+                actuator_ids=np.asarray(h.actuator_ids),
+                hinge_dof_adrs=np.asarray(h.dof_adr),
+                mocap_id=int(h.mocap_id),
+                keypoint_sensor_adrs=np.asarray(h.keypoint_sensor_adr)[:, None] + np.arange(3),
+                body_ids=frozenset(int(b) for b in h.body_ids),
+            )
+            for side, h in scene.hands.items()
+        }
+        return SimLayout(scene.model, scene.substeps_per_frame, scene.object_body_id, scene.object_sensor_adr, hands)
 
     @staticmethod
     def from_model(
         model: mujoco.MjModel, sides: list[str], hinge_names: list[str], object_body: str, substeps: int,
         n_keypoints: int = 21,
     ) -> SimLayout:
+        """By the scene's naming conventions (for tiny test models): actuators/joints ``{side}_{hinge}``,
+        mocap ``{side}_mocap``, sensors ``{side}_kp{j}`` and ``object_pos`` (followed by quat, linvel, angvel)."""
+
         def obj_id(kind: mujoco.mjtObj, name: str) -> int:
             i = mujoco.mj_name2id(model, kind, name)
             if i < 0:
@@ -54,27 +76,22 @@ class SimLayout:
 
         hands = {}
         for side in sides:
-            acts = np.array([obj_id(mujoco.mjtObj.mjOBJ_ACTUATOR, f"{side}_{h}") for h in hinge_names])
             joints = [obj_id(mujoco.mjtObj.mjOBJ_JOINT, f"{side}_{h}") for h in hinge_names]
             sens = [obj_id(mujoco.mjtObj.mjOBJ_SENSOR, f"{side}_kp{j}") for j in range(n_keypoints)]
-            mocap_body = obj_id(mujoco.mjtObj.mjOBJ_BODY, f"{side}_mocap")
             root = int(model.jnt_bodyid[joints[0]])
             while model.body_parentid[root] != 0:
                 root = int(model.body_parentid[root])
-            bodies = frozenset(int(b) for b in range(model.nbody) if _is_descendant(model, b, root))
             hands[side] = HandHandles(
                 side=side,
-                actuator_ids=acts,
+                actuator_ids=np.array([obj_id(mujoco.mjtObj.mjOBJ_ACTUATOR, f"{side}_{h}") for h in hinge_names]),
                 hinge_dof_adrs=np.array([int(model.jnt_dofadr[j]) for j in joints]),
-                mocap_id=int(model.body_mocapid[mocap_body]),
+                mocap_id=int(model.body_mocapid[obj_id(mujoco.mjtObj.mjOBJ_BODY, f"{side}_mocap")]),
                 keypoint_sensor_adrs=np.array([int(model.sensor_adr[s]) + np.arange(3) for s in sens]),
-                body_ids=bodies,
+                body_ids=frozenset(b for b in range(model.nbody) if _is_descendant(model, b, root)),
             )
-        body = obj_id(mujoco.mjtObj.mjOBJ_BODY, object_body)
-        jnt = int(model.body_jntadr[body])
-        if jnt < 0 or model.jnt_type[jnt] != mujoco.mjtJoint.mjJNT_FREE:
-            raise ValueError(f"object body {object_body!r} must have a free joint")
-        return SimLayout(model, substeps, body, int(model.jnt_qposadr[jnt]), int(model.jnt_dofadr[jnt]), hands)
+        sensor = obj_id(mujoco.mjtObj.mjOBJ_SENSOR, "object_pos")
+        return SimLayout(model, substeps, obj_id(mujoco.mjtObj.mjOBJ_BODY, object_body),
+                         int(model.sensor_adr[sensor]), hands)
 
 
 def _is_descendant(model: mujoco.MjModel, body: int, root: int) -> bool:
@@ -175,8 +192,10 @@ class SimWindowProblem:
         ``extra_step`` adds one substep past f1 so the sensors of frame f1 get recorded (see evaluator).
         """
         s0, s1 = f0 * self.substeps, f1 * self.substeps + (1 if extra_step else 0)
-        s1_ref = min(s1, (self.num_frames - 1) * self.substeps + 1)
         n = s1 - s0
+        # Substep k drives towards the sample at its end, (k + 1) / S (as ``worker.simulation`` does), and
+        # substeps past the last frame hold it.
+        idx = np.minimum(np.arange(s0, s1) + 1, self.spaces[self.sides[0]].last_sample)
         m = self.layout.model
         n_cand = 1 if candidates is None else len(next(iter(candidates.values())))
         control = np.zeros((n_cand, n, self._ncontrol))
@@ -186,16 +205,14 @@ class SimWindowProblem:
         for side, space in self.spaces.items():
             h = self.layout.hands[side]
             cand = None if candidates is None else candidates[side]
-            offs = space.offsets(keyframes[side], s0, s1_ref, j, cand)
-            if s1_ref < s1:  # past the last frame: hold the last controls
-                offs = np.concatenate([offs, np.repeat(offs[:, -1:], s1 - s1_ref, axis=1)], axis=1)
-            q, p, r = space.controls(offs, s0) if s1_ref == s1 else _held(space, offs, s0, s1_ref)
+            offs = space.offsets(keyframes[side], idx, j, cand)
+            q, p, r = space.controls(offs, idx)
             control[:, :, h.actuator_ids] = q
             control[:, :, pos_at + 3 * h.mocap_id : pos_at + 3 * h.mocap_id + 3] = p
             control[:, :, quat_at + 4 * h.mocap_id : quat_at + 4 * h.mocap_id + 4] = r
             # Offsets at frames f0 .. f1 for the control-consistency term (differences over f0+1 .. f1).
-            frame_idx = np.minimum(np.arange(f0, f1 + 1) * self.substeps - s0, n - 1)
-            frame_offsets[side] = offs[:, frame_idx]
+            fidx = np.arange(f0, f1 + 1) * self.substeps
+            frame_offsets[side] = space.offsets(keyframes[side], fidx, j, cand)
         return control, frame_offsets
 
     def _step_recording(
@@ -224,34 +241,15 @@ class SimWindowProblem:
         frames = np.arange(f0 + 1, f1 + 1)
         after = (frames - f0) * s - 1  # state after this step = state at the frame time
         at = (frames - f0) * s  # sensors of the next step = computed at the frame time
-        nq = self._nq
-        qpos = states[:, after, 1 : 1 + nq]
-        qvel = states[:, after, 1 + nq : 1 + nq + self._nv]
-        oq, od = self.layout.object_qpos_adr, self.layout.object_dof_adr
-        obj_quat = qpos[..., oq + 3 : oq + 7]
-        # Free-joint angular velocity is in the body frame; the losses and results use world frame.
-        ang_world = rotate(obj_quat, qvel[..., od + 3 : od + 6])
-        keypoints, hinge_vel = {}, {}
-        for side, h in self.layout.hands.items():
-            keypoints[side] = sensors[:, at][..., h.keypoint_sensor_adrs]
-            hinge_vel[side] = qvel[..., h.hinge_dof_adrs]
+        sens = sensors[:, at]
+        a = self.layout.object_sensor_adr
+        qvel = states[:, after, 1 + self._nq : 1 + self._nq + self._nv]
         return WindowRecord(
             frames=frames,
-            obj_pos=qpos[..., oq : oq + 3],
-            obj_quat=obj_quat,
-            obj_vel=np.concatenate([qvel[..., od : od + 3], ang_world], axis=-1),
-            keypoints=keypoints,
-            hinge_vel=hinge_vel,
+            obj_pos=sens[..., a : a + 3],
+            obj_quat=sens[..., a + 3 : a + 7],
+            obj_vel=sens[..., a + 7 : a + 13],
+            keypoints={side: sens[..., h.keypoint_sensor_adrs] for side, h in self.layout.hands.items()},
+            hinge_vel={side: qvel[..., h.hinge_dof_adrs] for side, h in self.layout.hands.items()},
             offsets=offsets,
         )
-
-
-def _held(space: HandControlSpace, offs: FloatArray, s0: int, s1_ref: int) -> tuple[FloatArray, ...]:
-    """Controls where the last substeps lie past the reference: evaluate what exists, hold the last."""
-    n_ref = s1_ref - s0
-    q, p, r = space.controls(offs[:, :n_ref], s0)
-    extra = offs.shape[1] - n_ref
-    return tuple(np.concatenate([a, np.repeat(a[:, -1:], extra, axis=1)], axis=1) for a in (q, p, r))
-
-
-__all__ = ["CONTROL_SPEC", "HandHandles", "SimLayout", "SimWindowProblem"]
