@@ -15,7 +15,13 @@ from worker.hand_model import forward_keypoints
 from worker.mano import build_test_mano_model, ensure_keypoints, load_mano_pickle
 from worker.mano.decode import MANO21_ORDER, decode_mano
 from worker.mano.hand_geometry import mano_hand_geometry
-from worker.mano.pose import hand_pose_to_mano, mano_hand_pose, mano_pca_basis, mano_reference
+from worker.mano.pose import (
+    hand_pose_to_mano,
+    mano_hand_pose,
+    mano_pca_basis,
+    mano_reference,
+    refined_mano_params,
+)
 from worker.mano.synthetic_model import MANO_PARENTS
 
 pytest.importorskip("torch")
@@ -130,6 +136,10 @@ def test_ensure_keypoints_and_reference(mano_dir: Path, monkeypatch: pytest.Monk
     ref = mano_reference(out, out.hands[0])
     np.testing.assert_allclose(ref.keypoints[1:, :4], out.keypoints_world(out.hands[0])[1:, :4], atol=1e-6)
     np.testing.assert_allclose(ref.wrist_pos[0], ref.wrist_pos[1])  # invalid frame held at the nearest valid
+    # The world-frame reference maps back to MANO parameters that decode to the same source keypoints.
+    back = refined_mano_params(out, out.hands[0], ref.wrist_pos, ref.wrist_quat, ref.q, pose_format="pca")
+    np.testing.assert_allclose(back.hand_pose[1:], params.hand_pose[1:] @ np.eye(10, 45), atol=1e-8)
+    np.testing.assert_allclose(decode_mano(back, "right").keypoints[1:], kp[1:], atol=1e-9)
 
 
 def test_pca_basis_over_hinges(mano_dir: Path) -> None:

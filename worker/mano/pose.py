@@ -68,6 +68,28 @@ def hand_pose_to_mano(
     return params
 
 
+def refined_mano_params(
+    seq: Sequence,
+    hand: HandTrack,
+    wrist_pos_world: FloatArray,
+    wrist_quat_world: FloatArray,
+    q: FloatArray,
+    mano_dir: Path | str | None = None,
+    pose_format: str = "axis_angle",
+) -> ManoParams:
+    """MANO parameters (in the sequence's source frame, the hand's betas) for a world-frame built-in hand pose,
+    e.g. the refined trajectory (DESIGN §1.7 "MANO parameters when MANO is used")."""
+    if hand.mano is None:
+        raise ValueError(f"the {hand.side} hand has no MANO parameters")
+    source_from_world = np.linalg.inv(seq.world_transform())
+    pos = np.asarray(wrist_pos_world, np.float64) @ source_from_world[:3, :3].T + source_from_world[:3, 3]
+    rot = Rotation.from_matrix(source_from_world[:3, :3]) * Rotation.from_quat(wrist_quat_world, scalar_first=True)
+    mgeo = mano_hand_geometry(mano_dir, hand.side, hand.mano.betas)
+    return hand_pose_to_mano(
+        pos, rot.as_quat(scalar_first=True), q, mgeo, hand.mano.betas, mano_dir, pose_format=pose_format
+    )
+
+
 def mano_reference(seq: Sequence, hand: HandTrack, mano_dir: Path | str | None = None) -> HandReference:
     """World-frame reference of a MANO hand on its own MANO geometry (invalid frames interpolated)."""
     if hand.mano is None:
