@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import uuid
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -126,3 +127,37 @@ def submit_tiny(queue: JobQueue, owner: str, seed: int = 0, key: str | None = No
     job, _ = queue.submit(owner, tiny_payload(seed), JobOptions(seed=seed, priority=priority), key, "tiny", 5)
     return job.id
 
+
+
+@dataclass
+class ApiHarness:
+    """The app on a real SQLite database, a TestClient, the queue behind it, and one API key."""
+
+    client: Any
+    queue: JobQueue
+    key_id: str
+    headers: dict[str, str]
+
+    def other_key_headers(self) -> dict[str, str]:
+        _, plaintext = self.queue.create_api_key("another client")
+        return {"Authorization": f"Bearer {plaintext}"}
+
+
+@pytest.fixture
+def api_settings() -> Settings:
+    return Settings(max_frames=50, max_request_bytes=2_000_000, max_active_jobs_per_key=20, poll_retry_after_seconds=3)
+
+
+@pytest.fixture
+def api(db_url: str, api_settings: Settings) -> Iterator[ApiHarness]:
+    from fastapi.testclient import TestClient
+
+    from service.app import create_app
+
+    engine = create_engine_for(db_url)
+    app = create_app(api_settings, engine)
+    queue: JobQueue = app.state.queue
+    key_id, plaintext = queue.create_api_key("tests")
+    with TestClient(app) as client:
+        yield ApiHarness(client, queue, key_id, {"Authorization": f"Bearer {plaintext}"})
+    engine.dispose()

@@ -1,0 +1,88 @@
+"""The FastAPI application: ``create_app()`` wires the queue, the routes, the problem handlers and limits.
+
+``uvicorn --factory service.app:create_app`` (what ``hoi-refine serve`` runs) or ``create_app(settings,
+engine)`` in tests. The database must already be at the migration head (``serve`` upgrades it first;
+``/readyz`` says when it is not).
+"""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import Any
+
+from fastapi import FastAPI
+from fastapi.openapi.utils import get_openapi
+from sqlalchemy.engine import Engine
+from starlette.types import ASGIApp, Receive, Scope, Send
+
+from common.database import create_engine_for
+from common.queue import JobQueue
+from common.settings import Settings, get_settings
+from service.metrics import make_registry
+from service.problems import install_problem_handlers, problem_response
+from service.routes import jobs, ops
+from service.schemas import JobCreate
+
+API_VERSION = "1.0.0"
+
+
+class BodySizeLimit:
+    """413 before reading a body whose declared Content-Length is over the limit (chunked bodies are
+    measured after reading, in ``service.submission``)."""
+
+    def __init__(self, app: ASGIApp, max_bytes: int) -> None:
+        self.app = app
+        self.max_bytes = max_bytes
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] == "http":
+            for name, value in scope["headers"]:
+                if name == b"content-length" and value.isdigit() and int(value) > self.max_bytes:
+                    detail = f"request body is {int(value)} bytes, over the limit of {self.max_bytes}"
+                    await problem_response(413, "Payload too large", detail)(scope, receive, send)
+                    return
+        await self.app(scope, receive, send)
+
+
+def create_app(settings: Settings | None = None, engine: Engine | None = None) -> FastAPI:
+    settings = settings if settings is not None else get_settings()
+    owns_engine = engine is None
+    engine = engine if engine is not None else create_engine_for(settings.resolved_database_url())
+    queue = JobQueue(engine, settings)
+
+    @asynccontextmanager
+    async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
+        yield
+        if owns_engine:
+            engine.dispose()
+
+    app = FastAPI(
+        title="hoi-refine",
+        version=API_VERSION,
+        description="Physics-in-the-loop refinement of hand-object demonstrations as a job queue (DESIGN §2).",
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.engine = engine
+    app.state.queue = queue
+    app.state.key_cache = {}
+    app.state.metrics_registry = make_registry(queue)
+    install_problem_handlers(app)
+    app.add_middleware(BodySizeLimit, max_bytes=settings.max_request_bytes)
+    app.include_router(jobs.router)
+    app.include_router(ops.router)
+    app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
+    return app
+
+
+def _openapi(app: FastAPI) -> dict[str, Any]:
+    """The generated schema plus ``JobCreate``, which the JSON/multipart submit route reads by hand."""
+    if app.openapi_schema is None:
+        schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
+        components = schema.setdefault("components", {}).setdefault("schemas", {})
+        job_create = JobCreate.model_json_schema(ref_template="#/components/schemas/{model}")
+        components.update(job_create.pop("$defs", {}))
+        components["JobCreate"] = job_create
+        app.openapi_schema = schema
+    return app.openapi_schema

@@ -1,0 +1,55 @@
+"""FastAPI dependencies: the queue, the settings, and the caller's API key (Bearer)."""
+
+from __future__ import annotations
+
+import time
+from typing import Annotated
+
+from fastapi import Depends, Request
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+
+from common.api_keys import hash_key
+from common.errors import AuthenticationError
+from common.queue import JobQueue
+from common.settings import Settings
+
+#: Seconds a successful key lookup is remembered in-process (keys are never edited, only created).
+KEY_CACHE_SECONDS = 60.0
+
+bearer = HTTPBearer(auto_error=False, description="An API key from `hoi-refine keys create NAME`")
+
+
+def get_queue(request: Request) -> JobQueue:
+    queue: JobQueue = request.app.state.queue
+    return queue
+
+
+def get_app_settings(request: Request) -> Settings:
+    settings: Settings = request.app.state.settings
+    return settings
+
+
+QueueDep = Annotated[JobQueue, Depends(get_queue)]
+SettingsDep = Annotated[Settings, Depends(get_app_settings)]
+
+
+def current_key(
+    request: Request, queue: QueueDep, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)]
+) -> str:
+    """The id of the caller's API key; 401 when the header is missing or the key unknown."""
+    if credentials is None or not credentials.credentials:
+        raise AuthenticationError("send an API key as 'Authorization: Bearer <key>'")
+    digest = hash_key(credentials.credentials)
+    cache: dict[str, tuple[str, float]] = request.app.state.key_cache
+    hit = cache.get(digest)
+    now = time.monotonic()
+    if hit is not None and hit[1] > now:
+        return hit[0]
+    key_id = queue.authenticate(credentials.credentials)
+    if len(cache) > 10_000:  # bounded: a flood of distinct keys cannot grow it without limit
+        cache.clear()
+    cache[digest] = (key_id, now + KEY_CACHE_SECONDS)
+    return key_id
+
+
+KeyDep = Annotated[str, Depends(current_key)]

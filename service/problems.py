@@ -1,0 +1,92 @@
+"""Every error answer is ``application/problem+json`` (RFC 9457), produced here and only here.
+
+Project errors (``common.errors.HoiRefineError``) carry their HTTP status and title; request-validation
+errors from FastAPI become 422 with one ``{field, problem}`` per problem; anything unexpected becomes a
+500 without internals in the body (it is logged).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from common.errors import FieldProblem, HoiRefineError, LimitExceededError, SequenceValidationError
+
+PROBLEM_JSON = "application/problem+json"
+log = logging.getLogger("hoi_refine.service")
+
+
+def problem_response(
+    status: int,
+    title: str,
+    detail: str | None = None,
+    errors: list[FieldProblem] | None = None,
+    headers: dict[str, str] | None = None,
+) -> JSONResponse:
+    body: dict[str, Any] = {"type": "about:blank", "title": title, "status": status}
+    if detail:
+        body["detail"] = detail
+    if errors is not None:
+        body["errors"] = [{"field": p.field, "problem": p.problem} for p in errors]
+    return JSONResponse(body, status_code=status, media_type=PROBLEM_JSON, headers=headers)
+
+
+def _field_path(loc: tuple[Any, ...] | list[Any]) -> str:
+    """FastAPI's ``("body", "hands", 0, "valid")`` -> ``hands[0].valid``; query/header names stay plain."""
+    parts = list(loc)
+    if parts and parts[0] in ("body", "query", "path", "header"):
+        parts = parts[1:]
+    out = ""
+    for part in parts:
+        if part == "[key]":  # pydantic marks a bad dict key this way; the key itself names the field
+            continue
+        if isinstance(part, int):
+            out += f"[{part}]"
+        else:
+            out += ("." if out else "") + str(part)
+    return out or "body"
+
+
+def validation_problems(errors: Any) -> list[FieldProblem]:
+    return [FieldProblem(_field_path(e.get("loc", ())), str(e.get("msg", "is invalid"))) for e in errors]
+
+
+async def _hoi_refine_error(_request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, HoiRefineError)
+    headers: dict[str, str] = {}
+    if isinstance(exc, LimitExceededError) and exc.retry_after is not None:
+        headers["Retry-After"] = str(exc.retry_after)
+    if exc.http_status == 401:
+        headers["WWW-Authenticate"] = "Bearer"
+    if exc.http_status >= 500:
+        log.error("request failed: %s", exc)
+    problems = exc.problems if isinstance(exc, SequenceValidationError) else None
+    return problem_response(exc.http_status, exc.title, str(exc), problems, headers or None)
+
+
+async def _request_validation_error(_request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, RequestValidationError)
+    problems = validation_problems(exc.errors())
+    return problem_response(422, "Invalid request", "; ".join(map(str, problems)), problems)
+
+
+async def _http_error(_request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, StarletteHTTPException)
+    return problem_response(exc.status_code, str(exc.detail), None, None, dict(exc.headers or {}) or None)
+
+
+async def _unexpected_error(_request: Request, exc: Exception) -> JSONResponse:
+    log.exception("unhandled error", exc_info=exc)
+    return problem_response(500, "Internal error", "an unexpected error occurred; it has been logged")
+
+
+def install_problem_handlers(app: FastAPI) -> None:
+    app.add_exception_handler(HoiRefineError, _hoi_refine_error)
+    app.add_exception_handler(RequestValidationError, _request_validation_error)
+    app.add_exception_handler(StarletteHTTPException, _http_error)
+    app.add_exception_handler(Exception, _unexpected_error)

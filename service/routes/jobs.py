@@ -1,0 +1,189 @@
+"""``/v1/jobs``: thin routes over ``common.queue.JobQueue`` (no SQL here; DESIGN §4)."""
+
+from __future__ import annotations
+
+import hashlib
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from fastapi import APIRouter, Header, Query, Request, Response
+from starlette.concurrency import run_in_threadpool
+
+from common.db_models import utcnow
+from common.errors import FieldProblem, InvalidRequestError
+from common.result_format import read_arrays, read_contacts
+from common.sequence_io import sequence_to_json_dict
+from service.deps import KeyDep, QueueDep, SettingsDep
+from service.schemas import (
+    ContactsPublic,
+    JobPublic,
+    JobsPublic,
+    JobState,
+    MetricsPublic,
+    Problem,
+    ResultJson,
+)
+from service.submission import MULTIPART_SCHEMA, read_submission
+
+PROBLEM = {"model": Problem, "content": {"application/problem+json": {}}}
+COMMON_ERRORS: dict[int | str, dict[str, Any]] = {401: PROBLEM, 404: PROBLEM, 422: PROBLEM}
+
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"], responses=COMMON_ERRORS)
+
+
+def _job_response(response: Response, job: JobPublic, retry_after: int) -> JobPublic:
+    if job.state in ("QUEUED", "RUNNING"):
+        response.headers["Retry-After"] = str(retry_after)
+    return job
+
+
+@router.post(
+    "",
+    status_code=202,
+    response_model=JobPublic,
+    summary="Submit a sequence for refinement",
+    responses={409: PROBLEM, 413: PROBLEM, 429: PROBLEM},
+    openapi_extra={
+        "requestBody": {
+            "required": True,
+            "content": {
+                "application/json": {"schema": {"$ref": "#/components/schemas/JobCreate"}},
+                "multipart/form-data": {"schema": MULTIPART_SCHEMA},
+            },
+        }
+    },
+)
+async def submit_job(
+    request: Request,
+    response: Response,
+    queue: QueueDep,
+    settings: SettingsDep,
+    key_id: KeyDep,
+    idempotency_key: Annotated[str | None, Header(max_length=200)] = None,
+) -> JobPublic:
+    sub = await read_submission(request, settings)
+    job, _created = await run_in_threadpool(
+        queue.submit, key_id, sub.payload, sub.options, idempotency_key, sub.sequence.name, sub.sequence.num_frames
+    )
+    response.headers["Location"] = f"/v1/jobs/{job.id}"
+    return _job_response(response, JobPublic.from_record(job, utcnow()), settings.poll_retry_after_seconds)
+
+
+@router.get("", response_model=JobsPublic, summary="List your jobs, newest first")
+def list_jobs(
+    queue: QueueDep,
+    key_id: KeyDep,
+    page_size: Annotated[int, Query(ge=1, le=500)] = 50,
+    page_token: Annotated[str | None, Query(max_length=500)] = None,
+    state: JobState | None = None,
+) -> JobsPublic:
+    jobs, token = queue.list(key_id, state=state, page_size=page_size, page_token=page_token)
+    now = utcnow()
+    return JobsPublic(data=[JobPublic.from_record(j, now) for j in jobs], count=len(jobs), next_page_token=token)
+
+
+@router.get(
+    "/{job_id}",
+    response_model=JobPublic,
+    summary="A job's state, attempt, progress and (when done) summary metrics",
+    responses={304: {"description": "Not modified (If-None-Match matched the ETag)"}},
+)
+def get_job(
+    job_id: str,
+    response: Response,
+    queue: QueueDep,
+    settings: SettingsDep,
+    key_id: KeyDep,
+    if_none_match: Annotated[str | None, Header()] = None,
+) -> Any:
+    job = JobPublic.from_record(queue.get(key_id, job_id), utcnow())
+    body = job.model_dump_json().encode()
+    etag = f'"{hashlib.sha256(body).hexdigest()[:32]}"'
+    headers = {"ETag": etag}
+    if job.state in ("QUEUED", "RUNNING"):
+        headers["Retry-After"] = str(settings.poll_retry_after_seconds)
+    if if_none_match is not None and etag in [t.strip() for t in if_none_match.split(",")]:
+        return Response(status_code=304, headers=headers)
+    return Response(body, media_type="application/json", headers=headers)
+
+
+@router.post("/{job_id}:cancel", response_model=JobPublic, summary="Cancel (QUEUED at once, RUNNING by flag)",
+             responses={409: PROBLEM})  # fmt: skip
+def cancel_job(job_id: str, response: Response, queue: QueueDep, settings: SettingsDep, key_id: KeyDep) -> JobPublic:
+    job = JobPublic.from_record(queue.cancel(key_id, job_id), utcnow())
+    return _job_response(response, job, settings.poll_retry_after_seconds)
+
+
+@router.post("/{job_id}:retry", response_model=JobPublic, summary="Requeue a FAILED job", responses={409: PROBLEM})
+def retry_job(job_id: str, response: Response, queue: QueueDep, settings: SettingsDep, key_id: KeyDep) -> JobPublic:
+    job = JobPublic.from_record(queue.retry(key_id, job_id), utcnow())
+    return _job_response(response, job, settings.poll_retry_after_seconds)
+
+
+@router.delete("/{job_id}", status_code=204, summary="Delete a finished job and its result", responses={409: PROBLEM})
+def delete_job(job_id: str, queue: QueueDep, key_id: KeyDep) -> Response:
+    queue.delete(key_id, job_id)
+    return Response(status_code=204)
+
+
+@router.get(
+    "/{job_id}/result",
+    response_model=ResultJson,
+    summary="The result: the NPZ file, or its arrays and summary as JSON",
+    responses={200: {"content": {"application/octet-stream": {}}}, 409: PROBLEM},
+)
+def get_result(
+    job_id: str, queue: QueueDep, key_id: KeyDep, format: Literal["json", "npz"] = "json"
+) -> Any:
+    blob, summary = queue.get_result(key_id, job_id)
+    if format == "npz":
+        return Response(
+            blob,
+            media_type="application/octet-stream",
+            headers={"Content-Disposition": f'attachment; filename="{job_id}.npz"'},
+        )
+    arrays = {k: _jsonable(v) for k, v in read_arrays(blob).items() if k != "summary_json"}
+    return ResultJson(job_id=job_id, summary=summary, arrays=arrays)
+
+
+@router.get("/{job_id}/contacts", response_model=ContactsPublic, summary="Per-frame contacts, start <= frame < end",
+            responses={409: PROBLEM})  # fmt: skip
+def get_contacts(
+    job_id: str,
+    queue: QueueDep,
+    key_id: KeyDep,
+    start: Annotated[int | None, Query(ge=0)] = None,
+    end: Annotated[int | None, Query(ge=0)] = None,
+) -> ContactsPublic:
+    if start is not None and end is not None and end < start:
+        raise InvalidRequestError([FieldProblem("end", f"must be >= start ({start})")])
+    blob, _ = queue.get_result(key_id, job_id)
+    rows = read_contacts(blob, start, end)
+    return ContactsPublic.model_validate(
+        {"job_id": job_id, "start": start, "end": end, "count": len(rows), "contacts": rows}
+    )
+
+
+@router.get("/{job_id}/metrics", response_model=MetricsPublic, summary="Raw-replay and refined metrics",
+            responses={409: PROBLEM})  # fmt: skip
+def get_metrics(job_id: str, queue: QueueDep, key_id: KeyDep) -> MetricsPublic:
+    _, summary = queue.get_result(key_id, job_id)
+    return MetricsPublic(job_id=job_id, metrics=dict(summary.get("metrics", {})))
+
+
+@router.get("/{job_id}/input", summary="The submitted sequence in the native JSON form")
+def get_input(job_id: str, queue: QueueDep, key_id: KeyDep) -> Any:
+    from common.sequence_io import sequence_from_npz_bytes
+
+    queue.get(key_id, job_id)  # ownership check
+    return sequence_to_json_dict(sequence_from_npz_bytes(queue.get_payload(job_id)))
+
+
+def _jsonable(value: np.ndarray) -> Any:
+    if value.dtype.kind == "f" and not np.isfinite(value).all():
+        out = value.astype(object)
+        out[~np.isfinite(value)] = None  # JSON has no NaN/inf
+        return out.tolist()
+    return value.tolist()
+
+

@@ -1,0 +1,188 @@
+"""Request and response bodies of the ``/v1`` API (like full-stack-fastapi-template's ``models.py``).
+
+``JobCreate`` mirrors the native JSON sequence form (``common.sequence_io.sequence_to_json_dict``) plus an
+``options`` object; the types here catch malformed JSON early with the field named, and
+``sequence_from_json_dict`` then checks the content (shapes, quaternions, frame counts).
+"""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from common.job_options import JobOptions
+from common.queue_types import JobRecord
+
+JobState = Literal["QUEUED", "RUNNING", "SUCCEEDED", "FAILED", "CANCELLED"]
+
+
+class PrimitiveIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    kind: Literal["box", "cylinder", "sphere", "capsule"]
+    size: list[float] = Field(description="box half-extents (3); cylinder/capsule radius, half-length; sphere radius")
+
+
+class MeshIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    vertices: list[list[float]]
+    faces: list[list[int]]
+
+
+class ObjectIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    name: str = "object"
+    mass_kg: float
+    friction: float | None = None
+    primitive: PrimitiveIn | None = None
+    mesh: MeshIn | None = None
+
+
+class ManoIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    global_orient: list[list[float]]
+    hand_pose: list[list[float]]
+    trans: list[list[float]]
+    betas: list[float] = Field(default_factory=lambda: [0.0] * 10)
+    pose_format: Literal["axis_angle", "pca"] = "axis_angle"
+    flat_hand_mean: bool = False
+
+
+class HandIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    side: Literal["right", "left"]
+    valid: list[bool]
+    keypoints: list[list[list[float]]] | None = Field(default=None, description="(T, 21, 3) metres")
+    mano: ManoIn | None = None
+
+
+class JobCreate(BaseModel):
+    """A sequence in the native JSON form, with the job's options."""
+
+    model_config = ConfigDict(extra="forbid")
+    format: Literal["hoi-refine-sequence"] = "hoi-refine-sequence"
+    format_version: Literal[1] = 1
+    name: str = "sequence"
+    fps: float
+    frame_start: int = 0
+    object: ObjectIn
+    object_pose: list[list[float]] = Field(description="(T, 7): x y z qw qx qy qz per frame")
+    hands: list[HandIn]
+    world_from_camera: list[list[float]] | None = None
+    up: list[float] | None = None
+    meta: dict[str, str] = Field(default_factory=dict)
+    options: JobOptions = Field(default_factory=JobOptions)
+
+
+class ProgressPublic(BaseModel):
+    """What the worker last reported; ``eta_s`` is estimated from the window rate when the worker gives none."""
+
+    model_config = ConfigDict(extra="allow")
+    window: int | None = None
+    windows: int | None = None
+    best_loss: float | None = None
+    evaluations: int | None = None
+    eta_s: float | None = None
+
+
+class JobError(BaseModel):
+    attempt: int
+    at: str
+    error: str
+    worker: str | None = None
+
+
+class JobPublic(BaseModel):
+    id: str
+    name: str
+    state: JobState
+    attempt: int
+    max_attempts: int
+    priority: int
+    num_frames: int
+    options: dict[str, Any]
+    cancel_requested: bool
+    created_at: datetime
+    queued_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+    updated_at: datetime
+    progress: ProgressPublic | None
+    errors: list[JobError]
+    #: ``metrics`` (raw replay and refined) and run facts from the result summary, once SUCCEEDED.
+    summary: dict[str, Any] | None = None
+
+    @classmethod
+    def from_record(cls, job: JobRecord, now: datetime | None = None) -> JobPublic:
+        progress = None
+        if job.progress is not None:
+            progress = ProgressPublic.model_validate(job.progress)
+            if progress.eta_s is None and job.state == "RUNNING" and job.started_at and now:
+                progress.eta_s = _eta(progress, (now - job.started_at).total_seconds())
+        return cls(
+            id=job.id, name=job.name, state=job.state,
+            attempt=job.attempt, max_attempts=job.max_attempts, priority=job.priority, num_frames=job.num_frames,
+            options=job.options, cancel_requested=job.cancel_requested, created_at=job.created_at,
+            queued_at=job.queued_at, started_at=job.started_at, finished_at=job.finished_at,
+            updated_at=job.updated_at, progress=progress, errors=[JobError.model_validate(e) for e in job.errors],
+            summary=job.summary,
+        )  # fmt: skip
+
+
+def _eta(progress: ProgressPublic, elapsed_s: float) -> float | None:
+    if not progress.window or not progress.windows or progress.window <= 0:
+        return None
+    return elapsed_s / progress.window * max(progress.windows - progress.window, 0)
+
+
+class JobsPublic(BaseModel):
+    data: list[JobPublic]
+    count: int
+    next_page_token: str | None = Field(description="Pass as page_token for the next page; null on the last page")
+
+
+class ContactPublic(BaseModel):
+    frame: int
+    hand: str
+    body: str
+    position_world: list[float]
+    position_object: list[float]
+    normal: list[float]
+    force: list[float]
+    torque: list[float]
+    depth: float
+
+
+class ContactsPublic(BaseModel):
+    job_id: str
+    start: int | None
+    end: int | None
+    count: int
+    contacts: list[ContactPublic]
+
+
+class MetricsPublic(BaseModel):
+    job_id: str
+    metrics: dict[str, Any] = Field(description="``raw`` (reference replay) and ``refined`` metrics, DESIGN §1.8")
+
+
+class ResultJson(BaseModel):
+    job_id: str
+    summary: dict[str, Any]
+    arrays: dict[str, Any] = Field(description="Every array of the result file as nested lists")
+
+
+class ProblemField(BaseModel):
+    field: str
+    problem: str
+
+
+class Problem(BaseModel):
+    """RFC 9457 problem details (``application/problem+json``)."""
+
+    type: str = "about:blank"
+    title: str
+    status: int
+    detail: str | None = None
+    errors: list[ProblemField] | None = None

@@ -1,0 +1,114 @@
+"""Turn a ``POST /v1/jobs`` request into a validated sequence, its options and the payload to queue.
+
+Two forms (issue #4): a JSON body (the native JSON sequence with an ``options`` object), or multipart with
+a ``sequence`` file part (native NPZ, or a DexYCB development NPZ when ``HOI_REFINE_YCB_DIR`` is set) and an
+``options`` JSON part. Every problem is reported with its field; the frame limit names ``object_pose``.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from typing import Any
+
+from pydantic import ValidationError
+from starlette.concurrency import run_in_threadpool
+from starlette.datastructures import UploadFile
+from starlette.requests import Request
+
+from common.errors import (
+    ConfigurationError,
+    FieldProblem,
+    InvalidRequestError,
+    PayloadTooLargeError,
+    UnsupportedFormatError,
+)
+from common.job_options import JobOptions
+from common.sequence import Sequence
+from common.sequence_io import sequence_from_json_dict, sequence_from_npz_bytes, sequence_to_npz_bytes
+from common.settings import Settings
+from service.problems import validation_problems
+from service.schemas import JobCreate
+
+MULTIPART_SCHEMA: dict[str, Any] = {
+    "type": "object",
+    "properties": {
+        "sequence": {"type": "string", "format": "binary", "description": "native or DexYCB development NPZ"},
+        "options": {"type": "string", "description": "JobOptions as JSON"},
+    },
+    "required": ["sequence"],
+}
+
+
+@dataclass(frozen=True)
+class Submission:
+    sequence: Sequence
+    options: JobOptions
+    #: The sequence as native NPZ bytes: what the queue stores and the worker reads.
+    payload: bytes
+
+
+def _invalid(problems: list[FieldProblem]) -> InvalidRequestError:
+    return InvalidRequestError(problems)
+
+
+def _prefixed(exc: ValidationError, prefix: str) -> list[FieldProblem]:
+    return [FieldProblem(f"{prefix}.{p.field}" if p.field != "body" else prefix, p.problem)
+            for p in validation_problems(exc.errors())]  # fmt: skip
+
+
+async def read_submission(request: Request, settings: Settings) -> Submission:
+    body = await request.body()  # cached: request.form() below parses these same bytes
+    if len(body) > settings.max_request_bytes:
+        raise PayloadTooLargeError(f"request body is {len(body)} bytes, over the limit of {settings.max_request_bytes}")
+    content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if content_type == "application/json":
+        seq, options = await run_in_threadpool(_from_json, body, settings)
+    elif content_type == "multipart/form-data":
+        blob, options = await _read_multipart(request, settings)
+        seq = await run_in_threadpool(_from_npz, blob, settings)
+    else:
+        raise UnsupportedFormatError(
+            f"Content-Type {content_type or '(none)'} is not accepted: send application/json or multipart/form-data"
+        )
+    payload = await run_in_threadpool(sequence_to_npz_bytes, seq)
+    return Submission(seq, options, payload)
+
+
+def _from_json(body: bytes, settings: Settings) -> tuple[Sequence, JobOptions]:
+    try:
+        doc = json.loads(body)
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise _invalid([FieldProblem("body", f"is not valid JSON: {exc}")]) from exc
+    try:
+        parsed = JobCreate.model_validate(doc)
+    except ValidationError as exc:
+        raise _invalid(validation_problems(exc.errors())) from exc
+    seq_doc = parsed.model_dump(exclude={"options"}, exclude_none=True)
+    return sequence_from_json_dict(seq_doc, max_frames=settings.max_frames), parsed.options
+
+
+async def _read_multipart(request: Request, settings: Settings) -> tuple[bytes, JobOptions]:
+    form = await request.form(max_files=1, max_fields=10, max_part_size=1024 * 1024)
+    seq_part = form.get("sequence")
+    if seq_part is None:
+        raise _invalid([FieldProblem("sequence", "is required (a file part holding the sequence NPZ)")])
+    blob = await seq_part.read() if isinstance(seq_part, UploadFile) else seq_part.encode()
+    raw_options = form.get("options")
+    if isinstance(raw_options, UploadFile):
+        raw_options = (await raw_options.read()).decode(errors="replace")
+    try:
+        options = JobOptions.model_validate_json(raw_options) if raw_options else JobOptions()
+    except ValidationError as exc:
+        raise _invalid(_prefixed(exc, "options")) from exc
+    return blob, options
+
+
+def _from_npz(blob: bytes, settings: Settings) -> Sequence:
+    try:
+        return sequence_from_npz_bytes(blob, max_frames=settings.max_frames)
+    except UnsupportedFormatError as exc:
+        raise _invalid([FieldProblem("sequence", str(exc))]) from exc
+    except ConfigurationError as exc:
+        # A DexYCB file names its YCB object; without HOI_REFINE_YCB_DIR this server cannot read it.
+        raise _invalid([FieldProblem("sequence", f"this server cannot read DexYCB files: {exc}")]) from exc

@@ -1,0 +1,204 @@
+"""The ``/v1`` REST API on a real SQLite database: submission forms, validation, auth, polling headers,
+the job lifecycle seen through the API, results/contacts/metrics, pagination, limits, ops endpoints."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+import pytest
+
+from common.result_format import read_summary
+from common.sequence_io import sequence_to_json_dict, sequence_to_npz_bytes
+from tests.queue_fixtures import ApiHarness, fake_result, tiny_sequence
+
+PROBLEM = "application/problem+json"
+
+
+def json_body(seed: int = 0, frames: int = 5, **options: object) -> dict[str, object]:
+    body = sequence_to_json_dict(tiny_sequence(seed, frames).validate())
+    body["options"] = {"seed": seed, **options}
+    return body
+
+
+def multipart(seed: int = 0, **options: object) -> dict[str, object]:
+    npz = sequence_to_npz_bytes(tiny_sequence(seed).validate())
+    return {"files": {"sequence": ("tiny.npz", npz, "application/octet-stream")},
+            "data": {"options": json.dumps({"seed": seed, **options})}}  # fmt: skip
+
+
+def fields(resp: object) -> set[str]:
+    doc = resp.json()  # type: ignore[attr-defined]
+    return {e["field"] for e in doc["errors"]}
+
+
+def test_json_submission_polling_headers_and_etag(api: ApiHarness) -> None:
+    resp = api.client.post("/v1/jobs", json=json_body(keyframe_interval=5, priority=3), headers=api.headers)
+    assert resp.status_code == 202, resp.text
+    job = resp.json()
+    assert resp.headers["Location"] == f"/v1/jobs/{job['id']}"
+    assert job["state"] == "QUEUED" and job["attempt"] == 1 and job["priority"] == 3 and job["num_frames"] == 5
+    assert job["options"]["keyframe_interval"] == 5
+    got = api.client.get(f"/v1/jobs/{job['id']}", headers=api.headers)
+    assert got.status_code == 200 and got.headers["Retry-After"] == "3"
+    etag = got.headers["ETag"]
+    same = api.client.get(f"/v1/jobs/{job['id']}", headers={**api.headers, "If-None-Match": etag})
+    assert same.status_code == 304 and same.headers["ETag"] == etag
+    # A worker reports progress: the representation (and so the ETag) changes, ETA is estimated.
+    lease = api.queue.claim("w")
+    assert lease is not None
+    api.queue.heartbeat(job["id"], lease.lease_token, {"window": 2, "windows": 6, "best_loss": 0.25, "evaluations": 80})
+    moved = api.client.get(f"/v1/jobs/{job['id']}", headers={**api.headers, "If-None-Match": etag})
+    assert moved.status_code == 200 and moved.headers["ETag"] != etag
+    progress = moved.json()["progress"]
+    assert progress["window"] == 2 and progress["best_loss"] == 0.25 and progress["eta_s"] >= 0
+    assert moved.json()["state"] == "RUNNING" and moved.json()["started_at"] is not None
+
+
+def test_multipart_submission_and_idempotency_key(api: ApiHarness) -> None:
+    headers = {**api.headers, "Idempotency-Key": "batch-7"}
+    first = api.client.post("/v1/jobs", headers=headers, **multipart(7))  # type: ignore[arg-type]
+    again = api.client.post("/v1/jobs", headers=headers, **multipart(7))  # type: ignore[arg-type]
+    assert first.status_code == again.status_code == 202
+    assert first.json()["id"] == again.json()["id"] and first.json()["options"]["seed"] == 7
+    other = api.client.post("/v1/jobs", headers=headers, **multipart(7, max_generations=3))  # type: ignore[arg-type]
+    assert other.status_code == 422 and other.headers["content-type"] == PROBLEM
+    assert "Idempotency-Key" in other.json()["title"]
+    # The same payload as JSON is the same sequence and options: the same job.
+    as_json = api.client.post("/v1/jobs", headers=headers, json=json_body(7))
+    assert as_json.status_code == 202 and as_json.json()["id"] == first.json()["id"]
+
+
+def test_validation_errors_name_every_field(api: ApiHarness) -> None:
+    body = json_body()
+    body["fps"] = "fast"
+    body["hands"][0]["side"] = "middle"  # type: ignore[index]
+    body["options"] = {"seed": -1, "loss_weights": {"nonsense": 1.0}}
+    resp = api.client.post("/v1/jobs", json=body, headers=api.headers)
+    assert resp.status_code == 422 and resp.headers["content-type"] == PROBLEM
+    assert {"fps", "hands[0].side", "options.seed", "options.loss_weights.nonsense"} <= fields(resp)
+    # Content checks after the types: a non-unit quaternion and a keypoint array of the wrong shape.
+    body = json_body()
+    body["object_pose"][1][3] = 3.0  # type: ignore[index]
+    body["hands"][0]["keypoints"] = [[[0.0, 0.0, 0.0]] * 20] * 5  # type: ignore[index]
+    resp = api.client.post("/v1/jobs", json=body, headers=api.headers)
+    assert resp.status_code == 422 and {"object_pose", "hands[0].keypoints"} <= fields(resp)
+    too_long = api.client.post("/v1/jobs", json=json_body(frames=51), headers=api.headers)
+    assert too_long.status_code == 422 and fields(too_long) == {"object_pose"}
+    bad_opts = api.client.post("/v1/jobs", headers=api.headers, files={"sequence": ("x.npz", b"not an npz")},
+                               data={"options": '{"popsize": 1}'})  # fmt: skip
+    assert bad_opts.status_code == 422 and fields(bad_opts) == {"options.popsize"}
+    not_npz = api.client.post("/v1/jobs", headers=api.headers, files={"sequence": ("x.npz", b"not an npz")})
+    assert not_npz.status_code == 422 and fields(not_npz) == {"sequence"}
+    big = api.client.post("/v1/jobs", headers={**api.headers, "Content-Type": "application/json"},
+                          content=b" " * 2_000_001)  # fmt: skip
+    assert big.status_code == 413 and big.headers["content-type"] == PROBLEM
+
+
+def test_auth_and_owner_scoping(api: ApiHarness) -> None:
+    anonymous = api.client.get("/v1/jobs")
+    assert anonymous.status_code == 401 and anonymous.headers["WWW-Authenticate"] == "Bearer"
+    wrong = api.client.get("/v1/jobs", headers={"Authorization": "Bearer hoi_wrong"})
+    assert wrong.status_code == 401 and wrong.headers["content-type"] == PROBLEM
+    job_id = api.client.post("/v1/jobs", json=json_body(), headers=api.headers).json()["id"]
+    other = api.other_key_headers()
+    for method, path in [("GET", ""), ("POST", ":cancel"), ("POST", ":retry"), ("DELETE", ""), ("GET", "/result"),
+                         ("GET", "/contacts"), ("GET", "/metrics")]:  # fmt: skip
+        assert api.client.request(method, f"/v1/jobs/{job_id}{path}", headers=other).status_code == 404
+    assert api.client.get("/v1/jobs", headers=other).json()["count"] == 0
+
+
+def test_result_contacts_and_metrics_after_completion(api: ApiHarness) -> None:
+    job_id = api.client.post("/v1/jobs", json=json_body(), headers=api.headers).json()["id"]
+    early = api.client.get(f"/v1/jobs/{job_id}/result", headers=api.headers)
+    assert early.status_code == 409 and early.headers["content-type"] == PROBLEM
+    lease = api.queue.claim("w")
+    assert lease is not None
+    blob, summary = fake_result(frames=5, contacts_per_frame=2)
+    api.queue.complete(job_id, lease.lease_token, blob, summary)
+    job = api.client.get(f"/v1/jobs/{job_id}", headers=api.headers)
+    assert job.json()["state"] == "SUCCEEDED" and job.json()["summary"] == summary
+    assert "Retry-After" not in job.headers
+    npz = api.client.get(f"/v1/jobs/{job_id}/result", params={"format": "npz"}, headers=api.headers)
+    assert npz.content == blob and read_summary(npz.content) == summary
+    as_json = api.client.get(f"/v1/jobs/{job_id}/result", headers=api.headers).json()
+    assert as_json["summary"] == summary
+    assert np.allclose(as_json["arrays"]["contact_force"], np.load(io.BytesIO(blob))["contact_force"])
+    contacts = api.client.get(f"/v1/jobs/{job_id}/contacts", params={"start": 1, "end": 3}, headers=api.headers)
+    rows = contacts.json()["contacts"]
+    assert contacts.json()["count"] == 4 and {r["frame"] for r in rows} == {1, 2}
+    assert len(rows[0]["force"]) == 3 and rows[0]["hand"] == "right"
+    backwards = api.client.get(f"/v1/jobs/{job_id}/contacts", params={"start": 3, "end": 1}, headers=api.headers)
+    assert backwards.status_code == 422 and fields(backwards) == {"end"}
+    metrics = api.client.get(f"/v1/jobs/{job_id}/metrics", headers=api.headers).json()
+    assert metrics["metrics"] == summary["metrics"]
+
+
+def test_cancel_retry_delete_and_listing(api: ApiHarness) -> None:
+    ids = [api.client.post("/v1/jobs", json=json_body(seed=i), headers=api.headers).json()["id"] for i in range(5)]
+    cancelled = api.client.post(f"/v1/jobs/{ids[0]}:cancel", headers=api.headers)
+    assert cancelled.status_code == 200 and cancelled.json()["state"] == "CANCELLED"
+    assert api.client.post(f"/v1/jobs/{ids[0]}:retry", headers=api.headers).status_code == 409
+    lease = api.queue.claim("w")  # takes ids[1], the oldest QUEUED
+    assert lease is not None and lease.job_id == ids[1]
+    assert api.client.delete(f"/v1/jobs/{ids[1]}", headers=api.headers).status_code == 409
+    api.queue.fail(ids[1], lease.lease_token, "diverged")
+    retried = api.client.post(f"/v1/jobs/{ids[1]}:retry", headers=api.headers)
+    assert retried.json()["state"] == "QUEUED" and retried.json()["errors"][0]["error"] == "diverged"
+    assert api.client.delete(f"/v1/jobs/{ids[0]}", headers=api.headers).status_code == 204
+    assert api.client.get(f"/v1/jobs/{ids[0]}", headers=api.headers).status_code == 404
+    seen, token = [], None
+    while True:
+        params = {"page_size": 2, **({"page_token": token} if token else {})}
+        page = api.client.get("/v1/jobs", params=params, headers=api.headers).json()
+        seen += [j["id"] for j in page["data"]]
+        if not (token := page["next_page_token"]):
+            break
+    assert seen == ids[1:][::-1]
+    queued = api.client.get("/v1/jobs", params={"state": "QUEUED"}, headers=api.headers).json()
+    assert queued["count"] == 4
+    bad = api.client.get("/v1/jobs", params={"state": "DONE", "page_token": "zzz"}, headers=api.headers)
+    assert bad.status_code == 422 and "state" in fields(bad)
+
+
+def test_active_jobs_limit_answers_429_with_retry_after(api: ApiHarness) -> None:
+    api.queue.settings = api.queue.settings.model_copy(update={"max_active_jobs_per_key": 2})
+    for seed in (1, 2):
+        assert api.client.post("/v1/jobs", json=json_body(seed), headers=api.headers).status_code == 202
+    resp = api.client.post("/v1/jobs", json=json_body(3), headers=api.headers)
+    assert resp.status_code == 429 and resp.headers["Retry-After"] == "30"
+
+
+def test_health_readiness_and_prometheus_metrics(api: ApiHarness) -> None:
+    assert api.client.get("/healthz").json() == {"status": "ok"}
+    assert api.client.get("/readyz").status_code == 200
+    api.client.post("/v1/jobs", json=json_body(), headers=api.headers)
+    lease = api.queue.claim("w")
+    assert lease is not None
+    api.queue.complete(lease.job_id, lease.lease_token, *fake_result())
+    text = api.client.get("/metrics").text
+    assert 'hoi_refine_jobs{state="SUCCEEDED"} 1.0' in text and 'hoi_refine_jobs{state="QUEUED"} 0.0' in text
+    assert "hoi_refine_claims_total 1.0" in text
+    assert "hoi_refine_queue_wait_seconds_count 1.0" in text and "hoi_refine_run_seconds_count 1.0" in text
+
+
+def test_dexycb_upload_is_accepted_when_ycb_dir_is_set(
+    api: ApiHarness, dexycb_dev_files: list, shared_data: object, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from common.settings import get_settings
+
+    blob = dexycb_dev_files[0].read_bytes()
+    files = {"sequence": (dexycb_dev_files[0].name, blob, "application/octet-stream")}
+    api.client.app.state.settings = api.client.app.state.settings.model_copy(  # type: ignore[attr-defined]
+        update={"max_frames": 3000, "max_request_bytes": 64_000_000}
+    )
+    monkeypatch.delenv("HOI_REFINE_YCB_DIR", raising=False)
+    get_settings.cache_clear()
+    missing = api.client.post("/v1/jobs", headers=api.headers, files=files)
+    assert missing.status_code == 422 and fields(missing) == {"sequence"}
+    monkeypatch.setenv("HOI_REFINE_YCB_DIR", str(shared_data / "ycb"))  # type: ignore[operator]
+    get_settings.cache_clear()
+    resp = api.client.post("/v1/jobs", headers=api.headers, files=files)
+    assert resp.status_code == 202, resp.text
+    assert resp.json()["num_frames"] > 5
