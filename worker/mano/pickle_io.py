@@ -61,7 +61,13 @@ def load_mano_pickle(path: Path | str) -> dict[str, Any]:
         raw = _NoChumpyUnpickler(fh, encoding="latin1").load()
     if not isinstance(raw, dict):
         raise ConfigurationError(f"{path} is not a MANO model file (expected a pickled dict)")
-    out = {k: (v.value() if isinstance(v, _ChumpyStandIn) else v) for k, v in raw.items()}
+    out: dict[str, Any] = {}
+    for key, val in raw.items():
+        if not isinstance(val, _ChumpyStandIn):
+            out[key] = val
+        elif key in REQUIRED_KEYS or (isinstance(val.state, dict) and "x" in val.state):
+            out[key] = val.value()
+        # else: a chumpy expression in a key we never use (e.g. a derived ``J``): dropped
     missing = [k for k in REQUIRED_KEYS if k not in out]
     if missing:
         raise ConfigurationError(f"{path} is not a MANO model file: missing {', '.join(missing)}")
