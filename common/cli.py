@@ -18,6 +18,7 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "worker.cli_local",
     "service.submit.cli",
     "worker.cli_runtime",
+    "service.cli",
 )
 
 

@@ -1,0 +1,96 @@
+"""``hoi-refine serve`` (the REST service under uvicorn) and ``hoi-refine keys`` (API keys).
+
+``serve`` waits for the database with backoff, upgrades it to the migration head, then runs uvicorn; the
+same database URL (``HOI_REFINE_DATABASE_URL`` or the SQLite file under ``HOI_REFINE_VAR_DIR``) serves the
+workers. Heavy imports stay inside the handlers so ``hoi-refine --help`` is fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+
+def register(subparsers: Any) -> None:
+    serve = subparsers.add_parser(
+        "serve",
+        help="run the REST API (waits for the database and upgrades it to the latest migration first)",
+        description="Run the /v1 jobs API with uvicorn. The database comes from HOI_REFINE_DATABASE_URL "
+        "(PostgreSQL) or a SQLite file under HOI_REFINE_VAR_DIR.",
+    )
+    serve.add_argument("--host", default="127.0.0.1", help="interface to bind (default 127.0.0.1)")
+    serve.add_argument("--port", type=int, default=8000, help="port (default 8000)")
+    serve.add_argument("--workers", type=int, default=1, help="uvicorn worker processes (default 1)")
+    serve.add_argument("--log-level", default="info", choices=("critical", "error", "warning", "info", "debug"))
+    serve.add_argument("--no-migrate", action="store_true", help="do not upgrade the database at start-up")
+    serve.set_defaults(func=_cmd_serve)
+
+    keys = subparsers.add_parser("keys", help="manage API keys", description="Create and list API keys.")
+    keys_sub = keys.add_subparsers(dest="keys_command", required=True, metavar="ACTION")
+    create = keys_sub.add_parser("create", help="create a key and print it (shown once; only a hash is stored)")
+    create.add_argument("name", help="who the key is for")
+    create.set_defaults(func=_cmd_keys_create)
+    listing = keys_sub.add_parser("list", help="list keys (names, prefixes, creation times)")
+    listing.set_defaults(func=_cmd_keys_list)
+
+
+def prepare_database(url: str, wait_seconds: float, migrate: bool = True) -> None:
+    """Wait for the database (exponential backoff) and upgrade it to head."""
+    from common.database import create_engine_for, upgrade_to_head, wait_for_database
+
+    engine = create_engine_for(url)
+    try:
+        wait_for_database(engine, timeout_s=wait_seconds)
+    finally:
+        engine.dispose()
+    if migrate:
+        upgrade_to_head(url)
+
+
+def _cmd_serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from common.settings import get_settings
+
+    settings = get_settings()
+    url = settings.resolved_database_url()
+    prepare_database(url, settings.database_wait_seconds, migrate=not args.no_migrate)
+    uvicorn.run(
+        "service.app:create_app",
+        factory=True,
+        host=args.host,
+        port=args.port,
+        workers=args.workers,
+        log_level=args.log_level,
+    )
+    return 0
+
+
+def _queue() -> Any:
+    from common.database import create_engine_for
+    from common.queue import JobQueue
+    from common.settings import get_settings
+
+    settings = get_settings()
+    prepare_database(settings.resolved_database_url(), settings.database_wait_seconds)
+    return JobQueue(create_engine_for(settings.resolved_database_url()), settings)
+
+
+def _cmd_keys_create(args: argparse.Namespace) -> int:
+    queue = _queue()
+    key_id, plaintext = queue.create_api_key(args.name)
+    queue.engine.dispose()
+    print(plaintext)
+    print(f"created API key {key_id} for {args.name!r}; it is shown only this once", file=sys.stderr)
+    return 0
+
+
+def _cmd_keys_list(_args: argparse.Namespace) -> int:
+    queue = _queue()
+    rows = queue.list_api_keys()
+    queue.engine.dispose()
+    for key in rows:
+        revoked = f" revoked {key.revoked_at:%Y-%m-%d %H:%M}" if key.revoked_at else ""
+        print(f"{key.id}  {key.prefix}...  {key.created_at:%Y-%m-%d %H:%M:%S}  {key.name}{revoked}")
+    return 0
