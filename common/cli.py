@@ -16,6 +16,7 @@ from common.errors import HoiRefineError
 #: Modules that add subcommands (each has ``register(subparsers)``).
 SUBCOMMAND_MODULES: tuple[str, ...] = (
     "worker.cli_local",
+    "worker.cli_refine",
     "service.submit.cli",
     "worker.cli_runtime",
     "service.cli",
