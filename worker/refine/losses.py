@@ -19,7 +19,9 @@ Each weight can be set to 0 (ablation) through ``JobOptions.loss_weights`` / ``-
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -51,7 +53,7 @@ CONTACT_THRESHOLD = 0.01  # m, reference fingertip-to-surface distance that coun
 HINGE_VEL_SCALE = 10.0  # rad/s
 
 
-def resolve_weights(overrides: dict[str, float] | None) -> dict[str, float]:
+def resolve_weights(overrides: Mapping[Any, float] | None) -> dict[str, float]:
     out = dict(DEFAULT_WEIGHTS)
     for name, value in (overrides or {}).items():
         if name not in out:

@@ -118,6 +118,7 @@ class SimWindowProblem:
         self.layout, self.spaces, self.obj, self.hand_targets = layout, spaces, obj, hands
         self.weights, self.evaluator, self.initial = weights, evaluator, initial
         self.sides = tuple(spaces)
+        self.first_window = 1  # keyframe 0 stays zero: the settled frame-0 state is the reference's
         first = spaces[self.sides[0]]
         self.n_keyframes = first.n_keyframes
         self.interval, self.substeps, self.num_frames = first.interval, first.substeps, first.num_frames

@@ -30,6 +30,8 @@ from worker.refine.spline import FloatArray
 class WindowProblem(Protocol):
     sides: tuple[str, ...]
     n_keyframes: int
+    #: Windows before this keep their keyframe (keyframe 0 is the frame-0 state the simulation starts from).
+    first_window: int
 
     def dim(self, side: str) -> int: ...
 
@@ -96,6 +98,7 @@ def optimise_windows(
     logs: list[WindowLog] = []
     state = problem.start_state()
     n_win = problem.n_keyframes
+    n_todo = n_win - problem.first_window
     t_start = time.perf_counter()
     evaluations = 0
 
@@ -103,12 +106,13 @@ def optimise_windows(
         if progress is None:
             return
         elapsed = time.perf_counter() - t_start
-        done = j + (1.0 if finished else 0.5)
-        eta = elapsed / done * (n_win - done)
+        done = j - problem.first_window + (1.0 if finished else 0.5)
+        eta = elapsed / done * (n_todo - done)
         skipped = sum(w.skipped for w in logs)
-        progress(RefineProgress(min(j + 1, n_win), n_win, best, evaluations, elapsed, eta, skipped))
+        index = j - problem.first_window + 1
+        progress(RefineProgress(index, n_todo, best, evaluations, elapsed, eta, skipped))
 
-    for j in range(n_win):
+    for j in range(problem.first_window, n_win):
         _check_stop(should_stop)
         base, touched = problem.probe(j, state, kf)
         evaluations += 1

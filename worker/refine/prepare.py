@@ -1,0 +1,138 @@
+"""Everything a refinement of one sequence needs before optimising: references, scene, control spaces,
+loss targets and the frame-0 state (DESIGN §1.1-1.5). Shared by ``run.refine_sequence`` and ``result.verify``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from common.job_options import JobOptions
+from common.sequence import FINGERTIP_INDICES, Sequence
+from worker.refine.controls import HandControlSpace, PoseBasis10
+from worker.refine.evaluator import ParallelEvaluator, SimState
+from worker.refine.losses import (
+    HandTargets,
+    ObjectTargets,
+    SurfaceDistance,
+    contact_targets,
+    finite_difference_velocity,
+)
+from worker.refine.problem import SimLayout
+from worker.refine.spline import FloatArray, default_keyframe_interval
+
+#: Defaults chosen for the speed budget (2 shared cores, <= 60 s for 72 frames at 30 fps); see bench/refine.py.
+DEFAULT_POPSIZE = 10
+DEFAULT_MAX_GENERATIONS = 6
+
+
+@dataclass
+class Prepared:
+    seq: Sequence
+    options: JobOptions
+    interval: int
+    references: list[Any]  # worker.retarget.HandReference
+    scene: Any  # worker.scene.Scene
+    layout: SimLayout
+    spaces: dict[str, HandControlSpace]
+    obj_targets: ObjectTargets
+    hand_targets: dict[str, HandTargets]
+    basis_provenance: str
+
+    @property
+    def num_frames(self) -> int:
+        return self.seq.num_frames
+
+    def obj_targets_pose(self) -> FloatArray:
+        """(T, 7) reference object poses, world x y z qw qx qy qz."""
+        return np.concatenate([self.obj_targets.pos, self.obj_targets.quat], axis=1)
+
+
+def pose_basis(references: list[Any]) -> tuple[dict[str, PoseBasis10], str]:
+    """The packaged pose basis (``worker.pose_basis``) per side; without it, a PCA of this sequence's own
+    reference hinge angles (documented fallback, named in the result's provenance)."""
+    try:
+        import importlib
+
+        pb: Any = importlib.import_module("worker.pose_basis")  # the foundation's packaged basis
+
+        out = {}
+        for r in references:
+            b = pb.load_pose_basis(r.side) if hasattr(pb, "load_pose_basis") else pb.load_basis(r.side)
+            out[r.side] = PoseBasis10(np.asarray(b.components[:10], dtype=np.float64),
+                                      np.asarray(b.stddev[:10], dtype=np.float64))
+        return out, str(getattr(b, "provenance", "worker.pose_basis"))
+    except (ImportError, AttributeError):
+        pass
+    out = {}
+    for r in references:
+        q = r.q[r.valid] if r.valid.sum() >= 2 else r.q
+        centred = q - q.mean(axis=0)
+        _, sing, vt = np.linalg.svd(centred, full_matrices=False)
+        comps = np.zeros((10, 45))
+        k = min(10, vt.shape[0])
+        comps[:k] = vt[:k]
+        std = np.full(10, 0.05)
+        std[:k] = np.maximum(sing[:k] / np.sqrt(max(len(q) - 1, 1)), 0.05)
+        out[r.side] = PoseBasis10(comps, std)
+    return out, "fallback: PCA of this sequence's reference hinge angles (worker.pose_basis not available)"
+
+
+def prepare(seq: Sequence, options: JobOptions, config: Any = None) -> Prepared:
+    from worker.retarget import retarget_sequence
+    from worker.scene import SimConfig, build_scene
+
+    config = config or SimConfig()
+    references = retarget_sequence(seq)
+    scene = build_scene(seq, references, config)
+    layout = SimLayout.from_scene(scene)
+    interval = options.keyframe_interval or default_keyframe_interval(seq.fps)
+    bases, provenance = pose_basis(references)
+    from worker.hand_model import JOINT_LIMITS
+
+    spaces: dict[str, HandControlSpace] = {
+        r.side: HandControlSpace(
+            side=r.side,
+            q_ref=r.q,
+            wrist_pos=r.wrist_pos,
+            wrist_quat=r.wrist_quat,
+            q_limits=np.asarray(JOINT_LIMITS, dtype=np.float64),
+            basis=bases[r.side],
+            interval=interval,
+            substeps=scene.substeps_per_frame,
+            free_translation=options.free_wrist_translation,
+        )
+        for r in references
+    }
+    pose = seq.object_pose_world()
+    obj = ObjectTargets(pose[:, :3], pose[:, 3:], finite_difference_velocity(pose[:, :3], pose[:, 3:], seq.fps))
+    surface = SurfaceDistance(_surface_samples(seq))
+    hands: dict[str, HandTargets] = {}
+    for r in references:
+        mask, local = contact_targets(r.keypoints, r.valid, pose[:, :3], pose[:, 3:], surface, FINGERTIP_INDICES)
+        hands[r.side] = HandTargets(r.keypoints, r.valid, FINGERTIP_INDICES, mask, local)
+    return Prepared(seq, options, interval, references, scene, layout, spaces, obj, hands, provenance)
+
+
+def _surface_samples(seq: Sequence) -> FloatArray:
+    """Object-frame surface points: vertices, edge midpoints and face centroids (dense enough for 1 cm)."""
+    verts = seq.object.surface_vertices()
+    faces = seq.object.mesh_faces
+    if faces is None:
+        return verts
+    tri = verts[faces]
+    mids = np.concatenate([(tri[:, 0] + tri[:, 1]) / 2, (tri[:, 1] + tri[:, 2]) / 2, (tri[:, 0] + tri[:, 2]) / 2])
+    return np.concatenate([verts, mids, tri.mean(axis=1)])
+
+
+def initial_state(prep: Prepared, evaluator: ParallelEvaluator) -> tuple[SimState, int]:
+    """The settled frame-0 state (``worker.simulation.initial_state``) with its solver warmstart."""
+    from worker.simulation import HandTargets as SimTargets
+    from worker.simulation import initial_state as sim_initial_state
+
+    data = evaluator.step_data
+    targets = {r.side: SimTargets.from_reference(r) for r in prep.references}
+    physics, steps = sim_initial_state(prep.scene, data, targets)
+    return SimState(physics.copy(), data.qacc_warmstart.copy()), steps

@@ -1,0 +1,168 @@
+"""``refine_sequence``: the whole refinement of one sequence (DESIGN §1 steps 3-7, issue #3).
+
+Raw replay (zero offsets) -> sliding-window CMA-ES -> from-scratch replay of the final controls from frame 0.
+The result is that replay, never a stitching of window rollouts. Deterministic: the same sequence, options
+and seed give the same arrays and summary (apart from ``summary["timings"]``, which holds wall-clock
+measurements and the thread count), whatever the number of threads.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import mujoco
+import numpy as np
+
+from common.job_options import JobOptions
+from common.sequence import Sequence
+from worker.refine.evaluator import ParallelEvaluator, SimState
+from worker.refine.losses import resolve_weights
+from worker.refine.prepare import DEFAULT_MAX_GENERATIONS, DEFAULT_POPSIZE, Prepared, initial_state, prepare
+from worker.refine.problem import SimWindowProblem
+from worker.refine.spline import FloatArray
+from worker.refine.windowed import CmaSettings, RefineProgress, WindowLog, optimise_windows
+
+__all__ = ["ParallelEvaluator", "RefineOutcome", "RefineProgress", "ReplayRecord", "refine_sequence", "replay"]
+
+#: Skip a window when no hand touches the object and its loss per frame is below this (see windowed).
+SKIP_LOSS_PER_FRAME = 1.0
+
+
+@dataclass
+class ReplayRecord:
+    """A from-scratch replay: per-frame arrays (F frames) and contact columns."""
+
+    object_pose: FloatArray  # (F, 7)
+    object_vel: FloatArray  # (F, 6) world linear, angular
+    keypoints: dict[str, FloatArray]  # side -> (F, 21, 3)
+    contacts: dict[str, np.ndarray]
+    steps: int
+
+
+@dataclass
+class RefineOutcome:
+    arrays: dict[str, np.ndarray]
+    summary: dict[str, Any]
+    keyframes: dict[str, FloatArray] = field(default_factory=dict)
+
+    def to_npz_bytes(self) -> bytes:
+        from common.result_format import write_result_npz
+
+        return write_result_npz(self.arrays, self.summary)
+
+
+def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyframes: dict[str, FloatArray],
+           record_contacts: bool = True) -> ReplayRecord:
+    """Simulate frame 0 -> F-1 with the given keyframes, recording every frame (and contacts)."""
+    from worker.contacts import ContactRecorder
+
+    layout = prep.layout
+    s = layout.substeps
+    problem = _problem(prep, evaluator, start, {})
+    control, _ = problem.build_control(keyframes, 0, prep.num_frames - 1)
+    n_frames = prep.num_frames
+    sensors = np.empty((n_frames, layout.model.nsensordata))
+    recorder = ContactRecorder(prep.scene) if record_contacts else None
+
+    def hook(i: int, d: mujoco.MjData) -> None:
+        if i % s == 0:  # contacts and sensors of this step were computed at the frame's state
+            sensors[i // s] = d.sensordata
+            if recorder is not None:
+                recorder.add(d, i // s)
+
+    evaluator.step_python(start, control[0], hook)
+    a = layout.object_sensor_adr
+    from worker.contacts import empty_contact_columns
+
+    return ReplayRecord(
+        object_pose=sensors[:, a : a + 7].copy(),
+        object_vel=sensors[:, a + 7 : a + 13].copy(),
+        keypoints={side: sensors[:, h.keypoint_sensor_adrs] for side, h in layout.hands.items()},
+        contacts=recorder.columns() if recorder is not None else empty_contact_columns(),
+        steps=control.shape[1],
+    )
+
+
+def _problem(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, weights: dict[str, float]
+             ) -> SimWindowProblem:
+    return SimWindowProblem(prep.layout, prep.spaces, prep.obj_targets, prep.hand_targets,
+                            weights or resolve_weights(prep.options.loss_weights), evaluator, start)
+
+
+def cma_settings(options: JobOptions, interval: int) -> CmaSettings:
+    return CmaSettings(
+        popsize=options.popsize or DEFAULT_POPSIZE,
+        max_generations=options.max_generations or DEFAULT_MAX_GENERATIONS,
+        seed=options.seed,
+        skip_loss=SKIP_LOSS_PER_FRAME * 3 * interval,  # a window spans about 3 keyframe intervals
+    )
+
+
+def refine_sequence(
+    seq: Sequence,
+    options: JobOptions,
+    threads: int = 1,
+    progress: Callable[[RefineProgress], None] | None = None,
+    should_stop: Callable[[], bool] | None = None,
+    evaluator: ParallelEvaluator | None = None,
+) -> RefineOutcome:
+    """Refine one sequence; see the module docstring. ``should_stop`` is polled once per CMA-ES generation
+    (``JobCancelledError`` when it answers True). ``evaluator`` lets a long-lived worker reuse its pool."""
+    from worker.metrics import compute_metrics, scalar_metrics
+
+    t0 = time.perf_counter()
+    prep = prepare(seq, options)
+    own = evaluator is None
+    ev = evaluator or ParallelEvaluator(prep.scene.model, threads)
+    if not own:
+        ev.ensure_model(prep.scene.model)
+    try:
+        start, settle_steps = initial_state(prep, ev)
+        zero = {side: sp.zero_keyframes() for side, sp in prep.spaces.items()}
+        raw = replay(prep, ev, start, zero)
+        settings = cma_settings(options, prep.interval)
+        weights = resolve_weights(options.loss_weights)
+        problem = _problem(prep, ev, start, weights)
+        keyframes, logs = optimise_windows(problem, settings, progress=progress, should_stop=should_stop)
+        final = replay(prep, ev, start, keyframes)
+        stats = ev.stats
+    finally:
+        if own:
+            ev.close()
+    wall = time.perf_counter() - t0
+
+    def metrics(rec: ReplayRecord) -> dict[str, Any]:
+        return compute_metrics(
+            rec.object_pose,
+            prep.obj_targets_pose(),
+            rec.keypoints,
+            {r.side: r.keypoints for r in prep.references},
+            {r.side: r.valid for r in prep.references},
+        )
+
+    m_raw, m_ref = metrics(raw), metrics(final)
+    from worker.refine.result import build_arrays, build_summary
+
+    arrays = build_arrays(prep, keyframes, final, raw, m_raw, m_ref, logs)
+    summary = build_summary(
+        prep, settings, weights, logs, scalar_metrics(m_raw), scalar_metrics(m_ref),
+        timings={
+            "wall_s": wall,
+            "sim_s": stats.sim_seconds,
+            "sim_share": stats.sim_seconds / max(wall, 1e-9),
+            "steps": int(stats.steps + settle_steps),
+            "evaluations": int(sum(w.evaluations for w in logs)),
+            "rollouts": int(stats.rollouts),
+            "steps_per_second": stats.steps / max(stats.sim_seconds, 1e-9),
+            "threads": threads,
+        },
+        num_contacts=len(final.contacts["contact_frame"]),
+    )
+    return RefineOutcome(arrays, summary, keyframes)
+
+
+def skipped_windows(logs: list[WindowLog]) -> int:
+    return sum(w.skipped for w in logs)
