@@ -83,29 +83,28 @@ def test_hands_with_keypoints_need_no_model(monkeypatch: pytest.MonkeyPatch) -> 
     assert ensure_keypoints(seq) is seq
 
 
-def test_chumpy_expressions(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_chumpy_expressions(tmp_path: Path) -> None:
     """A chumpy expression (state without ``x``) is dropped from optional keys and rejected in required ones."""
     import sys
     import types
-
-    module = types.ModuleType("chumpy.ch_ops")
 
     class add:  # chumpy.ch_ops.add
         def __init__(self, a: object, b: object) -> None:
             self.a, self.b = a, b
 
     add.__module__, add.__qualname__ = "chumpy.ch_ops", "add"
-    module.add = add  # type: ignore[attr-defined]
-    monkeypatch.setitem(sys.modules, "chumpy.ch_ops", module)
+    ops, package = types.ModuleType("chumpy.ch_ops"), types.ModuleType("chumpy")
+    ops.add = add  # type: ignore[attr-defined]
+
+    def dump(data: dict[str, object], path: Path) -> Path:
+        sys.modules.update({"chumpy": package, "chumpy.ch_ops": ops})
+        try:
+            path.write_bytes(pickle.dumps(data, protocol=2))
+        finally:
+            del sys.modules["chumpy"], sys.modules["chumpy.ch_ops"]
+        return path
+
     data = load_mano_pickle(build_test_mano_model(tmp_path, "right"))
-    data["J"] = add(1, 2)
-    path = tmp_path / "expr.pkl"
-    path.write_bytes(pickle.dumps(data, protocol=2))
-    monkeypatch.delitem(sys.modules, "chumpy.ch_ops")
-    assert "J" not in load_mano_pickle(path)
-    data["shapedirs"] = add(1, 2)
-    monkeypatch.setitem(sys.modules, "chumpy.ch_ops", module)
-    path.write_bytes(pickle.dumps(data, protocol=2))
-    monkeypatch.delitem(sys.modules, "chumpy.ch_ops")
+    assert "J" not in load_mano_pickle(dump(dict(data, J=add(1, 2)), tmp_path / "a.pkl"))
     with pytest.raises(ConfigurationError, match="expression"):
-        load_mano_pickle(path)
+        load_mano_pickle(dump(dict(data, shapedirs=add(1, 2)), tmp_path / "b.pkl"))
