@@ -87,7 +87,9 @@ def _cmd_worker(args: argparse.Namespace) -> int:
     with stop_on_signals(stop):
         try:
             pool.start()
-            pool.run_until(stop)
+            # ray.init installs its own fatal-signal handler for SIGTERM (it aborts the process); ours again.
+            with stop_on_signals(stop):
+                pool.run_until(stop)
         finally:
             pool.stop()
     return 0

@@ -29,6 +29,8 @@ def configure_logging(level: int = logging.INFO) -> None:
         handler._hoi_refine = True  # type: ignore[attr-defined]
         root.addHandler(handler)
     root.setLevel(level)
+    # Alembic's plugin set-up logs a line per plugin at INFO on every import of the migration machinery.
+    logging.getLogger("alembic").setLevel(logging.WARNING)
 
 
 class WorkerActor:

@@ -128,12 +128,14 @@ def run_up(config: UpConfig, stop: threading.Event | None = None) -> int:
             pool.start()
             pool_cfg = config.pool
             print(f"workers: {pool_cfg.workers} x {pool_cfg.threads_per_worker} thread(s); Ctrl-C stops", flush=True)
-            while not stop.is_set():
-                pool.poll(1.0)
-                if api.poll() is not None:
-                    log.error("the API process exited with code %s; stopping", api.returncode)
-                    stop.set()
-                    return 1
+            # ray.init installs its own fatal-signal handler for SIGTERM (it aborts the process); ours again.
+            with stop_on_signals(stop):
+                while not stop.is_set():
+                    pool.poll(1.0)
+                    if api.poll() is not None:
+                        log.error("the API process exited with code %s; stopping", api.returncode)
+                        stop.set()
+                        return 1
             return 0
         finally:
             pool.stop()
