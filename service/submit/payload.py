@@ -1,10 +1,10 @@
 """What one sequence is uploaded as, and the Idempotency-Key derived from it.
 
-The upload is the native NPZ (``common.sequence_io``), re-packed so that the same sequence always gives the
-same bytes: ``np.savez_compressed`` stamps every zip entry with the current time, so two runs a second
-apart would send different bodies under one Idempotency-Key and a server that fingerprints the body would
-call it a reused key. The key itself is computed from the arrays (name, dtype, shape, raw bytes), not from
-the zip container, so it does not depend on zlib's version either.
+The upload is the native NPZ (``common.sequence_io.sequence_to_npz_bytes``) without machine-local meta, so
+the same sequence always gives the same bytes: the service fingerprints what it stores and answers a reused
+Idempotency-Key with another fingerprint by 422, so a POST repeated after a timeout or a crash must be
+byte-identical. The key itself is computed from the arrays (name, dtype, shape, raw bytes), not from the zip
+container, so it does not depend on zlib's version or the entry order either.
 """
 
 from __future__ import annotations
@@ -12,8 +12,6 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import zipfile
-from typing import Any
 
 import numpy as np
 
@@ -23,8 +21,6 @@ from common.sequence_io import sequence_from_npz_bytes, sequence_to_npz_bytes
 
 #: Bumped if the key derivation changes (old manifests then resubmit instead of colliding).
 KEY_SCHEME = b"hoi-refine-submit/1"
-#: Zip entries get this timestamp (the earliest a zip can hold) so that the bytes are reproducible.
-_ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)
 #: Meta entries that describe where a file lay on this machine, not what it holds: left out of the upload
 #: so that moving or re-mounting a dataset does not change the key.
 _LOCAL_META = ("source_path",)
@@ -38,19 +34,6 @@ def options_json(options: JobOptions) -> str:
 def _npz_arrays(blob: bytes) -> dict[str, np.ndarray]:
     with np.load(io.BytesIO(blob), allow_pickle=False) as data:
         return {name: data[name] for name in data.files}
-
-
-def deterministic_npz(arrays: dict[str, Any]) -> bytes:
-    """An NPZ (deflated, entries in name order, fixed timestamps) that ``np.load`` reads like any other."""
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
-        for name in sorted(arrays):
-            info = zipfile.ZipInfo(f"{name}.npy", date_time=_ZIP_EPOCH)
-            info.compress_type = zipfile.ZIP_DEFLATED
-            info.external_attr = 0o600 << 16
-            with zf.open(info, "w", force_zip64=True) as fid:
-                np.lib.format.write_array(fid, np.asanyarray(arrays[name]), allow_pickle=False)
-    return buf.getvalue()
 
 
 def content_digest(npz_blob: bytes) -> str:
@@ -70,7 +53,7 @@ def sequence_payload(seq: Sequence, max_frames: int | None = None) -> bytes:
     original = seq.meta
     seq.meta = meta
     try:
-        blob = deterministic_npz(_npz_arrays(sequence_to_npz_bytes(seq)))
+        blob = sequence_to_npz_bytes(seq)
     finally:
         seq.meta = original
     # Parse it back: what fails here would fail on the server, and must never be sent.
