@@ -20,6 +20,7 @@ from worker.mano.pose import (
     mano_hand_pose,
     mano_pca_basis,
     mano_reference,
+    mano_result_arrays,
     refined_mano_params,
 )
 from worker.mano.synthetic_model import MANO_PARENTS
@@ -140,6 +141,8 @@ def test_ensure_keypoints_and_reference(mano_dir: Path, monkeypatch: pytest.Monk
     back = refined_mano_params(out, out.hands[0], ref.wrist_pos, ref.wrist_quat, ref.q, pose_format="pca")
     np.testing.assert_allclose(back.hand_pose[1:], params.hand_pose[1:] @ np.eye(10, 45), atol=1e-8)
     np.testing.assert_allclose(decode_mano(back, "right").keypoints[1:], kp[1:], atol=1e-9)
+    arrays = mano_result_arrays(out, out.hands[0], ref.wrist_pos, ref.wrist_quat, ref.q)
+    assert str(arrays["right_mano_pose_format"]) == "axis_angle" and arrays["right_mano_hand_pose"].shape == (T, 45)
 
 
 def test_pca_basis_over_hinges(mano_dir: Path) -> None:

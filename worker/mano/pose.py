@@ -90,6 +90,20 @@ def refined_mano_params(
     )
 
 
+def mano_result_arrays(
+    seq: Sequence, hand: HandTrack, wrist_pos_world: FloatArray, wrist_quat_world: FloatArray, q: FloatArray,
+    mano_dir: Path | str | None = None,
+) -> dict[str, np.ndarray]:  # fmt: skip
+    """The result file's optional MANO fields for one hand (``S_mano_*``, the sequence NPZ's key names)."""
+    m = refined_mano_params(seq, hand, wrist_pos_world, wrist_quat_world, q, mano_dir)
+    s = hand.side
+    return {
+        f"{s}_mano_global_orient": m.global_orient, f"{s}_mano_hand_pose": m.hand_pose,
+        f"{s}_mano_trans": m.trans, f"{s}_mano_betas": m.betas,
+        f"{s}_mano_pose_format": np.array(m.pose_format), f"{s}_mano_flat_hand_mean": np.array(m.flat_hand_mean),
+    }  # fmt: skip
+
+
 def mano_reference(seq: Sequence, hand: HandTrack, mano_dir: Path | str | None = None) -> HandReference:
     """World-frame reference of a MANO hand on its own MANO geometry (invalid frames interpolated)."""
     if hand.mano is None:
