@@ -2,8 +2,14 @@
 describe a subject's MANO hand as the built-in articulated hand (geometry, hulls, hinge conversion, PCA).
 
 torch/smplx are only imported when something is decoded (``pip install .[mano]``). Entry points:
-``ensure_keypoints(seq)`` (call before reading keypoints), ``decode_mano``, ``mano_hand_geometry``,
-``mano_reference``, ``hand_pose_to_mano``, ``mano_pca_basis``, ``load_mano_pickle``, ``build_test_mano_model``.
+
+* ``ensure_keypoints(seq)`` (here) — call after loading, before anything reads ``HandTrack.keypoints``;
+* ``worker.mano.decode``: ``decode_mano``, ``load_mano_model``;
+* ``worker.mano.hand_geometry``: ``mano_hand_geometry`` (HandGeometry + part hulls), ``rotations_to_hinges``,
+  ``hinges_to_rotations``;
+* ``worker.mano.pose``: ``mano_reference`` (MANO counterpart of ``retarget_hand``), ``mano_pca_basis``,
+  ``refined_mano_params`` / ``mano_result_arrays`` (refined hand -> MANO parameters);
+* ``load_mano_pickle``, ``mano_model_path``, ``mano_available``, ``build_test_mano_model`` (here).
 """
 
 from __future__ import annotations
