@@ -34,6 +34,17 @@ def _add_pool_arguments(p: argparse.ArgumentParser, default_workers: int) -> Non
     # Physics-free job for runtime diagnostics and tests; not part of the user-facing interface.
     p.add_argument("--job-kind", choices=("refine", "selftest"), default="refine", help=argparse.SUPPRESS)
     p.add_argument("--quiet-actors", action="store_true", help="do not forward actor logs to this terminal")
+    p.add_argument(
+        "--ray-node",
+        action="store_true",
+        help="with --ray-address: first start a Ray node on this machine that joins the cluster, and place this "
+        "command's actors on it (one container = one node; used by docker-compose.yml)",
+    )
+    p.add_argument(
+        "--health-file",
+        default=None,
+        help="touch this file every second while the worker pool is healthy (container health checks)",
+    )
 
 
 def register(subparsers: Any) -> None:
@@ -63,6 +74,16 @@ def register(subparsers: Any) -> None:
     u.add_argument("--port", type=int, default=8000, help="API port (default 8000)")
     u.set_defaults(func=_cmd_up)
 
+    h = subparsers.add_parser(
+        "ray-head",
+        help="run a Ray head node for a multi-machine deployment (workers join it with --ray-address)",
+        description="Start a Ray head node in the foreground (ray start --head --block). It offers no CPUs by "
+        "default: 'hoi-refine worker --ray-address HEAD:PORT --ray-node' on each worker machine adds them.",
+    )
+    h.add_argument("--port", type=int, default=6379, help="GCS port (default 6379)")
+    h.add_argument("--num-cpus", type=int, default=0, help="CPUs the head offers to actors (default 0)")
+    h.set_defaults(func=_cmd_ray_head)
+
 
 def _pool_config(args: argparse.Namespace) -> Any:
     from worker.runtime.pool import PoolConfig
@@ -73,6 +94,8 @@ def _pool_config(args: argparse.Namespace) -> Any:
         ray_address=args.ray_address,
         job_kind=args.job_kind,
         log_to_driver=not args.quiet_actors,
+        join_as_node=args.ray_node,
+        health_file=args.health_file,
     )
 
 
@@ -101,3 +124,13 @@ def _cmd_up(args: argparse.Namespace) -> int:
 
     configure_logging(logging.INFO)
     return run_up(UpConfig(host=args.host, port=args.port, pool=_pool_config(args)))
+
+
+def _cmd_ray_head(args: argparse.Namespace) -> int:
+    import subprocess
+
+    from worker.runtime.pool import ray_executable
+
+    cmd = [ray_executable(), "start", "--head", "--block", "--port", str(args.port), "--num-cpus", str(args.num_cpus)]
+    cmd += ["--include-dashboard", "false", "--disable-usage-stats"]
+    return subprocess.call(cmd)

@@ -49,26 +49,37 @@ def _progress_dict(value: Any) -> dict[str, Any]:
 
 
 class RefineJob:
-    """Runs ``worker.refine.run.refine_sequence`` on a native-NPZ payload with ``threads`` threads."""
+    """Runs ``worker.refine.run.refine_sequence`` on a native-NPZ payload with ``threads`` threads.
+
+    The evaluator (C MjData plus MuJoCo's rollout thread pool) is made by the first job and reused by the
+    next ones: ``ensure_model`` re-makes only the MjData, because each sequence compiles its own model.
+    """
 
     def __init__(self, threads: int) -> None:
         if threads < 1:
             raise ValueError(f"threads must be >= 1, got {threads}")
         self.threads = threads
+        self._evaluator: Any = None
 
     def __call__(
         self, payload: bytes, options: JobOptions, progress: ProgressFn, should_stop: StopFn
     ) -> tuple[bytes, dict[str, Any]]:
+        import mujoco
+
         from common.sequence_io import sequence_from_npz_bytes
-        from worker.refine.run import refine_sequence
+        from worker.refine.run import ParallelEvaluator, refine_sequence
 
         seq = sequence_from_npz_bytes(payload)
+        if self._evaluator is None:
+            # Placeholder model: refine_sequence swaps in each job's own compiled scene (ensure_model).
+            self._evaluator = ParallelEvaluator(mujoco.MjModel.from_xml_string("<mujoco/>"), self.threads)
         outcome = refine_sequence(
             seq,
             options,
             threads=self.threads,
             progress=lambda p: progress(_progress_dict(p)),
             should_stop=should_stop,
+            evaluator=self._evaluator,
         )
         return outcome.to_npz_bytes(), dict(outcome.summary)
 

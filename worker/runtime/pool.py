@@ -39,12 +39,18 @@ class PoolConfig:
     log_to_driver: bool = True
     #: Seconds actors get to release their jobs on stop.
     stop_grace_seconds: float = 20.0
+    #: Start a Ray node here that joins ``ray_address`` and pin the actors to it (one container = one node).
+    join_as_node: bool = False
+    #: Touched after every healthy poll (container health checks read its age).
+    health_file: str | None = None
 
     def __post_init__(self) -> None:
         if self.workers < 1:
             raise ValueError(f"workers must be >= 1, got {self.workers}")
         if self.threads_per_worker < 1:
             raise ValueError(f"threads_per_worker must be >= 1, got {self.threads_per_worker}")
+        if self.join_as_node and not self.ray_address:
+            raise ValueError("join_as_node needs ray_address (the head to join)")
 
 
 @dataclass
@@ -54,6 +60,16 @@ class _Slot:
     run_ref: Any = None
     restarts: int = 0
     last_status: dict[str, Any] = field(default_factory=dict)
+
+
+def ray_executable() -> str:
+    """The ``ray`` CLI installed beside this interpreter (falls back to PATH)."""
+    import shutil
+    import sys
+    from pathlib import Path
+
+    beside = Path(sys.executable).with_name("ray")
+    return str(beside) if beside.exists() else (shutil.which("ray") or "ray")
 
 
 def actor_environment() -> dict[str, str]:
@@ -72,6 +88,7 @@ class WorkerPool:
         self.started_ray = False
         self._queue: Any = None
         self._last_requeue = 0.0
+        self._node_started = False
 
     # ------------------------------------------------------------------ start
 
@@ -85,6 +102,8 @@ class WorkerPool:
         settings = get_settings()
         self._queue = JobQueue(create_engine_for(settings.resolved_database_url()), settings=settings)
         cfg = self.config
+        if cfg.join_as_node:
+            self._start_node()
         if not ray.is_initialized():
             if cfg.ray_address:
                 ray.init(address=cfg.ray_address, log_to_driver=cfg.log_to_driver)
@@ -98,6 +117,11 @@ class WorkerPool:
                 )
             self.started_ray = True
         cls = remote_worker_class(cfg.threads_per_worker)
+        if cfg.join_as_node:
+            from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+            here = ray.get_runtime_context().get_node_id()
+            cls = cls.options(scheduling_strategy=NodeAffinitySchedulingStrategy(node_id=here, soft=False))
         env = actor_environment()
         host = os.uname().nodename
         for i in range(cfg.workers):
@@ -112,6 +136,16 @@ class WorkerPool:
             cfg.threads_per_worker,
             f" at {cfg.ray_address}" if cfg.ray_address else " (local)",
         )
+
+    def _start_node(self) -> None:
+        import subprocess
+
+        cfg = self.config
+        cpus = cfg.workers * cfg.threads_per_worker
+        cmd = [ray_executable(), "start", "--address", str(cfg.ray_address), "--num-cpus", str(cpus)]
+        log.info("joining Ray cluster %s as a node with %d CPU(s)", cfg.ray_address, cpus)
+        subprocess.run([*cmd, "--disable-usage-stats"], check=True)
+        self._node_started = True
 
     def actor_pids(self, timeout: float = 30.0) -> dict[str, int]:
         import ray
@@ -144,6 +178,10 @@ class WorkerPool:
                 )
             slot.run_ref = slot.actor.run.remote()
         self._requeue_expired()
+        if self.config.health_file:
+            from pathlib import Path
+
+            Path(self.config.health_file).touch()
 
     def _requeue_expired(self) -> None:
         lease = get_settings().lease_seconds
@@ -199,6 +237,12 @@ class WorkerPool:
         if self.started_ray:
             ray.shutdown()
             self.started_ray = False
+        if self._node_started:
+            import subprocess
+
+            # This machine's node only: in a container it runs nothing else.
+            subprocess.run([ray_executable(), "stop"], check=False)
+            self._node_started = False
         log.info("workers stopped")
 
     def _release_leftover(self, slot: _Slot) -> None:

@@ -1,0 +1,34 @@
+# One image for every hoi-refine role: API (`hoi-refine serve`), Ray head (`hoi-refine ray-head`) and
+# workers (`hoi-refine worker --ray-address ... --ray-node`). docker-compose.yml picks the role per service.
+FROM python:3.11-slim
+
+ENV PYTHONDONTWRITEBYTECODE=1 \
+    PYTHONUNBUFFERED=1 \
+    PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    # Headless MuJoCo: no rendering context is ever created.
+    MUJOCO_GL=disable \
+    HOI_REFINE_VAR_DIR=/var/lib/hoi-refine
+
+RUN useradd --create-home --uid 10001 hoi \
+    && mkdir -p /var/lib/hoi-refine \
+    && chown hoi /var/lib/hoi-refine
+
+WORKDIR /app
+# Dependencies first (cached layer): only pyproject.toml changes invalidate it.
+COPY pyproject.toml README.md ./
+RUN mkdir -p common worker service migrations \
+    && touch common/__init__.py worker/__init__.py service/__init__.py migrations/__init__.py \
+    && pip install . \
+    && pip uninstall -y hoi-refine
+COPY common ./common
+COPY worker ./worker
+COPY service ./service
+COPY migrations ./migrations
+COPY alembic.ini ./
+RUN pip install --no-deps . && hoi-refine --help >/dev/null
+
+USER hoi
+EXPOSE 8000
+# The API by default; compose overrides the command for the Ray head and the workers.
+CMD ["hoi-refine", "serve", "--host", "0.0.0.0", "--port", "8000"]
