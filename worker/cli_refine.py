@@ -151,10 +151,10 @@ def format_metrics_table(summary: dict[str, Any]) -> str:
 
 def run_demo(threads: int = 2, short: bool = False) -> int:
     """Refine the built-in example and print raw vs refined (``make demo``)."""
-    from worker.example import example_sequence
+    from worker.example import example_sequence, short_example_sequence
     from worker.refine.run import refine_sequence
 
-    seq = example_sequence(short=short)
+    seq = short_example_sequence() if short else example_sequence()
     outcome = refine_sequence(seq, JobOptions(), threads=threads, progress=_ProgressBar())
     print(file=sys.stderr)
     print(f"refined the built-in example {seq.name!r} ({seq.num_frames} frames)")

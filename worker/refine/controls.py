@@ -27,9 +27,9 @@ N_POSE = 10
 N_ROT = 3
 N_TRANS = 3
 #: Radians of wrist rotation per unit of the optimised rotation coordinates.
-OMEGA_SCALE = 0.05
+OMEGA_SCALE = 0.1
 #: Metres of wrist translation per unit of the optimised translation coordinates (option).
-TRANSLATION_SCALE = 0.01
+TRANSLATION_SCALE = 0.02
 
 
 def quat_mul(a: FloatArray, b: FloatArray) -> FloatArray:
@@ -155,8 +155,9 @@ class HandControlSpace:
                 candidates: FloatArray | None = None) -> FloatArray:
         """Interpolated offsets (C, len(idx), dim) at reference samples ``idx`` (substep times idx / S).
 
-        With ``j`` and ``candidates`` (C, dim), keyframe j is replaced by each candidate in turn (one
-        CMA-ES population); otherwise C = 1 with ``keyframes`` as given.
+        With ``j`` and ``candidates`` (C, dim), keyframe j *and every later keyframe* take each candidate in
+        turn (one CMA-ES population): the offset is held beyond the keyframe being optimised, so the window's
+        tail is not pulled back to keyframes that are not optimised yet. Otherwise C = 1 with ``keyframes``.
         """
         if keyframes.shape != (self.n_keyframes, self.dim):
             raise ValueError(f"keyframes must have shape {(self.n_keyframes, self.dim)}, got {keyframes.shape}")
@@ -165,10 +166,9 @@ class HandControlSpace:
             return (w @ keyframes)[None]
         if candidates.ndim != 2 or candidates.shape[1] != self.dim:
             raise ValueError(f"candidates must have shape (C, {self.dim}), got {candidates.shape}")
-        others = keyframes.copy()
-        others[j] = 0.0
-        base = w @ others  # (n, dim)
-        return base[None] + w[:, j][None, :, None] * candidates[:, None, :]
+        base = w[:, :j] @ keyframes[:j]  # (n, dim)
+        tail = w[:, j:].sum(axis=1)
+        return base[None] + tail[None, :, None] * candidates[:, None, :]
 
     def controls(self, offsets: FloatArray, idx: IntArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Hinge targets (C, n, H), wrist positions (C, n, 3), wrist quaternions (C, n, 4) at reference

@@ -28,7 +28,7 @@ from worker.refine.windowed import CmaSettings, RefineProgress, WindowLog, optim
 __all__ = ["ParallelEvaluator", "RefineOutcome", "RefineProgress", "ReplayRecord", "refine_sequence", "replay"]
 
 #: Skip a window when no hand touches the object and its loss per frame is below this (see windowed).
-SKIP_LOSS_PER_FRAME = 1.0
+SKIP_LOSS_PER_FRAME = 0.3
 
 
 @dataclass
@@ -97,7 +97,7 @@ def cma_settings(options: JobOptions, interval: int) -> CmaSettings:
         popsize=options.popsize or DEFAULT_POPSIZE,
         max_generations=options.max_generations or DEFAULT_MAX_GENERATIONS,
         seed=options.seed,
-        skip_loss=SKIP_LOSS_PER_FRAME * 3 * interval,  # a window spans about 3 keyframe intervals
+        skip_loss=SKIP_LOSS_PER_FRAME * 3 * interval,  # a window spans 3 keyframe intervals
     )
 
 

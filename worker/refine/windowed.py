@@ -1,8 +1,9 @@
 """Sliding-window CMA-ES over keyframes (DESIGN §1.6, issue #3 items 3 and 7).
 
-Window j is (k1, k2, k3, k4) = (j-2, j-1, j, j+1): only keyframe k3 = j is optimised, the others stay as
-they are; the window's simulation starts from the committed state at keyframe j-2 (see ``spline`` for why
-this is exact with a Catmull-Rom spline). After the window, the state at keyframe j-1 is committed and the
+Window j is (k1, k2, k3, k4) = (j-2, j-1, j, j+1): only keyframe k3 = j is optimised, the earlier ones
+stay as committed and the later ones hold the candidate's value (an offset persists until a later window
+changes it; this also warm-starts keyframe j from keyframe j-1); the window's simulation starts from the
+committed state at keyframe j-2 (see ``spline`` for why this is exact with a Catmull-Rom spline). After the window, the state at keyframe j-1 is committed and the
 window slides by one keyframe. With two hands, each hand has its own CMA-ES on its own keyframe j; the
 candidates of both are paired in the same rollouts (candidate i of the right hand with candidate i of the
 left), and each hand's CMA-ES is told its own objective (object terms + its hand terms).
@@ -114,6 +115,8 @@ def optimise_windows(
 
     for j in range(problem.first_window, n_win):
         _check_stop(should_stop)
+        for side in problem.sides:  # hold the last optimised offset over the keyframes not optimised yet
+            kf[side][j:] = kf[side][j - 1] if j > 0 else kf[side][j]
         base, touched = problem.probe(j, state, kf)
         evaluations += 1
         base_total = float(sum(base.values()))
@@ -175,7 +178,7 @@ def _optimise_one(
         report(j, total)
     # Hands were scored on paired rollouts; take each hand's best and confirm the pair jointly via commit.
     for side in problem.sides:
-        kf[side][j] = best[side][1]
+        kf[side][j:] = best[side][1]
     log.best_loss = float(sum(b[0] for b in best.values()))
     log.evaluations += evals
     return evals
