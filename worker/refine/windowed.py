@@ -1,12 +1,13 @@
 """Sliding-window CMA-ES over keyframes (DESIGN §1.6, issue #3 items 3 and 7).
 
-Window j is (k1, k2, k3, k4) = (j-2, j-1, j, j+1): only keyframe k3 = j is optimised, the earlier ones
-stay as committed and the later ones hold the candidate's value (an offset persists until a later window
-changes it; this also warm-starts keyframe j from keyframe j-1); the window's simulation starts from the
-committed state at keyframe j-2 (see ``spline`` for why this is exact with a Catmull-Rom spline). After the window, the state at keyframe j-1 is committed and the
-window slides by one keyframe. With two hands, each hand has its own CMA-ES on its own keyframe j; the
-candidates of both are paired in the same rollouts (candidate i of the right hand with candidate i of the
-left), and each hand's CMA-ES is told its own objective (object terms + its hand terms).
+Window j is (k1, k2, k3, k4) = (j-2, j-1, j, j+1): only keyframe k3 = j is optimised, the earlier ones stay as
+committed and the later ones hold the candidate's value (an offset persists until a later window changes it;
+this also warm-starts keyframe j from keyframe j-1); the window's simulation starts from the committed state
+at keyframe j-2 (see ``spline`` for why this is exact with a Catmull-Rom spline). After the window, the state
+at keyframe j-1 is committed and the window slides by one keyframe. With two hands, each hand has its own CMA-
+ES on its own keyframe j; the candidates of both are paired in the same rollouts (candidate i of the right
+hand with candidate i of the left), and each hand's CMA-ES is told its own objective (object terms + its hand
+terms).
 
 A window is skipped (keyframe left at its current value) when the hand does not touch the object on the
 window's frames and the current loss is already below ``skip_loss``: nothing there to fix.
