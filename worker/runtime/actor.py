@@ -31,6 +31,7 @@ def configure_logging(level: int = logging.INFO) -> None:
     root.setLevel(level)
     # Alembic's plugin set-up logs a line per plugin at INFO on every import of the migration machinery.
     logging.getLogger("alembic").setLevel(logging.WARNING)
+    logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per health poll otherwise
 
 
 class WorkerActor:

@@ -19,6 +19,7 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from pathlib import Path
 from types import FrameType
 
 import httpx
@@ -60,10 +61,16 @@ def stop_on_signals(stop: threading.Event) -> Iterator[None]:
             signal.signal(sig, old)
 
 
+def hoi_refine_command() -> list[str]:
+    """The ``hoi-refine`` console script of this interpreter's environment, else ``python -m common.cli``."""
+    script = Path(sys.executable).with_name("hoi-refine")
+    return [str(script)] if script.exists() else [sys.executable, "-m", "common.cli"]
+
+
 def start_api(host: str, port: int) -> subprocess.Popen[bytes]:
     """``hoi-refine serve`` in its own session (Ctrl-C in a terminal reaches only the supervisor)."""
-    cmd = [sys.executable, "-m", "common.cli", "serve", "--host", host, "--port", str(port)]
-    log.info("starting API: %s", " ".join(cmd[2:]))
+    cmd = [*hoi_refine_command(), "serve", "--host", host, "--port", str(port), "--no-migrate"]
+    log.info("starting API: %s", " ".join(cmd))
     return subprocess.Popen(cmd, start_new_session=True, env=dict(os.environ))
 
 
@@ -115,19 +122,23 @@ def run_up(config: UpConfig, stop: threading.Event | None = None) -> int:
     base_url = f"http://{config.host}:{config.port}"
     pool = WorkerPool(config.pool)
     with stop_on_signals(stop):
+        # Migrate here, once, so the API (started with --no-migrate) and Ray can start side by side.
+        from common.database import upgrade_to_head
+
+        upgrade_to_head(get_settings().resolved_database_url())
         api = start_api(config.host, config.port)
         try:
+            pool.start()
             wait_for_api(base_url, api, config.api_start_timeout_s, stop)
             if stop.is_set():
                 return 0
             key = create_dev_key(config.key_name)
             # The lines a user (and the acceptance test) reads: where the API is and how to call it.
+            pool_cfg = config.pool
+            print(f"workers: {pool_cfg.workers} x {pool_cfg.threads_per_worker} thread(s); Ctrl-C stops", flush=True)
             print(f"hoi-refine API: {base_url}  (docs: {base_url}/docs)", flush=True)
             print(f"development API key: {key}", flush=True)
             print(f"  export HOI_REFINE_API_URL={base_url} HOI_REFINE_API_KEY={key}", flush=True)
-            pool.start()
-            pool_cfg = config.pool
-            print(f"workers: {pool_cfg.workers} x {pool_cfg.threads_per_worker} thread(s); Ctrl-C stops", flush=True)
             # ray.init installs its own fatal-signal handler for SIGTERM (it aborts the process); ours again.
             with stop_on_signals(stop):
                 while not stop.is_set():
