@@ -1,0 +1,153 @@
+"""Refinement benchmark on real DexYCB sequences: raw replay vs refined (issue #3, "must show").
+
+    .venv/bin/python bench/refine.py --sample dev40 [--limit N] [--threads 2] [--popsize P] [--max-generations G]
+
+Reads the sample list ``bench/samples/<sample>.txt`` (file names under ../shared/data/dexycb/dev), refines each
+sequence with ``worker.refine.run.refine_sequence`` (sequentially; ``--threads`` simulation threads each) and
+writes ``bench/results/refine_dev.md``: per-sequence rows and the aggregate (success rate, mean E_t, E_r,
+E_j, E_ft, median wall seconds per sequence, share of wall time inside simulation, windows skipped) against the
+issue's targets. Per-sequence summaries are cached in ``var/bench/refine/`` so an interrupted run resumes
+(``--fresh`` ignores the cache).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+TARGETS = {"SR": 85.0, "E_t": 0.6, "E_r": 2.5, "E_j": 1.3, "E_ft": 1.6, "median_wall_s": 60.0, "sim_share": 85.0}
+PAPER = {"SR": 71.7, "E_t": 0.67, "E_r": 2.97, "E_j": 1.55, "E_ft": 1.84, "median_wall_s": 557.0}
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--sample", default="dev40", help="sample list name in bench/samples (default dev40)")
+    p.add_argument("--limit", type=int, default=None, help="only the first N sequences of the sample")
+    p.add_argument("--threads", type=int, default=2, help="simulation threads per sequence (default 2)")
+    p.add_argument("--popsize", type=int, default=None, help="CMA-ES population (default: the product's)")
+    p.add_argument("--max-generations", type=int, default=None, help="CMA-ES generations per window")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "refine_dev.md")
+    p.add_argument("--fresh", action="store_true", help="ignore cached per-sequence results")
+    return p.parse_args(argv)
+
+
+def run_one(path: Path, args: argparse.Namespace, cache: Path) -> dict[str, Any]:
+    from common.dexycb import load_dexycb_npz
+    from common.job_options import JobOptions
+    from worker.refine.run import refine_sequence
+
+    key = f"{path.stem}__p{args.popsize}_g{args.max_generations}_s{args.seed}_t{args.threads}.json"
+    hit = cache / key
+    if hit.is_file() and not args.fresh:
+        out: dict[str, Any] = json.loads(hit.read_text())
+        return out
+    seq = load_dexycb_npz(path)
+    options = JobOptions(seed=args.seed, popsize=args.popsize, max_generations=args.max_generations)
+    t0 = time.perf_counter()
+    outcome = refine_sequence(seq, options, threads=args.threads)
+    summary = dict(outcome.summary)
+    summary["bench_wall_s"] = time.perf_counter() - t0
+    summary["object"] = seq.object.name
+    summary["side"] = seq.hands[0].side
+    cache.mkdir(parents=True, exist_ok=True)
+    hit.write_text(json.dumps(summary))
+    return summary
+
+
+def aggregate(rows: list[dict[str, Any]], which: str) -> dict[str, float]:
+    ms = [r["metrics"][which] for r in rows]
+    return {
+        "SR": 100.0 * sum(bool(m["success"]) for m in ms) / len(ms),
+        **{k: statistics.fmean(float(m[k]) for m in ms) for k in ("E_t", "E_r", "E_j", "E_ft")},
+    }
+
+
+def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) -> str:
+    import os
+    import platform
+
+    raw, ref = aggregate(rows, "raw"), aggregate(rows, "refined")
+    walls = [r["timings"]["wall_s"] for r in rows]
+    share = 100.0 * sum(r["timings"]["sim_s"] for r in rows) / sum(walls)
+    steps_s = sum(r["timings"]["steps"] for r in rows) / sum(r["timings"]["sim_s"] for r in rows)
+    windows = sum(r["windows"]["count"] for r in rows)
+    skipped = sum(r["windows"]["skipped"] for r in rows)
+    cma = rows[0]["config"]["cma"]
+    lines = [
+        "# Refinement on DexYCB dev (bench/refine.py)",
+        "",
+        f"Sample `{args.sample}`: {len(rows)} of {n_sample} sequences (bench/samples/{args.sample}.txt), "
+        f"{args.threads} simulation threads, popsize {cma['popsize']}, {cma['max_generations']} generations per "
+        f"window, seed {args.seed}. Machine: {os.cpu_count()} cores shared with other work "
+        f"({platform.processor() or platform.machine()}), MuJoCo {rows[0]['versions']['mujoco']}.",
+        "",
+        "| | SR % | E_t cm | E_r deg | E_j cm | E_ft cm |",
+        "|---|---|---|---|---|---|",
+        *(
+            f"| {label} | {m['SR']:.1f} | {m['E_t']:.2f} | {m['E_r']:.2f} | {m['E_j']:.2f} | {m['E_ft']:.2f} |"
+            for label, m in (("raw replay", raw), ("refined", ref))
+        ),
+        f"| target | >= {TARGETS['SR']:.0f} | <= {TARGETS['E_t']} | <= {TARGETS['E_r']} | <= {TARGETS['E_j']} | "
+        f"<= {TARGETS['E_ft']} |",
+        f"| paper | {PAPER['SR']} | {PAPER['E_t']} | {PAPER['E_r']} | {PAPER['E_j']} | {PAPER['E_ft']} |",
+        "",
+        f"* median wall time per sequence: **{statistics.median(walls):.1f} s** (target <= 60 s, paper 557 s); "
+        f"min {min(walls):.1f} s, max {max(walls):.1f} s",
+        f"* share of wall time inside simulation: **{share:.1f} %** (target >= 85 %); "
+        f"{steps_s:.0f} physics steps per second of simulation time with {args.threads} threads",
+        f"* windows skipped (no hand-object contact and loss already low): {skipped} of {windows}",
+        "",
+        "## Per sequence",
+        "",
+        "| sequence | object | side | frames | raw ok | raw E_t | refined ok | E_t | E_r | E_j | E_ft | wall s | sim % "
+        "| skipped |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        a, b, t = r["metrics"]["raw"], r["metrics"]["refined"], r["timings"]
+        lines.append(
+            f"| {r['sequence']} | {r['object']} | {r['side']} | {r['frames']} | {'yes' if a['success'] else 'no'} "
+            f"| {a['E_t']:.2f} | {'yes' if b['success'] else 'no'} | {b['E_t']:.2f} | {b['E_r']:.2f} | "
+            f"{b['E_j']:.2f} | {b['E_ft']:.2f} | {t['wall_s']:.1f} | {100 * t['sim_share']:.0f} | "
+            f"{r['windows']['skipped']}/{r['windows']['count']} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    from common.dexycb import shared_data_dir
+
+    args = parse_args(argv)
+    data = shared_data_dir()
+    if data is None:
+        print("bench/refine.py: ../shared/data is not present", file=sys.stderr)
+        return 2
+    names = [ln.strip() for ln in (ROOT / "bench" / "samples" / f"{args.sample}.txt").read_text().splitlines()
+             if ln.strip() and not ln.startswith("#")]
+    todo = names[: args.limit] if args.limit else names
+    cache = ROOT / "var" / "bench" / "refine"
+    rows = []
+    for i, name in enumerate(todo, 1):
+        row = run_one(data / "dexycb" / "dev" / name, args, cache)
+        rows.append(row)
+        m, t = row["metrics"], row["timings"]
+        print(f"[{i}/{len(todo)}] {name}: raw {'ok' if m['raw']['success'] else 'FAIL'} E_t {m['raw']['E_t']:.2f} "
+              f"-> refined {'ok' if m['refined']['success'] else 'FAIL'} E_t {m['refined']['E_t']:.2f} "
+              f"E_r {m['refined']['E_r']:.2f}  {t['wall_s']:.1f}s", flush=True)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(render(rows, args, len(names)))
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
