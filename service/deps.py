@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import time
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from common.api_keys import hash_key
-from common.errors import AuthenticationError
+from common.errors import AuthenticationError, FieldProblem, InvalidRequestError
 from common.queue import JobQueue
 from common.settings import Settings
 
@@ -53,3 +53,23 @@ def current_key(
 
 
 KeyDep = Annotated[str, Depends(current_key)]
+
+
+def reject_unknown_query_parameters(request: Request) -> None:
+    """422 for query parameters the endpoint does not have: a typo (``pagesize=``) must not be ignored."""
+    route = request.scope.get("route")
+    dependant = getattr(route, "dependant", None)
+    if dependant is None:
+        return
+    known = _query_names(dependant)
+    unknown = sorted({name for name in request.query_params if name not in known})
+    if unknown:
+        raise InvalidRequestError([FieldProblem(name or "(empty name)", "is not a parameter of this endpoint")
+                                   for name in unknown])  # fmt: skip
+
+
+def _query_names(dependant: Any) -> set[str]:
+    names = {param.alias for param in dependant.query_params}
+    for sub in dependant.dependencies:
+        names |= _query_names(sub)
+    return names

@@ -8,33 +8,37 @@
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from common.job_options import JobOptions
 from common.queue_types import JobRecord
 
+VertexIndex = Annotated[int, Field(ge=0, le=2**31 - 1)]
+Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 JobState = Literal["QUEUED", "RUNNING", "SUCCEEDED", "FAILED", "CANCELLED"]
 
 
 class PrimitiveIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
     kind: Literal["box", "cylinder", "sphere", "capsule"]
-    size: list[float] = Field(description="box half-extents (3); cylinder/capsule radius, half-length; sphere radius")
+    size: list[float] = Field(
+        min_length=1, max_length=3, description="box half-extents (3); cylinder/capsule (radius, half-length); sphere r"
+    )
 
 
 class MeshIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    vertices: list[list[float]]
-    faces: list[list[int]]
+    vertices: list[Annotated[list[float], Field(min_length=3, max_length=3)]] = Field(min_length=4)
+    faces: list[Annotated[list[VertexIndex], Field(min_length=3, max_length=3)]] = Field(min_length=4)
 
 
 class ObjectIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
     name: str = "object"
-    mass_kg: float
-    friction: float | None = None
+    mass_kg: float = Field(gt=0)
+    friction: float | None = Field(default=None, ge=0)
     primitive: PrimitiveIn | None = None
     mesh: MeshIn | None = None
 
@@ -53,7 +57,9 @@ class HandIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
     side: Literal["right", "left"]
     valid: list[bool]
-    keypoints: list[list[list[float]]] | None = Field(default=None, description="(T, 21, 3) metres")
+    keypoints: list[Annotated[list[Vec3], Field(min_length=21, max_length=21)]] | None = Field(
+        default=None, description="(T, 21, 3) metres"
+    )
     mano: ManoIn | None = None
 
 
@@ -64,13 +70,17 @@ class JobCreate(BaseModel):
     format: Literal["hoi-refine-sequence"] = "hoi-refine-sequence"
     format_version: Literal[1] = 1
     name: str = "sequence"
-    fps: float
-    frame_start: int = 0
+    fps: float = Field(gt=0)
+    frame_start: int = Field(default=0, ge=0)
     object: ObjectIn
-    object_pose: list[list[float]] = Field(description="(T, 7): x y z qw qx qy qz per frame")
-    hands: list[HandIn]
-    world_from_camera: list[list[float]] | None = None
-    up: list[float] | None = None
+    object_pose: list[Annotated[list[float], Field(min_length=7, max_length=7)]] = Field(
+        min_length=1, description="(T, 7): x y z qw qx qy qz per frame"
+    )
+    hands: list[HandIn] = Field(min_length=1, max_length=2)
+    world_from_camera: list[Annotated[list[float], Field(min_length=4, max_length=4)]] | None = Field(
+        default=None, min_length=4, max_length=4, description="4x4 rigid transform source -> world"
+    )
+    up: Vec3 | None = None
     meta: dict[str, str] = Field(default_factory=dict)
     options: JobOptions = Field(default_factory=JobOptions)
 

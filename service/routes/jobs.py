@@ -6,14 +6,14 @@ import hashlib
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from fastapi import APIRouter, Header, Query, Request, Response
+from fastapi import APIRouter, Depends, Header, Query, Request, Response
 from starlette.concurrency import run_in_threadpool
 
 from common.db_models import utcnow
 from common.errors import FieldProblem, InvalidRequestError
 from common.result_format import read_arrays, read_contacts
 from common.sequence_io import sequence_to_json_dict
-from service.deps import KeyDep, QueueDep, SettingsDep
+from service.deps import KeyDep, QueueDep, SettingsDep, reject_unknown_query_parameters
 from service.schemas import (
     ContactsPublic,
     JobPublic,
@@ -28,7 +28,12 @@ from service.submission import MULTIPART_SCHEMA, read_submission
 PROBLEM = {"model": Problem, "content": {"application/problem+json": {}}}
 COMMON_ERRORS: dict[int | str, dict[str, Any]] = {401: PROBLEM, 404: PROBLEM, 422: PROBLEM}
 
-router = APIRouter(prefix="/v1/jobs", tags=["jobs"], responses=COMMON_ERRORS)
+router = APIRouter(
+    prefix="/v1/jobs",
+    tags=["jobs"],
+    responses=COMMON_ERRORS,
+    dependencies=[Depends(reject_unknown_query_parameters)],
+)
 
 
 def _job_response(response: Response, job: JobPublic, retry_after: int) -> JobPublic:
