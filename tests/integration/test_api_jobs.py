@@ -78,12 +78,16 @@ def test_validation_errors_name_every_field(api: ApiHarness) -> None:
     resp = api.client.post("/v1/jobs", json=body, headers=api.headers)
     assert resp.status_code == 422 and resp.headers["content-type"] == PROBLEM
     assert {"fps", "hands[0].side", "options.seed", "options.loss_weights.nonsense"} <= fields(resp)
-    # Content checks after the types: a non-unit quaternion and a keypoint array of the wrong shape.
+    # Shapes are checked by the schema, content after it: a non-unit quaternion, a hand with 4 frames of 5.
+    body = json_body()
+    body["hands"][0]["keypoints"][0] = [[0.0, 0.0, 0.0]] * 20  # type: ignore[index]
+    resp = api.client.post("/v1/jobs", json=body, headers=api.headers)
+    assert resp.status_code == 422 and fields(resp) == {"hands[0].keypoints[0]"}
     body = json_body()
     body["object_pose"][1][3] = 3.0  # type: ignore[index]
-    body["hands"][0]["keypoints"] = [[[0.0, 0.0, 0.0]] * 20] * 5  # type: ignore[index]
+    body["hands"][0]["valid"] = [True] * 4  # type: ignore[index]
     resp = api.client.post("/v1/jobs", json=body, headers=api.headers)
-    assert resp.status_code == 422 and {"object_pose", "hands[0].keypoints"} <= fields(resp)
+    assert resp.status_code == 422 and {"object_pose", "hands[0].valid"} <= fields(resp), resp.text
     too_long = api.client.post("/v1/jobs", json=json_body(frames=51), headers=api.headers)
     assert too_long.status_code == 422 and fields(too_long) == {"object_pose"}
     bad_opts = api.client.post("/v1/jobs", headers=api.headers, files={"sequence": ("x.npz", b"not an npz")},
