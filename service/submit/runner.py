@@ -152,8 +152,12 @@ class _Run:
 
 
 def _job_error(doc: dict[str, Any]) -> str:
-    err = doc.get("error") or doc.get("errors") or doc.get("detail")
-    return json.dumps(err) if err is not None and not isinstance(err, str) else (err or doc.get("state", "failed"))
+    """The last error of a FAILED/CANCELLED job (``errors`` holds one entry per attempt)."""
+    errors = doc.get("errors")
+    if isinstance(errors, list) and errors:
+        last = errors[-1]
+        return str(last.get("error") if isinstance(last, dict) else last)
+    return str(doc.get("error") or doc.get("detail") or f"job {str(doc.get('state', 'failed')).lower()}")
 
 
 def _job_metrics(doc: dict[str, Any]) -> dict[str, Any] | None:
@@ -238,7 +242,7 @@ def run_submit(
                     if needs_tracking(e) and e.source not in in_flight and polls_due.get(e.source, 0.0) <= now:
                         polls_due[e.source] = float("inf")
                         futures[poll_pool.submit(run.poll, e, cfg.wait)] = ("poll", e)
-                if not futures:
+                if not futures and not any(needs_tracking(e) for e in visible):
                     break
                 done, _ = wait(list(futures), timeout=0.2, return_when=FIRST_COMPLETED)
                 for fut in done:

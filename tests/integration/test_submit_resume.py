@@ -1,0 +1,182 @@
+"""``hoi-refine submit`` against a real server: interrupted half-way, re-run, everything exactly once.
+
+The FastAPI app runs under uvicorn in a thread on 127.0.0.1 over a migrated SQLite file; two in-test
+workers (``worker.runtime.loop.WorkerLoop`` over ``common.queue.JobQueue``) complete the jobs with a real
+raw replay in MuJoCo (``worker.replay``). The per-key active-job limit is set to 2, so the tool also meets
+real 429 answers with ``Retry-After`` and has to wait them out.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import sqlalchemy as sa
+import uvicorn
+from rich.console import Console
+
+from common.database import create_engine_for
+from common.job_options import JobOptions
+from common.queue import JobQueue
+from common.result_format import read_arrays, read_summary
+from common.sequence_io import save_sequence, sequence_from_npz_bytes
+from common.settings import Settings
+from service.app import create_app
+from service.submit.client import ApiClient
+from service.submit.manifest import Manifest
+from service.submit.runner import SubmitConfig, SubmitOutcome, run_submit
+from tests.queue_fixtures import tiny_sequence
+from worker.replay import raw_replay, replay_result_bytes, replay_summary
+from worker.runtime.loop import WorkerLoop
+
+SEQUENCES = 6
+
+
+def replay_job(payload: bytes, options: JobOptions, progress: Any, should_stop: Any) -> tuple[bytes, dict[str, Any]]:
+    """A worker job that simulates: the raw replay of the submitted sequence (no optimisation)."""
+    result = raw_replay(sequence_from_npz_bytes(payload))
+    return replay_result_bytes(result), replay_summary(result)
+
+
+class Deployment:
+    """API server + two workers over one SQLite database, and the owner's API key."""
+
+    def __init__(self, db_url: str) -> None:
+        self.settings = Settings(
+            database_url=db_url,
+            max_active_jobs_per_key=2,
+            active_jobs_retry_after_seconds=1,
+            poll_retry_after_seconds=1,
+            lease_seconds=30.0,
+        )
+        self.api_engine = create_engine_for(db_url)
+        self.worker_engine = create_engine_for(db_url)
+        self.queue = JobQueue(self.worker_engine, self.settings)
+        self.key_id, self.key = self.queue.create_api_key("bulk")
+        self.throttled = 0  # 429 answers the tool met
+        sock = socket.socket()
+        sock.bind(("127.0.0.1", 0))
+        self.url = f"http://127.0.0.1:{sock.getsockname()[1]}"
+        app = create_app(self.settings, self.api_engine)
+        self.server = uvicorn.Server(uvicorn.Config(app, log_level="warning", access_log=False))
+        self.threads = [threading.Thread(target=self.server.run, kwargs={"sockets": [sock]}, daemon=True)]
+        self.workers = [
+            WorkerLoop(self.queue, replay_job, f"w{i}", lease_seconds=30.0, idle_poll_seconds=0.05) for i in range(2)
+        ]
+        self.threads += [threading.Thread(target=w.run, daemon=True) for w in self.workers]
+
+    def start(self) -> None:
+        for t in self.threads:
+            t.start()
+        deadline = time.monotonic() + 20
+        while not self.server.started:
+            assert time.monotonic() < deadline, "uvicorn did not start"
+            time.sleep(0.02)
+
+    def stop(self) -> None:
+        for w in self.workers:
+            w.stop()
+        self.server.should_exit = True
+        for t in self.threads:
+            t.join(timeout=30)
+        self.api_engine.dispose()
+        self.worker_engine.dispose()
+
+    def jobs(self) -> list[Any]:
+        with self.worker_engine.connect() as conn:
+            return list(conn.execute(sa.text("SELECT id, name, state, idempotency_key FROM jobs")).all())
+
+
+@pytest.fixture
+def deployment(db_url: str) -> Iterator[Deployment]:
+    dep = Deployment(db_url)
+    dep.start()
+    try:
+        yield dep
+    finally:
+        dep.stop()
+
+
+def _dataset(folder: Path) -> None:
+    """Six short sequences (NPZ and JSON, nested) and one invalid file that must never be sent."""
+    for i in range(SEQUENCES):
+        path = folder / "json" / f"part{i}" / f"s{i}.json" if i % 3 == 0 else folder / "npz" / f"s{i}.npz"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        save_sequence(tiny_sequence(seed=i, frames=6, name=f"tiny-{i}"), path)
+    (folder / "broken.json").write_text(json.dumps({"fps": 30, "object": {"mass_kg": 1}, "hands": []}))
+
+
+def _run(dep: Deployment, data: Path, out: Path, console: Console, **kw: Any) -> SubmitOutcome:
+    cfg = SubmitConfig(paths=[data], api_url=dep.url, api_key=dep.key, out_dir=out, wait=True, concurrency=3,
+                       poll_interval_s=0.2, options=JobOptions(seed=1))  # fmt: skip
+    with ApiClient(dep.url, dep.key) as client:
+        outcome = run_submit(cfg, console=console, client=client, **kw)
+    dep.throttled += client.throttled
+    return outcome
+
+
+def test_interrupt_and_resume_submits_each_sequence_once(deployment: Deployment, tmp_path: Path) -> None:
+    data, out = tmp_path / "data", tmp_path / "out"
+    _dataset(data)
+    first_log = io.StringIO()
+
+    submitted: list[str] = []
+
+    def ctrl_c_half_way(event: str, entry: Any) -> None:
+        if event == "submitted":
+            submitted.append(entry.label)
+            if len(submitted) == SEQUENCES // 2:
+                raise KeyboardInterrupt  # what Ctrl-C does in the main thread
+
+    first = _run(deployment, data, out, Console(file=first_log, width=300), on_event=ctrl_c_half_way)
+    assert first.interrupted and first.exit_code == 130
+    assert "Run the same command again to resume" in first_log.getvalue()
+    # The manifest names exactly the jobs the server holds: nothing was sent that was not recorded.
+    manifest = {e.source: e for e in Manifest.load_or_create(out).snapshot()}
+    recorded = {e.job_id for e in manifest.values() if e.job_id}
+    assert {j.id for j in deployment.jobs()} == recorded
+    assert SEQUENCES // 2 <= len(recorded) < SEQUENCES
+
+    second_log = io.StringIO()
+    second = _run(deployment, data, out, Console(file=second_log, width=300))
+    assert not second.interrupted
+    assert second.exit_code == 1  # the broken file
+    by_label = {e.label: e for e in second.entries}
+    assert by_label["broken"].state == "INVALID" and "object_pose" in (by_label["broken"].error or "")
+
+    # Each sequence was submitted once in total: one job each, one POST each, across both runs.
+    jobs = deployment.jobs()
+    assert len(jobs) == SEQUENCES
+    assert sorted(j.name for j in jobs) == [f"tiny-{i}" for i in range(SEQUENCES)]
+    assert all(j.state == "SUCCEEDED" for j in jobs), (jobs, second_log.getvalue())
+    good = [e for e in second.entries if e.label != "broken"]
+    assert sum(e.posts for e in good) == SEQUENCES
+    assert {e.key for e in good} == {j.idempotency_key for j in jobs}
+
+    # Every result and its contacts were downloaded, and they agree with each other.
+    for e in good:
+        blob = (out / e.files["result"]).read_bytes()
+        summary = read_summary(blob)
+        assert summary["kind"] == "replay" and e.metrics == summary["metrics"]
+        contacts = json.loads((out / e.files["contacts"]).read_text())
+        assert contacts["count"] == len(read_arrays(blob)["contact_frame"]) == len(contacts["contacts"])
+    means = np.mean([e.metrics["raw"]["E_t"] for e in good if e.metrics])
+    text = second_log.getvalue()
+    assert "Jobs by state" in text and "SUCCEEDED" in text and f"{means:.2f}" in text
+    assert "broken" in text and "INVALID" in text
+
+    # The per-key limit of 2 active jobs made the server answer 429 + Retry-After; the tool waited it out.
+    assert deployment.throttled > 0
+
+    # A third run finds nothing to do and sends nothing.
+    third = _run(deployment, data, out, Console(file=io.StringIO(), width=300))
+    assert third.exit_code == 1 and len(deployment.jobs()) == SEQUENCES
+    assert sum(e.posts for e in third.entries) == SEQUENCES
