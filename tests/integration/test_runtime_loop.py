@@ -10,62 +10,32 @@ import logging
 import os
 import threading
 import time
-import uuid
 from collections.abc import Iterator
-from pathlib import Path
 
 import numpy as np
 import pytest
-import sqlalchemy as sa
 
-from common.database import create_engine_for, upgrade_to_head
+from common.database import create_engine_for
 from common.job_options import JobOptions
 from common.queue import JobQueue
-from common.settings import get_settings
+from common.settings import Settings
+from tests.queue_fixtures import BACKENDS
 from worker.runtime.backoff import Backoff, WorkerStopping, call_with_backoff
 from worker.runtime.jobs import SELFTEST_GENERATION_ENV, SelfTestJob
 from worker.runtime.loop import WorkerLoop
 
 GEN_S = 0.1
 LEASE_S = 1.5
+BACKEND = pytest.mark.parametrize("empty_db_url", BACKENDS, indirect=True)
 
 
-def _scratch_postgres(base_url: str) -> Iterator[str]:
-    name = f"hoi_rt_{uuid.uuid4().hex[:10]}"
-    admin = sa.create_engine(base_url, isolation_level="AUTOCOMMIT")
-    try:
-        with admin.connect() as conn:
-            conn.exec_driver_sql(f'CREATE DATABASE "{name}"')
-    except sa.exc.OperationalError as exc:
-        pytest.skip(f"PostgreSQL not reachable: {exc.orig}")
-    url = sa.engine.make_url(base_url).set(database=name).render_as_string(hide_password=False)
-    try:
-        yield url
-    finally:
-        with admin.connect() as conn:
-            conn.exec_driver_sql(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
-        admin.dispose()
-
-
-@pytest.fixture(params=["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)])
-def queue(request: pytest.FixtureRequest, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[JobQueue]:
+@pytest.fixture
+def rt_queue(db_url: str, monkeypatch: pytest.MonkeyPatch) -> Iterator[JobQueue]:
+    """The real queue on a migrated database (SQLite, or PostgreSQL via the shared ``db_url`` fixture)."""
     monkeypatch.setenv(SELFTEST_GENERATION_ENV, str(GEN_S))
-    monkeypatch.setenv("HOI_REFINE_LEASE_SECONDS", str(LEASE_S))
-    monkeypatch.setenv("HOI_REFINE_RETRY_BACKOFF_SECONDS", "0")
-    get_settings.cache_clear()
-    if request.param == "sqlite":
-        urls: Iterator[str] = iter([f"sqlite:///{tmp_path / 'q.sqlite3'}"])
-    else:
-        base = os.environ.get("HOI_REFINE_TEST_POSTGRES_URL")
-        if not base:
-            pytest.skip("HOI_REFINE_TEST_POSTGRES_URL is not set")
-        urls = _scratch_postgres(base)
-    url = next(urls)
-    upgrade_to_head(url)
-    engine = create_engine_for(url)
-    yield JobQueue(engine, settings=get_settings())
+    engine = create_engine_for(db_url)
+    yield JobQueue(engine, settings=Settings(lease_seconds=LEASE_S, retry_backoff_seconds=0))
     engine.dispose()
-    next(urls, None)  # drops the scratch PostgreSQL database
 
 
 def _submit(q: JobQueue, generations: int, name: str = "job") -> str:
@@ -87,70 +57,74 @@ def _wait(pred: object, timeout: float) -> None:
     raise AssertionError("condition not met in time")
 
 
-def test_success_writes_result_and_progress_names_the_process(queue: JobQueue) -> None:
-    job_id = _submit(queue, generations=3)
-    loop = _loop(queue)
+@BACKEND
+def test_success_writes_result_and_progress_names_the_process(rt_queue: JobQueue) -> None:
+    job_id = _submit(rt_queue, generations=3)
+    loop = _loop(rt_queue)
     assert loop.run_once() == "succeeded"
     assert loop.run_once() == "idle"
-    rec = queue.get(None, job_id)
+    rec = rt_queue.get(None, job_id)
     assert rec.state == "SUCCEEDED" and rec.attempt == 1
-    blob, summary = queue.get_result(None, job_id)
+    blob, summary = rt_queue.get_result(None, job_id)
     assert summary["generations"] == 3
     with np.load(io.BytesIO(blob)) as data:
         assert data["values"].shape == (32,)
     assert (rec.progress or {}).get("pid") == os.getpid()
-    kinds = [e.kind for e in queue.events(None, job_id)]
+    kinds = [e.kind for e in rt_queue.events(None, job_id)]
     assert kinds == ["submitted", "claimed", "succeeded"]
 
 
-def test_progress_is_visible_while_running_and_cancel_stops_within_a_generation(queue: JobQueue) -> None:
-    job_id = _submit(queue, generations=200)
-    loop = _loop(queue)
+@BACKEND
+def test_progress_is_visible_while_running_and_cancel_stops_within_a_generation(rt_queue: JobQueue) -> None:
+    job_id = _submit(rt_queue, generations=200)
+    loop = _loop(rt_queue)
     t = threading.Thread(target=loop.run_once)
     t.start()
-    _wait(lambda: (queue.get(None, job_id).progress or {}).get("generation", 0) >= 2, 10)
-    progress = queue.get(None, job_id).progress or {}
+    _wait(lambda: (rt_queue.get(None, job_id).progress or {}).get("generation", 0) >= 2, 10)
+    progress = rt_queue.get(None, job_id).progress or {}
     assert progress["pid"] == os.getpid() and progress["worker_id"] == "w1" and progress["attempt"] == 1
     t0 = time.monotonic()
-    queue.cancel(None, job_id)
+    rt_queue.cancel(None, job_id)
     t.join(10)
     elapsed = time.monotonic() - t0
-    assert queue.get(None, job_id).state == "CANCELLED"
+    assert rt_queue.get(None, job_id).state == "CANCELLED"
     # One heartbeat interval (lease / 3) to see the flag plus one generation to reach the check.
     assert elapsed < LEASE_S / 3 + GEN_S + 0.5, elapsed
     assert loop.jobs_done == {"cancelled": 1}
 
 
-def test_graceful_stop_releases_the_job_without_consuming_an_attempt(queue: JobQueue) -> None:
-    job_id = _submit(queue, generations=200)
-    loop = _loop(queue)
+@BACKEND
+def test_graceful_stop_releases_the_job_without_consuming_an_attempt(rt_queue: JobQueue) -> None:
+    job_id = _submit(rt_queue, generations=200)
+    loop = _loop(rt_queue)
     t = threading.Thread(target=loop.run)
     t.start()
-    _wait(lambda: queue.get(None, job_id).state == "RUNNING", 10)
+    _wait(lambda: rt_queue.get(None, job_id).state == "RUNNING", 10)
     loop.stop()
     t.join(5)
     assert not t.is_alive()
-    rec = queue.get(None, job_id)
+    rec = rt_queue.get(None, job_id)
     assert rec.state == "QUEUED" and rec.attempt == 1
     assert loop.jobs_done == {"released": 1}
 
 
-def test_worker_that_lost_its_lease_writes_nothing_and_the_next_attempt_wins(queue: JobQueue) -> None:
-    job_id = _submit(queue, generations=30)
+@BACKEND
+def test_worker_that_lost_its_lease_writes_nothing_and_the_next_attempt_wins(rt_queue: JobQueue) -> None:
+    job_id = _submit(rt_queue, generations=30)
     # A stalled worker: it beats once at claim time and then never again (interval far beyond the lease).
-    first = WorkerLoop(queue, SelfTestJob(), "stalled", lease_seconds=LEASE_S, heartbeat_interval=600)
+    first = WorkerLoop(rt_queue, SelfTestJob(), "stalled", lease_seconds=LEASE_S, heartbeat_interval=600)
     t = threading.Thread(target=first.run_once)
     t.start()
-    _wait(lambda: queue.get(None, job_id).state == "RUNNING", 10)
+    _wait(lambda: rt_queue.get(None, job_id).state == "RUNNING", 10)
     time.sleep(LEASE_S + 0.2)
-    second = _loop(queue, "fresh")
+    second = _loop(rt_queue, "fresh")
     assert second.run_once() == "succeeded"  # requeues the expired job itself, then claims it
     t.join(10)
     # The stalled worker finished its computation later; its token-checked write changed nothing.
     assert first.jobs_done == {"lost": 1}
-    rec = queue.get(None, job_id)
+    rec = rt_queue.get(None, job_id)
     assert rec.state == "SUCCEEDED" and rec.attempt == 2
-    kinds = [e.kind for e in queue.events(None, job_id)]
+    kinds = [e.kind for e in rt_queue.events(None, job_id)]
     assert kinds.count("succeeded") == 1 and kinds.count("requeued") == 1 and kinds.count("claimed") == 2
 
 
