@@ -117,7 +117,15 @@ class _Run:
     # ------------------------------------------------------------------ tracking side (worker threads)
     def poll(self, entry: Entry, download: bool) -> tuple[str, float | None]:
         assert entry.job_id is not None
-        doc, hint = self.client.job(entry.job_id)
+        try:
+            doc, hint = self.client.job(entry.job_id)
+        except ApiError as exc:
+            if exc.status != 404 or entry.key is None:
+                raise
+            # The server does not know the job (deleted, or another deployment): forget it and submit again;
+            # the Idempotency-Key still guards against a duplicate if the job exists under another id.
+            self.manifest.reset(entry, entry.key)
+            return "lost", None
         state = str(doc.get("state", entry.state))
         error = _job_error(doc) if state in ("FAILED", "CANCELLED") else None
         metrics = _job_metrics(doc) or entry.metrics
@@ -210,6 +218,8 @@ def run_submit(
     polls_due: dict[str, float] = {}
     polled_once: set[str] = set()
     gave_up: set[str] = set()  # polling/downloading failed after retries: left for the next run
+    resubmitted: set[str] = set()  # jobs the server no longer knew (404), sent again once
+    source_of = {e.source: s for e, s in entries}
     futures: dict[Future[Any], tuple[str, Entry]] = {}
     submit_pool = ThreadPoolExecutor(max_workers=cfg.concurrency, thread_name_prefix="submit")
     poll_pool = ThreadPoolExecutor(max_workers=cfg.concurrency, thread_name_prefix="poll")
@@ -251,7 +261,11 @@ def run_submit(
                     if kind == "submit":
                         submitting.discard(e.source)
                         polls_due[e.source] = time.monotonic() + min(0.5, cfg.poll_interval_s)
-                    elif event == "error":
+                    elif event == "lost" and e.source not in resubmitted:
+                        resubmitted.add(e.source)
+                        submitting.add(e.source)
+                        futures[submit_pool.submit(run.prepare_and_submit, e, source_of[e.source])] = ("submit", e)
+                    elif event in ("error", "lost"):
                         gave_up.add(e.source)
                     else:
                         polled_once.add(e.source)

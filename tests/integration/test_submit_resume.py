@@ -8,6 +8,7 @@ real 429 answers with ``Retry-After`` and has to wait them out.
 
 from __future__ import annotations
 
+import argparse
 import io
 import json
 import socket
@@ -30,6 +31,7 @@ from common.result_format import read_arrays, read_summary
 from common.sequence_io import save_sequence, sequence_from_npz_bytes
 from common.settings import Settings
 from service.app import create_app
+from service.submit import cli as submit_cli
 from service.submit.client import ApiClient
 from service.submit.manifest import Manifest
 from service.submit.runner import SubmitConfig, SubmitOutcome, run_submit
@@ -123,7 +125,9 @@ def _run(dep: Deployment, data: Path, out: Path, console: Console, **kw: Any) ->
     return outcome
 
 
-def test_interrupt_and_resume_submits_each_sequence_once(deployment: Deployment, tmp_path: Path) -> None:
+def test_interrupt_and_resume_submits_each_sequence_once(
+    deployment: Deployment, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     data, out = tmp_path / "data", tmp_path / "out"
     _dataset(data)
     first_log = io.StringIO()
@@ -176,7 +180,22 @@ def test_interrupt_and_resume_submits_each_sequence_once(deployment: Deployment,
     # The per-key limit of 2 active jobs made the server answer 429 + Retry-After; the tool waited it out.
     assert deployment.throttled > 0
 
-    # A third run finds nothing to do and sends nothing.
-    third = _run(deployment, data, out, Console(file=io.StringIO(), width=300))
-    assert third.exit_code == 1 and len(deployment.jobs()) == SEQUENCES
-    assert sum(e.posts for e in third.entries) == SEQUENCES
+    # A third run, through the command line, finds nothing to do and sends nothing.
+    parser = argparse.ArgumentParser()
+    submit_cli.register(parser.add_subparsers())
+    args = parser.parse_args(["submit", str(data), "--api", deployment.url, "--key", deployment.key, "--out",
+                              str(out), "--wait", "--seed", "1", "--poll-interval", "0.2"])  # fmt: skip
+    assert args.func(args) == 1
+    assert "6 already done, 1 to check and submit" in capsys.readouterr().err
+    assert len(deployment.jobs()) == SEQUENCES
+    assert sum(e.posts for e in Manifest.load_or_create(out).snapshot()) == SEQUENCES
+
+    # A job the server no longer knows (deleted) whose files are gone is submitted again, once.
+    lost = good[0]
+    with ApiClient(deployment.url, deployment.key) as client:
+        client.request("DELETE", f"/v1/jobs/{lost.job_id}")
+    (out / lost.files["result"]).unlink()
+    fourth = _run(deployment, data, out, Console(file=io.StringIO(), width=300))
+    again = {e.label: e for e in fourth.entries}[lost.label]
+    assert again.state == "SUCCEEDED" and again.job_id != lost.job_id and again.posts == 1
+    assert (out / again.files["result"]).is_file() and len(deployment.jobs()) == SEQUENCES
