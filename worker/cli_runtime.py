@@ -127,10 +127,11 @@ def _cmd_up(args: argparse.Namespace) -> int:
 
 
 def _cmd_ray_head(args: argparse.Namespace) -> int:
-    import subprocess
+    import os
 
     from worker.runtime.pool import ray_executable
 
     cmd = [ray_executable(), "start", "--head", "--block", "--port", str(args.port), "--num-cpus", str(args.num_cpus)]
     cmd += ["--include-dashboard", "false", "--disable-usage-stats"]
-    return subprocess.call(cmd)
+    # Replace this process: the container's stop signal then reaches `ray start --block` directly.
+    os.execv(cmd[0], cmd)

@@ -151,6 +151,8 @@ class WorkerLoop:
         requeued = self._db("requeue_expired", self.queue.requeue_expired)
         if requeued:
             log.info("requeued %d job(s) whose lease expired", requeued)
+        if self.stop_event.is_set():
+            return "idle"  # do not claim a job only to release it at once
         claimed = self._db("claim", lambda: self.queue.claim(self.worker_id, lease_seconds=self.lease_seconds))
         if claimed is None:
             return "idle"
