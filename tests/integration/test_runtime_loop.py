@@ -89,7 +89,7 @@ def test_progress_is_visible_while_running_and_cancel_stops_within_a_generation(
     elapsed = time.monotonic() - t0
     assert rt_queue.get(None, job_id).state == "CANCELLED"
     # One heartbeat interval (lease / 3) to see the flag plus one generation to reach the check.
-    assert elapsed < LEASE_S / 3 + GEN_S + 0.5, elapsed
+    assert elapsed < LEASE_S / 3 + GEN_S + 1.0, elapsed  # + slack for a busy 2-core machine
     assert loop.jobs_done == {"cancelled": 1}
 
 

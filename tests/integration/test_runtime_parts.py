@@ -1,0 +1,65 @@
+"""Small parts of the runtime: signal handling, the progress record, the actor environment, pool settings."""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+from pathlib import Path
+
+import pytest
+
+from common.errors import ConfigurationError
+from common.settings import get_settings
+from worker.refine.windowed import RefineProgress
+from worker.runtime.jobs import RefineJob, SelfTestJob, _progress_dict, make_job_function
+from worker.runtime.pool import PoolConfig, actor_environment
+from worker.runtime.supervisor import stop_on_signals
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_stop_on_signals_sets_the_event_and_restores_handlers(sig: signal.Signals) -> None:
+    before = signal.getsignal(sig)
+    stop = threading.Event()
+    with stop_on_signals(stop):
+        os.kill(os.getpid(), sig)
+        assert stop.wait(2)
+        os.kill(os.getpid(), sig)  # a second signal while stopping is not fatal either
+    assert signal.getsignal(sig) is before
+
+
+def test_progress_record_is_json_ready_and_keeps_window_loss_evaluations_eta() -> None:
+    import numpy as np
+
+    p = RefineProgress(window=3, windows=9, best_loss=float(np.float64(1.5)), evaluations=240, elapsed_s=12.0,
+                       eta_s=24.0)  # fmt: skip
+    out = _progress_dict(p)
+    assert out == {"window": 3, "windows": 9, "best_loss": 1.5, "evaluations": 240, "elapsed_s": 12.0,
+                   "eta_s": 24.0, "skipped": 0}  # fmt: skip
+    assert _progress_dict({"window": np.int64(2), "junk": object()}) == {"window": 2}
+
+
+def test_actor_environment_makes_paths_absolute(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("HOI_REFINE_VAR_DIR", "relative/var")
+    monkeypatch.setenv("HOI_REFINE_LEASE_SECONDS", "7")
+    monkeypatch.delenv("HOI_REFINE_DATABASE_URL", raising=False)
+    get_settings.cache_clear()
+    env = actor_environment()
+    assert env["HOI_REFINE_VAR_DIR"] == str(tmp_path / "relative" / "var")
+    assert env["HOI_REFINE_DATABASE_URL"] == f"sqlite:///{tmp_path / 'relative' / 'var' / 'hoi-refine.sqlite3'}"
+    assert env["HOI_REFINE_LEASE_SECONDS"] == "7"
+    assert all(k.startswith("HOI_REFINE_") for k in env)
+
+
+def test_pool_and_job_settings_are_checked() -> None:
+    with pytest.raises(ValueError, match="workers"):
+        PoolConfig(workers=0)
+    with pytest.raises(ValueError, match="threads_per_worker"):
+        PoolConfig(threads_per_worker=0)
+    with pytest.raises(ValueError, match="ray_address"):
+        PoolConfig(join_as_node=True)
+    assert isinstance(make_job_function("refine", 2), RefineJob)
+    assert isinstance(make_job_function("selftest", 1), SelfTestJob)
+    with pytest.raises(ConfigurationError, match="job kind"):
+        make_job_function("nope", 1)
