@@ -101,6 +101,7 @@ def _pool_config(args: argparse.Namespace) -> Any:
 
 def _cmd_worker(args: argparse.Namespace) -> int:
     from worker.runtime.actor import configure_logging
+    from worker.runtime.backoff import WorkerStopping
     from worker.runtime.pool import WorkerPool
     from worker.runtime.supervisor import stop_on_signals
 
@@ -109,10 +110,12 @@ def _cmd_worker(args: argparse.Namespace) -> int:
     pool = WorkerPool(_pool_config(args))
     with stop_on_signals(stop):
         try:
-            pool.start()
+            pool.start(stop)
             # ray.init installs its own fatal-signal handler for SIGTERM (it aborts the process); ours again.
             with stop_on_signals(stop):
                 pool.run_until(stop)
+        except WorkerStopping:
+            pass  # stopped while waiting for the database: nothing was started
         finally:
             pool.stop()
     return 0

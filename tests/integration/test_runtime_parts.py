@@ -63,3 +63,23 @@ def test_pool_and_job_settings_are_checked() -> None:
     assert isinstance(make_job_function("selftest", 1), SelfTestJob)
     with pytest.raises(ConfigurationError, match="job kind"):
         make_job_function("nope", 1)
+
+
+def test_worker_waits_for_an_unmigrated_database_says_why_and_stops_on_sigterm(tmp_path: Path) -> None:
+    import subprocess
+    import time
+
+    from worker.runtime.supervisor import hoi_refine_command
+
+    env = {**os.environ, "HOI_REFINE_DATABASE_URL": f"sqlite:///{tmp_path / 'empty.sqlite3'}"}
+    proc = subprocess.Popen(
+        [*hoi_refine_command(), "worker", "--job-kind", "selftest"],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    time.sleep(4.0)
+    proc.send_signal(signal.SIGTERM)
+    out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 0, out
+    lines = [line for line in out.splitlines() if "database unreachable during schema check" in line]
+    assert len(lines) >= 2, out  # retried with backoff, and said so each time
+    assert "not at the migration head" in lines[0] and "Ray" not in out

@@ -20,9 +20,9 @@ import uuid
 from dataclasses import dataclass, field
 from typing import Any
 
-from common.errors import LeaseLostError
+from common.errors import DatabaseUnavailableError, LeaseLostError
 from common.settings import get_settings
-from worker.runtime.backoff import is_unreachable
+from worker.runtime.backoff import Backoff, call_with_backoff, is_unreachable
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +62,16 @@ class _Slot:
     last_status: dict[str, Any] = field(default_factory=dict)
 
 
+def _require_schema(engine: Any) -> None:
+    from common.database import is_at_head
+
+    if not is_at_head(engine):
+        raise DatabaseUnavailableError(
+            "the database schema is not at the migration head yet (the API migrates it when it starts: "
+            "`hoi-refine serve`, or `hoi-refine up`)"
+        )
+
+
 def ray_executable() -> str:
     """The ``ray`` CLI installed beside this interpreter (falls back to PATH)."""
     import shutil
@@ -92,7 +102,8 @@ class WorkerPool:
 
     # ------------------------------------------------------------------ start
 
-    def start(self) -> None:
+    def start(self, stop: threading.Event | None = None) -> None:
+        """Wait for a reachable, migrated database, start (or join) Ray and the actors."""
         import ray
 
         from common.database import create_engine_for
@@ -100,7 +111,9 @@ class WorkerPool:
         from worker.runtime.actor import remote_worker_class
 
         settings = get_settings()
-        self._queue = JobQueue(create_engine_for(settings.resolved_database_url()), settings=settings)
+        engine = create_engine_for(settings.resolved_database_url())
+        self._queue = JobQueue(engine, settings=settings)
+        call_with_backoff(lambda: _require_schema(engine), "schema check", Backoff(1.0, 10.0), stop=stop, logger=log)
         cfg = self.config
         if cfg.join_as_node:
             self._start_node()
