@@ -1,0 +1,174 @@
+"""A small grasp synthesiser for the built-in example: the built-in hand grasping an upright box from above.
+
+Least squares over the wrist pose (rotation vector, position; box frame) and the 45 hinges within their limits:
+the thumb tip sinks ``penetration`` into the -x face and the index, middle and ring tips into the +x face
+(opposition), every other capsule stays outside the box, the palm faces down, and the hinges stay near a
+natural half-closed hand. Deterministic (fixed start, no randomness).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from worker.hand_model import (
+    JOINT_LOWER,
+    JOINT_UPPER,
+    FloatArray,
+    HandGeometry,
+    default_geometry,
+    finger_kinematics,
+)
+
+#: Natural half-closed hand (the regulariser's target and the solver's start).
+_NATURAL = np.zeros(45)
+_NATURAL[:9] = [0.5, 0.4, 0.0, 0.0, 0.5, 0.0, 0.0, 0.5, 0.0]
+for _f in range(1, 5):
+    _NATURAL[9 * _f : 9 * _f + 9] = [0.0, 0.6, 0.0, 0.0, 0.9, 0.0, 0.0, 0.5, 0.0]
+_PAD_FINGERS = (1, 2, 3)  # index, middle, ring on the +x face; thumb (0) on the -x face
+
+
+@dataclass(frozen=True)
+class BoxGrasp:
+    """Wrist rotation (3,3) and position (3,) in the box frame (origin at the box centre), hinges (45,),
+    the open-hand hinges used while approaching, and the final residual norm."""
+
+    wrist_rot: FloatArray
+    wrist_pos: FloatArray
+    q: FloatArray
+    q_open: FloatArray
+    cost: float
+
+
+def _box_sdf(points: FloatArray, half: FloatArray) -> FloatArray:
+    d = np.abs(points) - half
+    return np.asarray(np.linalg.norm(np.maximum(d, 0.0), axis=-1) + np.minimum(d.max(axis=-1), 0.0))
+
+
+def _capsule_samples(geometry: HandGeometry, q: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """For hinges ``q`` (B,45): points (B,5,3,7,3) along every capsule as built in the MJCF (the distal one
+    ends one radius short of the tip), their radii (B,5,3,7) and the fingertip keypoints (B,5,3); wrist frame."""
+    fk = finger_kinematics(geometry, q)
+    b = q.shape[0]
+    starts = np.concatenate([np.broadcast_to(geometry.bases[None, :, None, :], (b, 5, 1, 3)), fk.points[:, :, :2]], 2)
+    ends = fk.points.copy()
+    shorten = np.maximum(geometry.lengths[:, 2] - geometry.radii[:, 2], 0.3 * geometry.lengths[:, 2])
+    ends[:, :, 2] = starts[:, :, 2] + (ends[:, :, 2] - starts[:, :, 2]) * (shorten / geometry.lengths[:, 2])[:, None]
+    frac = np.linspace(0.0, 1.0, 7)[None, None, None, :, None]
+    pts = starts[:, :, :, None, :] + frac * (ends - starts)[:, :, :, None, :]
+    radii = np.broadcast_to(geometry.radii[None, :, :, None], pts.shape[:-1])
+    return pts, radii, fk.points[:, :, 2]
+
+
+def _palm_samples(geometry: HandGeometry) -> FloatArray:
+    xs = np.linspace(0.02, float(geometry.bases[1:, 0].mean()), 4)
+    ys = np.linspace(float(geometry.bases[1:, 1].min()), float(geometry.bases[1:, 1].max()), 4)
+    return np.array([[x, y, 0.0] for x in xs for y in ys])
+
+
+def synthesize_box_grasp(geometry: HandGeometry, half: FloatArray, penetration: float = 0.002) -> BoxGrasp:
+    """Solve the grasp of the module docstring for a box of half-extents ``half`` (3,)."""
+    half = np.asarray(half, dtype=np.float64)
+    palm_pts = _palm_samples(geometry)
+    pads = [0, *_PAD_FINGERS]
+    keep = np.ones((5, 3, 7), dtype=bool)
+    keep[pads, 2] = False  # distal segments of the pad fingers are handled by the contact residual
+    down = np.array([0.0, 0.0, -1.0])
+    face_sign = np.array([-1.0, 1.0, 1.0, 1.0])
+
+    def batch(x: FloatArray) -> FloatArray:
+        rot = Rotation.from_rotvec(x[:, :3]).as_matrix()  # (B,3,3)
+        pos, q = x[:, 3:6], x[:, 6:]
+        pts, radii, tips = _capsule_samples(geometry, q)
+        world = np.einsum("bij,bfskj->bfski", rot, pts) + pos[:, None, None, None, :]
+        tips_w = np.einsum("bij,bfj->bfi", rot, tips) + pos[:, None, :]
+        clearance = _box_sdf(world, half) - radii  # (B,5,3,7)
+        contact = 10.0 * (clearance[:, pads, 2].min(axis=2) + penetration)  # distal capsules just sink in
+        side = 3.0 * np.minimum(face_sign * tips_w[:, pads, 0] - (half[0] - 0.01), 0.0)  # on the right face
+        face = 10.0 * np.maximum(np.abs(tips_w[:, pads, 1:]) - (half[1:] - 0.01), 0.0).reshape(len(x), -1)
+        pen = 10.0 * np.maximum(-clearance[:, keep], 0.0)
+        palm_w = np.einsum("bij,pj->bpi", rot, palm_pts) + pos[:, None, :]
+        palm = 10.0 * np.maximum(geometry.palm_half_thickness - _box_sdf(palm_w, half), 0.0)
+        up = 0.02 * (rot[:, :, 2] - down)
+        reg = 0.003 * (q - _NATURAL)
+        return np.concatenate([contact, side, face, pen, palm, up, reg], axis=1)
+
+    def jac(x: FloatArray) -> FloatArray:
+        eps = 1e-6
+        xs = np.vstack([x, x + eps * np.eye(len(x))])
+        r = batch(xs)
+        return np.asarray((r[1:] - r[0]).T / eps)
+
+    # Start: palm down above the box, fingers along +x (wrist frame: x fingers, z palmar, y = z × x).
+    rot0 = np.column_stack([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
+    x0 = np.concatenate([Rotation.from_matrix(rot0).as_rotvec(), [-0.06, 0.0, half[2] + 0.04], _NATURAL])
+    lo = np.concatenate([np.full(6, -np.inf), JOINT_LOWER])
+    hi = np.concatenate([np.full(6, np.inf), JOINT_UPPER])
+    sol = least_squares(
+        lambda x: batch(x[None, :])[0], np.clip(x0, lo + 1e-9, hi - 1e-9), jac=jac, bounds=(lo, hi), max_nfev=400
+    )
+    q = sol.x[6:]
+    # Open hand for the approach: a quarter of the grasp's hinge angles.
+    q_open = np.clip(0.25 * q, JOINT_LOWER, JOINT_UPPER)
+    return BoxGrasp(
+        wrist_rot=Rotation.from_rotvec(sol.x[:3]).as_matrix(),
+        wrist_pos=sol.x[3:6].copy(),
+        q=q,
+        q_open=q_open,
+        cost=float(np.linalg.norm(sol.fun)),
+    )
+
+
+#: The solved example grasp shipped with the package (solving takes ~40 s on 2 shared cores).
+GRASP_FILE = Path(__file__).parent / "data" / "example_grasp.npz"
+_GRASP_VERSION = 1
+
+
+def _grasp_key(hand_length: float, half: tuple[float, float, float]) -> FloatArray:
+    return np.array([_GRASP_VERSION, hand_length, *half], dtype=np.float64)
+
+
+def write_grasp_file(hand_length: float, half: tuple[float, float, float], path: Path = GRASP_FILE) -> BoxGrasp:
+    """Solve and store the example grasp (``python -m worker.grasp_synthesis`` regenerates the shipped file)."""
+    grasp = synthesize_box_grasp(default_geometry("right", hand_length), np.array(half))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(
+        path,
+        key=_grasp_key(hand_length, half),
+        wrist_rot=grasp.wrist_rot,
+        wrist_pos=grasp.wrist_pos,
+        q=grasp.q,
+        q_open=grasp.q_open,
+        cost=np.array(grasp.cost),
+    )
+    return grasp
+
+
+@lru_cache(maxsize=4)
+def cached_box_grasp(hand_length: float, half: tuple[float, float, float]) -> BoxGrasp:
+    """The box grasp for the right template hand of ``hand_length``: read from the shipped file when it was
+    solved for these inputs, else solved now (and memoised per process)."""
+    if GRASP_FILE.is_file():
+        with np.load(GRASP_FILE) as data:
+            if np.allclose(data["key"], _grasp_key(hand_length, half)):
+                return BoxGrasp(
+                    wrist_rot=data["wrist_rot"],
+                    wrist_pos=data["wrist_pos"],
+                    q=data["q"],
+                    q_open=data["q_open"],
+                    cost=float(data["cost"]),
+                )
+    return synthesize_box_grasp(default_geometry("right", hand_length), np.array(half))
+
+
+if __name__ == "__main__":
+    from worker.example import BOX_HALF
+    from worker.hand_model import TEMPLATE_HAND_LENGTH
+
+    solved = write_grasp_file(TEMPLATE_HAND_LENGTH, BOX_HALF)
+    print(f"wrote {GRASP_FILE} (residual {solved.cost:.4f})")
