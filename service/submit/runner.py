@@ -33,6 +33,8 @@ from service.submit.report import counts, describe, make_progress, print_summary
 
 RESULTS_DIR = "results"
 EXIT_OK, EXIT_FAILED, EXIT_INTERRUPTED = 0, 1, 130
+#: Status requests per second over all tracked jobs, at most (each job's pause grows with their number).
+MAX_POLLS_PER_S = 20.0
 
 #: Called in the main thread after each step: ``(event, entry)`` with event one of submitted, invalid,
 #: rejected, error, state, downloaded. Tests use it to interrupt a run part-way.
@@ -248,11 +250,12 @@ def run_submit(
                     break
                 now = time.monotonic()
                 in_flight = {e.source for kind, e in futures.values() if kind == "poll"}
-                for e in visible:
-                    if needs_tracking(e) and e.source not in in_flight and polls_due.get(e.source, 0.0) <= now:
+                tracked = [e for e in visible if needs_tracking(e)]
+                for e in tracked:
+                    if e.source not in in_flight and polls_due.get(e.source, 0.0) <= now:
                         polls_due[e.source] = float("inf")
                         futures[poll_pool.submit(run.poll, e, cfg.wait)] = ("poll", e)
-                if not futures and not any(needs_tracking(e) for e in visible):
+                if not futures and not tracked:
                     break
                 done, _ = wait(list(futures), timeout=0.2, return_when=FIRST_COMPLETED)
                 for fut in done:
@@ -271,6 +274,8 @@ def run_submit(
                         polled_once.add(e.source)
                         hint = fut.result()[1] if event in ("state", "downloaded") else None
                         delay = cfg.poll_interval_s if hint is None else min(max(hint, 0.05), cfg.poll_interval_s)
+                        # Thousands of queued jobs must not turn into thousands of requests a second.
+                        delay = max(delay, len(tracked) / MAX_POLLS_PER_S)
                         polls_due[e.source] = time.monotonic() + delay
                     if on_event is not None and event != "stopped":
                         on_event(event, e)
