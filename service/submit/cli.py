@@ -88,7 +88,13 @@ def register(subparsers: Any) -> None:
     p.add_argument("paths", nargs="+", type=Path, metavar="PATH", help="sequence files or folders")
     p.add_argument("--api", default=os.environ.get("HOI_REFINE_API_URL"), help="service URL ($HOI_REFINE_API_URL)")
     p.add_argument("--key", default=os.environ.get("HOI_REFINE_API_KEY"), help="API key ($HOI_REFINE_API_KEY)")
-    p.add_argument("--format", dest="fmt", choices=("auto", "npz", "json", "dexycb"), default="auto")
+    p.add_argument(
+        "--format",
+        dest="fmt",
+        choices=("auto", "npz", "json", "dexycb"),
+        default="auto",
+        help="what PATH holds: auto (.npz/.json files and DexYCB roots), only npz, only json, or a DexYCB root",
+    )
     p.add_argument("--concurrency", type=_positive_int, default=4, help="parallel requests (default 4)")
     p.add_argument("--wait", action="store_true", help="wait for every job and download results + contacts")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"manifest + results folder (default {DEFAULT_OUT})")
