@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from common.errors import SequenceValidationError, UnsupportedFormatError
+from common.errors import ManoModelMissingError, SequenceValidationError, UnsupportedFormatError
 from common.job_options import JobOptions
 from common.sequence import HandTrack, ObjectSpec, Sequence
 from common.sequence_io import save_sequence, sequence_from_npz_bytes
@@ -142,3 +142,19 @@ def test_dexycb_dev_file_is_uploaded_self_contained(dexycb_dev_files: list[Path]
     assert back.object.is_mesh and back.object.mesh_vertices is not None
     assert back.object.mesh_vertices.shape == seq.object.mesh_vertices.shape  # type: ignore[union-attr]
     assert back.name == seq.name and back.num_frames == seq.num_frames
+
+
+def test_dexycb_release_sequences_load_and_pack(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A DexYCB release root (the loader's own test tree): one item per sequence, uploaded self-contained."""
+    from tests.unit.test_dexycb_native import _write_tree  # the tiny release tree its loader is tested on
+
+    monkeypatch.delenv("HOI_REFINE_MANO_DIR", raising=False)
+    dirs = _write_tree(tmp_path / "release")
+    labelled, mano_only = discover([tmp_path / "release"], "dexycb")
+    assert (labelled.path, mano_only.path) == (dirs["s1"].resolve(), dirs["s2"].resolve())
+    seq = load_source(labelled)
+    back = sequence_from_npz_bytes(sequence_payload(seq))
+    assert back.object.is_mesh and back.world_from_source is not None and back.num_frames == seq.num_frames
+    # Hands known only by MANO parameters need a MANO model here: reported, never sent.
+    with pytest.raises(ManoModelMissingError):
+        load_source(mano_only)
