@@ -1,4 +1,8 @@
-"""FastAPI dependencies: the queue, the settings, and the caller's API key (Bearer)."""
+"""FastAPI dependencies: the queue, the settings, and the caller's API key (Bearer).
+
+They are ``async`` because FastAPI runs every sync dependency in the thread pool: one hop per dependency
+per request. Only the endpoint itself (and an API-key lookup on a cache miss) goes to a thread.
+"""
 
 from __future__ import annotations
 
@@ -7,6 +11,7 @@ from typing import Annotated, Any
 
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from starlette.concurrency import run_in_threadpool
 
 from common.api_keys import hash_key
 from common.errors import AuthenticationError, FieldProblem, InvalidRequestError
@@ -19,12 +24,12 @@ KEY_CACHE_SECONDS = 60.0
 bearer = HTTPBearer(auto_error=False, description="An API key from `hoi-refine keys create NAME`")
 
 
-def get_queue(request: Request) -> JobQueue:
+async def get_queue(request: Request) -> JobQueue:
     queue: JobQueue = request.app.state.queue
     return queue
 
 
-def get_app_settings(request: Request) -> Settings:
+async def get_app_settings(request: Request) -> Settings:
     settings: Settings = request.app.state.settings
     return settings
 
@@ -33,7 +38,7 @@ QueueDep = Annotated[JobQueue, Depends(get_queue)]
 SettingsDep = Annotated[Settings, Depends(get_app_settings)]
 
 
-def current_key(
+async def current_key(
     request: Request, queue: QueueDep, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)]
 ) -> str:
     """The id of the caller's API key; 401 when the header is missing or the key unknown."""
@@ -45,7 +50,7 @@ def current_key(
     now = time.monotonic()
     if hit is not None and hit[1] > now:
         return hit[0]
-    key_id = queue.authenticate(credentials.credentials)
+    key_id = await run_in_threadpool(queue.authenticate, credentials.credentials)
     if len(cache) > 10_000:  # bounded: a flood of distinct keys cannot grow it without limit
         cache.clear()
     cache[digest] = (key_id, now + KEY_CACHE_SECONDS)
@@ -55,7 +60,7 @@ def current_key(
 KeyDep = Annotated[str, Depends(current_key)]
 
 
-def reject_unknown_query_parameters(request: Request) -> None:
+async def reject_unknown_query_parameters(request: Request) -> None:
     """422 for query parameters the endpoint does not have: a typo (``pagesize=``) must not be ignored."""
     route = request.scope.get("route")
     dependant = getattr(route, "dependant", None)

@@ -1,0 +1,295 @@
+"""API and queue load benchmark: status-polling throughput/latency and claim throughput, SQLite and PostgreSQL.
+
+1. Polling: a uvicorn subprocess on 127.0.0.1 serves the app; an open-loop client fires
+   ``GET /v1/jobs/{id}`` at a fixed rate (default 200 req/s for 30 s) over a set of submitted jobs and records
+   each latency; then a closed-loop run (``--concurrency`` clients back to back) finds the saturation rate.
+2. Claims: ``--claim-jobs`` jobs are queued, then ``--claimers`` spawned processes claim + complete until the
+   queue is empty (each job claimed exactly once is checked too).
+
+    .venv/bin/python bench/api_load.py                          # both backends, results to stdout
+    .venv/bin/python bench/api_load.py --out bench/results/api_load.md
+
+PostgreSQL uses ``HOI_REFINE_TEST_POSTGRES_URL`` (or ``--postgres-url``), in a scratch schema dropped after.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import os
+import platform
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+
+import httpx
+import numpy as np
+import sqlalchemy as sa
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # bench/ runs as a script; the claimer body lives in tests/queue_claimer.py
+
+from common.database import create_engine_for, upgrade_to_head  # noqa: E402
+from common.job_options import JobOptions  # noqa: E402
+from common.queue import JobQueue  # noqa: E402
+from common.sequence_io import sequence_to_json_dict  # noqa: E402
+from tests.queue_claimer import run_claimers  # noqa: E402
+from tests.queue_fixtures import tiny_payload, tiny_sequence  # noqa: E402
+
+
+@dataclass
+class PollFigures:
+    mode: str
+    requests: int
+    errors: int
+    seconds: float
+    p50_ms: float
+    p99_ms: float
+    #: uvicorn process CPU time per request: what a request costs, independent of other load on the machine.
+    server_cpu_ms: float = float("nan")
+
+    @property
+    def rate(self) -> float:
+        return self.requests / self.seconds
+
+
+@dataclass
+class ClaimFigures:
+    jobs: int
+    claimers: int
+    seconds: float
+    duplicates: int
+
+
+@contextmanager
+def database(backend: str, postgres_url: str | None) -> Iterator[str]:
+    if backend == "sqlite":
+        with tempfile.TemporaryDirectory(prefix="hoi-bench-") as tmp:
+            yield f"sqlite:///{Path(tmp) / 'bench.sqlite3'}"
+        return
+    if not postgres_url:
+        raise SystemExit("PostgreSQL: set HOI_REFINE_TEST_POSTGRES_URL or pass --postgres-url")
+    schema = f"hoi_bench_{uuid.uuid4().hex[:10]}"
+    admin = sa.create_engine(postgres_url)
+    with admin.begin() as conn:
+        conn.exec_driver_sql(f"CREATE SCHEMA {schema}")
+    sep = "&" if "?" in postgres_url else "?"
+    try:
+        yield f"{postgres_url}{sep}options=-csearch_path%3D{schema}"
+    finally:
+        with admin.begin() as conn:
+            conn.exec_driver_sql(f"DROP SCHEMA {schema} CASCADE")
+        admin.dispose()
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def process_cpu_seconds(pid: int) -> float:
+    """utime + stime of a process (Linux /proc)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+@contextmanager
+def server(url: str) -> Iterator[tuple[str, int]]:
+    port = free_port()
+    env = {**os.environ, "HOI_REFINE_DATABASE_URL": url, "HOI_REFINE_MAX_ACTIVE_JOBS_PER_KEY": "100000"}
+    cmd = [sys.executable, "-m", "uvicorn", "--factory", "service.app:create_app", "--host", "127.0.0.1",
+           "--port", str(port), "--log-level", "warning", "--no-access-log"]  # fmt: skip
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=env)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                if httpx.get(f"{base}/readyz", timeout=1).status_code == 200:
+                    break
+            except httpx.HTTPError:
+                pass
+            if time.monotonic() > deadline or proc.poll() is not None:
+                raise SystemExit("uvicorn did not become ready")
+            time.sleep(0.2)
+        yield base, proc.pid
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+
+
+async def open_loop(base: str, key: str, job_ids: list[str], rate: float, duration: float) -> PollFigures:
+    """Requests start on a fixed schedule whatever the answers do (latency includes any queueing)."""
+    latencies: list[float] = []
+    errors = 0
+    limits = httpx.Limits(max_connections=256, max_keepalive_connections=256)
+    async with httpx.AsyncClient(base_url=base, headers={"Authorization": f"Bearer {key}"}, limits=limits,
+                                 timeout=30) as client:  # fmt: skip
+
+        async def one(i: int) -> None:
+            nonlocal errors
+            t0 = time.perf_counter()
+            try:
+                resp = await client.get(f"/v1/jobs/{job_ids[i % len(job_ids)]}")
+                ok = resp.status_code == 200
+            except httpx.HTTPError:
+                ok = False
+            latencies.append(time.perf_counter() - t0)
+            errors += 0 if ok else 1
+
+        n = int(rate * duration)
+        start = time.perf_counter()
+        tasks = []
+        for i in range(n):
+            delay = start + i / rate - time.perf_counter()
+            if delay > 0:
+                await asyncio.sleep(delay)
+            tasks.append(asyncio.create_task(one(i)))
+        await asyncio.gather(*tasks)
+        elapsed = time.perf_counter() - start
+    lat = np.array(latencies) * 1e3
+    return PollFigures(f"open loop {rate:.0f}/s", n, errors, elapsed, *np.percentile(lat, [50, 99]))
+
+
+async def closed_loop(base: str, key: str, job_ids: list[str], concurrency: int, duration: float) -> PollFigures:
+    """``concurrency`` clients, each sending its next request as soon as the last is answered."""
+    latencies: list[float] = []
+    errors = 0
+    async with httpx.AsyncClient(base_url=base, headers={"Authorization": f"Bearer {key}"}, timeout=30) as client:
+        stop = time.perf_counter() + duration
+
+        async def worker(w: int) -> None:
+            nonlocal errors
+            i = w
+            while time.perf_counter() < stop:
+                t0 = time.perf_counter()
+                resp = await client.get(f"/v1/jobs/{job_ids[i % len(job_ids)]}")
+                latencies.append(time.perf_counter() - t0)
+                errors += resp.status_code != 200
+                i += concurrency
+
+        start = time.perf_counter()
+        await asyncio.gather(*(worker(w) for w in range(concurrency)))
+        elapsed = time.perf_counter() - start
+    lat = np.array(latencies) * 1e3
+    return PollFigures(f"closed loop x{concurrency}", len(lat), errors, elapsed, *np.percentile(lat, [50, 99]))
+
+
+def bench_polling(url: str, args: argparse.Namespace) -> list[PollFigures]:
+    engine = create_engine_for(url)
+    queue = JobQueue(engine)
+    _, key = queue.create_api_key("bench")
+    engine.dispose()
+    with server(url) as (base, pid):
+        body = {**sequence_to_json_dict(tiny_sequence().validate()), "options": {}}
+        job_ids = []
+        for i in range(args.poll_jobs):
+            body["options"] = {"seed": i}
+            resp = httpx.post(f"{base}/v1/jobs", json=body, headers={"Authorization": f"Bearer {key}"}, timeout=30)
+            resp.raise_for_status()
+            job_ids.append(resp.json()["id"])
+        asyncio.run(open_loop(base, key, job_ids, args.rate, 2.0))  # warm-up
+        out = []
+        for run in (
+            lambda: open_loop(base, key, job_ids, args.rate, args.duration),
+            lambda: closed_loop(base, key, job_ids, args.concurrency, args.closed_duration),
+        ):
+            cpu0 = process_cpu_seconds(pid)
+            figures = asyncio.run(run())
+            figures.server_cpu_ms = (process_cpu_seconds(pid) - cpu0) / figures.requests * 1e3
+            out.append(figures)
+    return out
+
+
+def bench_claims(url: str, jobs: int, claimers: int) -> ClaimFigures:
+    engine = create_engine_for(url)
+    queue = JobQueue(engine)
+    owner, _ = queue.create_api_key("bench")
+    payload = tiny_payload()
+    for i in range(jobs):
+        queue.submit(owner, payload, JobOptions(seed=i), None, f"bench-{i}", 5)
+    queued = queue.stats().jobs_by_state.get("QUEUED", 0)  # these plus the polling run's jobs
+    per_claimer, seconds = run_claimers(url, claimers)
+    claimed = [j for done in per_claimer for j in done]
+    left = queue.stats().jobs_by_state.get("QUEUED", 0)
+    engine.dispose()
+    assert len(set(claimed)) == queued and left == 0, f"{len(set(claimed))} jobs claimed of {queued}, {left} left"
+    return ClaimFigures(len(claimed), claimers, seconds, len(claimed) - len(set(claimed)))
+
+
+def report(results: dict[str, tuple[list[PollFigures], ClaimFigures]], args: argparse.Namespace) -> str:
+    lines = [
+        "# API load benchmark (`bench/api_load.py`)",
+        "",
+        f"Run {datetime.now(UTC):%Y-%m-%d %H:%M} UTC on {platform.node() or 'this machine'}: "
+        f"{os.cpu_count()} CPU cores shared by the client, one uvicorn worker and the database; Python "
+        f"{platform.python_version()}. Command: `.venv/bin/python bench/api_load.py "
+        f"--rate {args.rate:g} --duration {args.duration:g} --claim-jobs {args.claim_jobs} "
+        f"--claimers {args.claimers}`. Load average (1/5/15 min) before: "
+        f"{'/'.join(f'{x:.1f}' for x in args.load_before)}, after: {'/'.join(f'{x:.1f}' for x in args.load_after)}"
+        " (other work on the machine competes for the same cores).",
+        "",
+        "## Status polling: `GET /v1/jobs/{id}` (auth, ETag, progress) against a uvicorn subprocess",
+        "",
+        "| backend | load | requests | errors | achieved req/s | p50 ms | p99 ms | server CPU ms/request |",
+        "|---|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for backend, (polls, _) in results.items():
+        for p in polls:
+            lines.append(f"| {backend} | {p.mode} | {p.requests} | {p.errors} | {p.rate:.0f} | "
+                         f"{p.p50_ms:.1f} | {p.p99_ms:.1f} | {p.server_cpu_ms:.2f} |")  # fmt: skip
+    lines += [
+        "",
+        f"## Claim throughput: {args.claimers} claimer processes, claim + complete until the queue is empty",
+        "",
+        "| backend | jobs | claimers | seconds | claims/s | jobs claimed twice |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    for backend, (_, c) in results.items():
+        lines.append(f"| {backend} | {c.jobs} | {c.claimers} | {c.seconds:.2f} | {c.jobs / c.seconds:.0f} | "
+                     f"{c.duplicates} |")  # fmt: skip
+    return "\n".join(lines) + "\n"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--backends", default="sqlite,postgres")
+    parser.add_argument("--postgres-url", default=os.environ.get("HOI_REFINE_TEST_POSTGRES_URL"))
+    parser.add_argument("--rate", type=float, default=200.0, help="open-loop polling rate, requests/s")
+    parser.add_argument("--duration", type=float, default=30.0, help="open-loop seconds")
+    parser.add_argument("--concurrency", type=int, default=16, help="closed-loop clients")
+    parser.add_argument("--closed-duration", type=float, default=10.0)
+    parser.add_argument("--poll-jobs", type=int, default=50, help="jobs submitted for polling")
+    parser.add_argument("--claim-jobs", type=int, default=400)
+    parser.add_argument("--claimers", type=int, default=8)
+    parser.add_argument("--out", type=Path, help="also write the markdown report here")
+    args = parser.parse_args()
+    results = {}
+    args.load_before = os.getloadavg()
+    for backend in args.backends.split(","):
+        with database(backend, args.postgres_url) as url:
+            upgrade_to_head(url)
+            polls = bench_polling(url, args)
+            print(f"{backend}: polling {polls}", file=sys.stderr)
+            claims = bench_claims(url, args.claim_jobs, args.claimers)
+            print(f"{backend}: claims {claims}", file=sys.stderr)
+            results[backend] = (polls, claims)
+    args.load_after = os.getloadavg()
+    text = report(results, args)
+    print(text)
+    if args.out:
+        args.out.write_text(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
