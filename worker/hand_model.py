@@ -175,8 +175,8 @@ def fit_hand_geometry(keypoints_world: FloatArray, valid: npt.NDArray[np.bool_],
     """Fit the built-in hand to a sequence's own keypoints (medians over valid frames, DESIGN §1.1).
 
     ``keypoints_world`` (T,21,3) metres, ``valid`` (T,). Palm layout = median of the finger bases in the wrist
-    frame; segment lengths = median bone lengths; thumb rest direction = median CMC->MCP direction; widths =
-    template radii scaled by the fitted hand length.
+    frame; segment lengths = median bone lengths; rest frames as the template's (so hinge angles mean the same
+    for every subject); widths = template radii scaled by the fitted hand length.
     """
     kp = np.asarray(keypoints_world, dtype=np.float64)
     valid = np.asarray(valid, dtype=bool)
@@ -193,15 +193,13 @@ def fit_hand_geometry(keypoints_world: FloatArray, valid: npt.NDArray[np.bool_],
     idx = np.array(FINGER_BASE_KEYPOINT)[:, None] + np.arange(4)[None, :]  # (5,4)
     bones = np.linalg.norm(np.diff(kp[:, idx], axis=2), axis=3)  # (T,5,3)
     lengths = np.median(bones, axis=0)
-    thumb = local[:, 2] - local[:, 1]
-    thumb_dir = np.median(thumb / np.linalg.norm(thumb, axis=1, keepdims=True), axis=0)
     m = _mirror(side)
     hand_length = float(np.linalg.norm(bases[2]) + lengths[2].sum())
     s = hand_length / TEMPLATE_HAND_LENGTH
     return HandGeometry(
         side=side,
         bases=bases,
-        rest_rot=_rest_frames(bases, thumb_dir, _TEMPLATE_THUMB_PALMAR * m),
+        rest_rot=_rest_frames(bases, _TEMPLATE_THUMB_DIR * m, _TEMPLATE_THUMB_PALMAR * m),
         lengths=lengths,
         radii=_TEMPLATE_RADII * s,
         palm_half_thickness=PALM_HALF_THICKNESS * s,
