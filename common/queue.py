@@ -14,44 +14,26 @@ read the same QUEUED row. Order: priority (high first), then age.
 
 from __future__ import annotations
 
-import base64
-import builtins
 import hashlib
 import json
 import secrets
 import uuid
-from collections.abc import Iterator
-from contextlib import contextmanager
 from datetime import datetime, timedelta
-from typing import Any, cast
+from typing import Any
 
 import sqlalchemy as sa
-from sqlalchemy.engine import Connection, Engine, Row
+from sqlalchemy.engine import Connection, Row
 
-from common import api_keys
-from common.database import IMMEDIATE
-from common.db_models import ACTIVE_STATES, ApiKey, Job, JobEvent, JobInput, JobResult, utcnow
+from common.db_models import ACTIVE_STATES, utcnow
 from common.errors import (
     ConflictError,
-    FieldProblem,
     IdempotencyMismatchError,
-    InvalidRequestError,
     LeaseLostError,
     LimitExceededError,
-    NotFoundError,
 )
 from common.job_options import JobOptions
-from common.queue_types import ApiKeyRecord, ClaimedJob, JobEventRecord, JobRecord, QueueStats
-from common.settings import Settings, get_settings
-
-# Core tables of the mapped models: the queue speaks SQL expressions, never ORM sessions.
-jobs = cast(sa.Table, Job.__table__)
-inputs = cast(sa.Table, JobInput.__table__)
-results = cast(sa.Table, JobResult.__table__)
-events = cast(sa.Table, JobEvent.__table__)
-keys = cast(sa.Table, ApiKey.__table__)
-
-MAX_PAGE_SIZE = 500
+from common.queue_base import QueueBase, inputs, jobs, results
+from common.queue_types import ClaimedJob, JobRecord
 
 
 def payload_hash(payload: bytes, options: JobOptions) -> str:
@@ -60,35 +42,9 @@ def payload_hash(payload: bytes, options: JobOptions) -> str:
     return hashlib.sha256(payload + b"\x00" + options_json.encode()).hexdigest()
 
 
-class JobQueue:
-    """Submit, claim, heartbeat, complete, fail, cancel, retry, requeue; owner-scoped reads; API keys."""
-
-    def __init__(self, engine: Engine, settings: Settings | None = None) -> None:
-        self.engine = engine
-        self.settings = settings if settings is not None else get_settings()
-        self._postgres = engine.dialect.name == "postgresql"
-
-    # ------------------------------------------------------------------ transactions
-    @contextmanager
-    def _write(self) -> Iterator[Connection]:
-        """A write transaction (BEGIN IMMEDIATE on SQLite, see ``common.database``)."""
-        with self.engine.connect() as conn:
-            conn.execution_options(**{IMMEDIATE: True})
-            with conn.begin():
-                yield conn
-
-    @contextmanager
-    def _read(self) -> Iterator[Connection]:
-        with self.engine.connect() as conn, conn.begin():
-            yield conn
-
-    def _locked(self, query: sa.Select[Any], skip_locked: bool = False) -> sa.Select[Any]:
-        # SQLite has no row locks; its BEGIN IMMEDIATE already holds the whole database.
-        return query.with_for_update(skip_locked=skip_locked) if self._postgres else query
-
-    @staticmethod
-    def _event(conn: Connection, job_id: str, kind: str, now: datetime, **detail: Any) -> None:
-        conn.execute(sa.insert(events).values(job_id=job_id, at=now, kind=kind, detail=detail))
+class JobQueue(QueueBase):
+    """Submit, claim, heartbeat, complete, fail, cancel, retry, requeue; owner-scoped reads and API keys
+    (inherited from ``QueueBase``)."""
 
     # ------------------------------------------------------------------ submission
     def submit(
@@ -316,34 +272,7 @@ class JobQueue:
                 self._after_attempt(conn, row.id, row.lease_token, row, msg, True, now)
         return len(rows)
 
-    # ------------------------------------------------------------------ owner-scoped reads and actions
-    def get(self, owner_key_id: str | None, job_id: str) -> JobRecord:
-        """The job with its summary; ``NotFoundError`` when missing or owned by another key (None = any)."""
-        with self._read() as conn:
-            return self._get(conn, job_id, owner_key_id)
-
-    def list(
-        self, owner_key_id: str | None, state: str | None = None, page_size: int = 50, page_token: str | None = None
-    ) -> tuple[builtins.list[JobRecord], str | None]:
-        """Newest first, keyset-paginated on (created_at, id); returns (jobs, next_page_token)."""
-        page_size = max(1, min(page_size, MAX_PAGE_SIZE))
-        query = self._job_select(with_summary=False)
-        if owner_key_id is not None:
-            query = query.where(jobs.c.owner_key_id == owner_key_id)
-        if state is not None:
-            query = query.where(jobs.c.state == state)
-        if page_token is not None:
-            created, last_id = _decode_page_token(page_token)
-            query = query.where(
-                sa.or_(jobs.c.created_at < created, sa.and_(jobs.c.created_at == created, jobs.c.id < last_id))
-            )
-        query = query.order_by(jobs.c.created_at.desc(), jobs.c.id.desc()).limit(page_size + 1)
-        with self._read() as conn:
-            page = [self._record(r) for r in conn.execute(query)]
-        more = len(page) > page_size
-        page = page[:page_size]
-        return page, (_encode_page_token(page[-1].created_at, page[-1].id) if more else None)
-
+    # ------------------------------------------------------------------ owner-scoped actions
     def cancel(self, owner_key_id: str | None, job_id: str) -> JobRecord:
         """QUEUED -> CANCELLED now; RUNNING -> cancel flag (the worker stops at its next heartbeat)."""
         now = utcnow()
@@ -391,127 +320,3 @@ class JobQueue:
             conn.execute(sa.delete(results).where(results.c.job_id == job_id))
             conn.execute(sa.delete(jobs).where(jobs.c.id == job_id))
             self._event(conn, job_id, "deleted", now, state=state)
-
-    def get_result(self, owner_key_id: str | None, job_id: str) -> tuple[bytes, dict[str, Any]]:
-        """(result NPZ bytes, summary) of a SUCCEEDED job; ``ConflictError`` before that."""
-        with self._read() as conn:
-            job = self._get(conn, job_id, owner_key_id)
-            row = conn.execute(sa.select(results.c.result, results.c.summary).where(results.c.job_id == job_id)).first()
-        if job.state != "SUCCEEDED" or row is None:
-            raise ConflictError(f"job {job_id} is {job.state}; a result exists only once it has SUCCEEDED")
-        return bytes(row.result), dict(row.summary)
-
-    def get_payload(self, job_id: str) -> bytes:
-        with self._read() as conn:
-            blob = conn.execute(sa.select(inputs.c.payload).where(inputs.c.job_id == job_id)).scalar()
-        if blob is None:
-            raise NotFoundError(f"job {job_id} has no stored input")
-        return bytes(blob)
-
-    def events(self, owner_key_id: str | None, job_id: str) -> builtins.list[JobEventRecord]:
-        with self._read() as conn:
-            if owner_key_id is not None:
-                self._get(conn, job_id, owner_key_id)
-            rows = conn.execute(sa.select(events).where(events.c.job_id == job_id).order_by(events.c.id)).all()
-        return [JobEventRecord(r.id, r.job_id, r.at, r.kind, dict(r.detail)) for r in rows]
-
-    # ------------------------------------------------------------------ counts
-    def count_active(self, owner_key_id: str) -> int:
-        with self._read() as conn:
-            return int(
-                conn.execute(
-                    sa.select(sa.func.count())
-                    .select_from(jobs)
-                    .where(jobs.c.owner_key_id == owner_key_id, jobs.c.state.in_(ACTIVE_STATES))
-                ).scalar_one()
-            )
-
-    def stats(self, recent: int = 1000) -> QueueStats:
-        """Jobs per state, claims so far, and queue-wait / run seconds of the ``recent`` latest started jobs."""
-        with self._read() as conn:
-            per_state = conn.execute(sa.select(jobs.c.state, sa.func.count()).group_by(jobs.c.state)).all()
-            claims = conn.execute(sa.select(sa.func.count()).where(events.c.kind == "claimed")).scalar_one()
-            rows = conn.execute(
-                sa.select(jobs.c.queued_at, jobs.c.started_at, jobs.c.finished_at)
-                .where(jobs.c.started_at.is_not(None))
-                .order_by(jobs.c.started_at.desc())
-                .limit(recent)
-            ).all()
-        waits = [(r.started_at - r.queued_at).total_seconds() for r in rows if r.started_at >= r.queued_at]
-        runs = [(r.finished_at - r.started_at).total_seconds() for r in rows if r.finished_at is not None]
-        return QueueStats({str(k): int(v) for k, v in per_state}, int(claims), waits, runs)
-
-    # ------------------------------------------------------------------ API keys
-    def create_api_key(self, name: str) -> tuple[str, str]:
-        """(key_id, plaintext). Only the key's SHA-256 is stored; the plaintext cannot be shown again."""
-        key_id, plaintext = uuid.uuid4().hex, api_keys.new_key()
-        with self._write() as conn:
-            conn.execute(
-                sa.insert(keys).values(
-                    id=key_id, name=name[:200], key_hash=api_keys.hash_key(plaintext),
-                    prefix=api_keys.display_prefix(plaintext), created_at=utcnow(),
-                )
-            )  # fmt: skip
-        return key_id, plaintext
-
-    def authenticate(self, plaintext: str) -> str:
-        """The key id of a valid, unrevoked key; ``AuthenticationError`` otherwise."""
-        with self._read() as conn:
-            key_id = conn.execute(
-                sa.select(keys.c.id).where(keys.c.key_hash == api_keys.hash_key(plaintext), keys.c.revoked_at.is_(None))
-            ).scalar()
-        return api_keys.require_key(key_id)
-
-    def list_api_keys(self) -> builtins.list[ApiKeyRecord]:
-        with self._read() as conn:
-            rows = conn.execute(sa.select(keys).order_by(keys.c.created_at)).all()
-        return [ApiKeyRecord(r.id, r.name, r.prefix, r.created_at, r.revoked_at) for r in rows]
-
-    # ------------------------------------------------------------------ row helpers
-    @staticmethod
-    def _job_select(with_summary: bool = True) -> sa.Select[Any]:
-        if not with_summary:
-            return sa.select(jobs, sa.null().label("summary"))
-        return sa.select(jobs, results.c.summary).select_from(jobs.outerjoin(results, results.c.job_id == jobs.c.id))
-
-    def _get(self, conn: Connection, job_id: str, owner_key_id: str | None) -> JobRecord:
-        row = conn.execute(self._job_select().where(jobs.c.id == job_id)).first()
-        # Another key's job answers exactly like a missing one, so ids cannot be probed.
-        if row is None or (owner_key_id is not None and row.owner_key_id != owner_key_id):
-            raise NotFoundError(f"no job {job_id}")
-        return self._record(row)
-
-    def _owned_state(self, conn: Connection, owner_key_id: str | None, job_id: str) -> str:
-        query = sa.select(jobs.c.state, jobs.c.owner_key_id).where(jobs.c.id == job_id)
-        row = conn.execute(self._locked(query)).first()
-        if row is None or (owner_key_id is not None and row.owner_key_id != owner_key_id):
-            raise NotFoundError(f"no job {job_id}")
-        return str(row.state)
-
-    def _record(self, row: Row[Any]) -> JobRecord:
-        m = row._mapping
-        return JobRecord(
-            id=m["id"], owner_key_id=m["owner_key_id"], name=m["name"], state=m["state"], priority=m["priority"],
-            attempt=m["attempt"], max_attempts=self.settings.max_attempts, options=dict(m["options"]),
-            num_frames=m["num_frames"], cancel_requested=bool(m["cancel_requested"]), progress=m["progress"],
-            errors=list(m["errors"]), idempotency_key=m["idempotency_key"], payload_hash=m["payload_hash"],
-            worker_id=m["worker_id"], lease_expires_at=m["lease_expires_at"], not_before=m["not_before"],
-            created_at=m["created_at"], queued_at=m["queued_at"], started_at=m["started_at"],
-            finished_at=m["finished_at"], updated_at=m["updated_at"], summary=m["summary"],
-        )  # fmt: skip
-
-
-def _encode_page_token(created_at: datetime, job_id: str) -> str:
-    return base64.urlsafe_b64encode(f"{created_at.isoformat()}|{job_id}".encode()).decode().rstrip("=")
-
-
-def _decode_page_token(token: str) -> tuple[datetime, str]:
-    try:
-        raw = base64.urlsafe_b64decode(token + "=" * (-len(token) % 4)).decode()
-        created, job_id = raw.split("|", 1)
-        when = datetime.fromisoformat(created)
-        if when.tzinfo is None or not job_id:
-            raise ValueError("incomplete token")
-        return when, job_id
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise InvalidRequestError([FieldProblem("page_token", "is not a token this service issued")]) from exc
