@@ -25,6 +25,7 @@ import uvicorn
 from rich.console import Console
 
 from common.database import create_engine_for
+from common.errors import InputError
 from common.job_options import JobOptions
 from common.queue import JobQueue
 from common.result_format import read_arrays, read_summary
@@ -43,8 +44,15 @@ SEQUENCES = 6
 
 
 def replay_job(payload: bytes, options: JobOptions, progress: Any, should_stop: Any) -> tuple[bytes, dict[str, Any]]:
-    """A worker job that simulates: the raw replay of the submitted sequence (no optimisation)."""
-    result = raw_replay(sequence_from_npz_bytes(payload))
+    """A worker job that simulates: the raw replay of the submitted sequence (no optimisation).
+
+    A sequence named ``refuse-*`` fails the way a deterministic input problem does (not retried), so the
+    tool's handling of FAILED jobs can be seen end to end.
+    """
+    seq = sequence_from_npz_bytes(payload)
+    if seq.name.startswith("refuse-"):
+        raise InputError(f"{seq.name}: refused by the test worker")
+    result = raw_replay(seq)
     return replay_result_bytes(result), replay_summary(result)
 
 
@@ -199,3 +207,28 @@ def test_interrupt_and_resume_submits_each_sequence_once(
     again = {e.label: e for e in fourth.entries}[lost.label]
     assert again.state == "SUCCEEDED" and again.job_id != lost.job_id and again.posts == 1
     assert (out / again.files["result"]).is_file() and len(deployment.jobs()) == SEQUENCES
+
+
+def test_without_wait_then_with_wait_and_a_failed_job(deployment: Deployment, tmp_path: Path) -> None:
+    data, out = tmp_path / "data", tmp_path / "out"
+    data.mkdir()
+    for i, name in enumerate(("tiny-a", "tiny-b", "refuse-c")):
+        save_sequence(tiny_sequence(seed=10 + i, frames=5, name=name), data / f"{name}.npz")
+    two = [data / "tiny-a.npz", data / "tiny-b.npz"]
+    cfg = SubmitConfig(paths=two, api_url=deployment.url, api_key=deployment.key, out_dir=out, wait=False,
+                       poll_interval_s=0.2)  # fmt: skip
+    submitted = run_submit(cfg, console=Console(file=io.StringIO(), width=300))
+    assert submitted.exit_code == 0 and submitted.counts["submitted"] == 2
+    assert not (out / "results").exists()  # nothing is downloaded without --wait
+
+    # Now the whole folder, waiting: the two are tracked (not sent again), the third is sent and fails.
+    log = io.StringIO()
+    cfg.paths, cfg.wait = [data], True
+    waited = run_submit(cfg, console=Console(file=log, width=300))
+    states = {e.label: e.state for e in waited.entries}
+    assert states == {"tiny-a": "SUCCEEDED", "tiny-b": "SUCCEEDED", "refuse-c": "FAILED"}
+    assert waited.exit_code == 1
+    failed = next(e for e in waited.entries if e.label == "refuse-c")
+    assert "refused by the test worker" in (failed.error or "") and not failed.files
+    assert "refused by the test worker" in log.getvalue()
+    assert sum(e.posts for e in waited.entries) == 3 and len(deployment.jobs()) == 3
