@@ -1,0 +1,74 @@
+"""``hoi-refine keys`` and ``hoi-refine serve``: keys are printed once and stored hashed; serve upgrades an
+empty database to head and answers /readyz."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+import sqlalchemy as sa
+
+from common.api_keys import hash_key
+from common.database import create_engine_for, is_at_head
+from common.queue import JobQueue
+from common.settings import get_settings
+from service import cli
+
+
+def run_cli(*argv: str) -> int:
+    parser = argparse.ArgumentParser()
+    cli.register(parser.add_subparsers(required=True))
+    args = parser.parse_args(argv)
+    return int(args.func(args))
+
+
+def test_keys_create_prints_the_key_once_and_stores_only_its_hash(capsys: pytest.CaptureFixture[str]) -> None:
+    assert run_cli("keys", "create", "alice") == 0
+    plaintext = capsys.readouterr().out.strip()
+    assert plaintext.startswith("hoi_") and len(plaintext) > 40
+    url = get_settings().resolved_database_url()  # the SQLite file under the test's HOI_REFINE_VAR_DIR
+    engine = create_engine_for(url)
+    try:
+        assert is_at_head(engine)
+        with engine.connect() as conn:
+            stored = conn.execute(sa.text("SELECT name, key_hash FROM api_keys")).all()
+        assert [tuple(r) for r in stored] == [("alice", hash_key(plaintext))]
+        assert JobQueue(engine).authenticate(plaintext)
+    finally:
+        engine.dispose()
+    assert run_cli("keys", "list") == 0
+    listing = capsys.readouterr().out
+    assert "alice" in listing and plaintext[:10] in listing and plaintext not in listing
+
+
+@pytest.mark.slow
+def test_serve_upgrades_an_empty_database_and_becomes_ready(tmp_path: Path) -> None:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    env = {**os.environ, "HOI_REFINE_VAR_DIR": str(tmp_path / "served")}
+    env.pop("HOI_REFINE_DATABASE_URL", None)
+    code = f"from tests.integration.test_api_cli import run_cli; run_cli('serve', '--port', '{port}')"
+    proc = subprocess.Popen([sys.executable, "-c", code], env=env, cwd=Path(__file__).resolve().parents[2])
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                resp = httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=1)
+                break
+            except httpx.HTTPError:
+                assert proc.poll() is None, "serve exited"
+                assert time.monotonic() < deadline, "serve did not answer within 60 s"
+                time.sleep(0.3)
+        assert resp.status_code == 200 and resp.json() == {"status": "ready"}
+        assert (tmp_path / "served" / "hoi-refine.sqlite3").is_file()
+    finally:
+        proc.terminate()
+        proc.wait(timeout=15)
