@@ -84,6 +84,16 @@ def metric_means(entries: list[Entry]) -> dict[str, dict[str, float | None]]:
     return out
 
 
+def summary_document(entries: list[Entry]) -> dict[str, Any]:
+    """The summary as JSON: jobs per state and mean raw / refined metrics over succeeded sequences."""
+    return {
+        "states": dict(sorted(Counter(e.state for e in entries).items())),
+        "total": len(entries),
+        "succeeded_with_metrics": sum(1 for e in entries if e.state == "SUCCEEDED" and e.metrics),
+        "mean_metrics": metric_means(entries),
+    }
+
+
 def summary_tables(entries: list[Entry]) -> tuple[Table, Table]:
     states = Counter(e.state for e in entries)
     jobs = Table(title="Jobs by state")

@@ -29,9 +29,11 @@ from service.submit.client import ApiClient, Stopped
 from service.submit.discovery import Source, SourceFormat, discover, load_source
 from service.submit.manifest import FAILED_STATES, TERMINAL_JOB_STATES, Entry, Manifest, write_atomic
 from service.submit.payload import idempotency_key, options_json, sequence_payload
-from service.submit.report import counts, describe, make_progress, print_summary
+from service.submit.report import counts, describe, make_progress, print_summary, summary_document
 
 RESULTS_DIR = "results"
+#: Machine-readable form of the closing summary, rewritten at the end of every run.
+SUMMARY_NAME = "summary.json"
 EXIT_OK, EXIT_FAILED, EXIT_INTERRUPTED = 0, 1, 130
 #: Status requests per second over all tracked jobs, at most (each job's pause grows with their number).
 MAX_POLLS_PER_S = 20.0
@@ -193,6 +195,12 @@ def run_submit(
     opts = json.loads(options_json(cfg.options))
     if manifest.meta.get("options") not in (None, opts):
         console.print("[yellow]options differ from the manifest's: changed inputs get new jobs[/yellow]")
+    if manifest.meta.get("api") not in (None, cfg.api_url):
+        console.print(
+            f"[yellow]the manifest was written for {manifest.meta['api']}; jobs that {cfg.api_url} does not know "
+            "are submitted again[/yellow]",
+            highlight=False,
+        )
     manifest.meta.update({"api": cfg.api_url, "options": opts, "format": cfg.fmt})
     sources = discover(cfg.paths, cfg.fmt, exclude=[cfg.out_dir])
     entries = [(manifest.get_or_add(s.ident, s.label, s.kind), s) for s in sources]
@@ -291,6 +299,7 @@ def run_submit(
         manifest.save()
 
     print_summary(console, visible)
+    write_atomic(cfg.out_dir / SUMMARY_NAME, json.dumps(summary_document(visible), indent=1).encode())
     if interrupted:
         console.print(
             f"[yellow]Interrupted.[/yellow] {finished_count()} of {len(visible)} finished; the manifest "
