@@ -143,3 +143,23 @@ def test_sixty_fps_uses_keyframes_every_ten_frames_and_cli_round_trip(tmp_path: 
     bad.write_bytes(buf.getvalue())
     assert cli_main(["verify", str(bad)]) == 2
     assert cli_main(["refine", str(src), "--out", str(out), "--weights", "nonsense=1"]) == 2
+
+
+def test_two_hands_get_independent_keyframes_in_one_simulation() -> None:
+    from common.sequence import HandTrack
+    from worker.hand_model import default_geometry, forward_keypoints
+
+    seq = push_sequence(frames=16)
+    # A left hand resting 30 cm to the side (it never touches the box) joins the right hand's push.
+    n = seq.num_frames
+    wrist = np.tile([0.0, 0.3, 0.05], (n, 1))
+    quat = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
+    left = forward_keypoints(default_geometry("left"), wrist, quat, np.zeros((n, 45)))
+    seq.hands.append(HandTrack(side="left", valid=np.ones(n, dtype=bool), keypoints=left))
+    seq.validate()
+    outcome = refine_sequence(seq, JobOptions(popsize=4, max_generations=2, seed=1), threads=2)
+    assert outcome.summary["sides"] == ["right", "left"]
+    right, left_kf = outcome.arrays["right_keyframes"], outcome.arrays["left_keyframes"]
+    assert right.shape == left_kf.shape == (4, 13)
+    assert not np.array_equal(right, left_kf)  # each hand ran its own CMA-ES
+    assert verify_result(outcome.to_npz_bytes())["max_pos_diff_m"] == 0.0

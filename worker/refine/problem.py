@@ -15,9 +15,9 @@ import mujoco
 import numpy as np
 import numpy.typing as npt
 
-from worker.refine.controls import HandControlSpace
+from worker.refine.controls import HandControlSpace, quat_mul
 from worker.refine.evaluator import ParallelEvaluator, SimState
-from worker.refine.losses import HandTargets, ObjectTargets, WindowRecord, window_losses
+from worker.refine.losses import HandTargets, ObjectTargets, WindowRecord, quat_conj, rotate, window_losses
 from worker.refine.spline import FloatArray, keyframe_window
 
 IntArray = npt.NDArray[np.int64]
@@ -43,6 +43,27 @@ class SimLayout:
     object_body_id: int
     object_sensor_adr: int
     hands: dict[str, HandHandles]
+
+    def object_from_sensors(self, sens: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Object body-frame position (..., 3), quaternion (..., 4) and world velocity (..., 6) from sensordata.
+
+        MuJoCo's frame sensors with ``objtype="body"`` measure the body's *inertial* frame (centre of mass,
+        principal axes), ``"xbody"`` its body frame; the poses we compare with the data are body-frame poses,
+        so an inertial-frame reading is moved back to the body frame here.
+        """
+        a = self.object_sensor_adr
+        pos, quat, lin, ang = sens[..., a : a + 3], sens[..., a + 3 : a + 7], sens[..., a + 7 : a + 10], sens[
+            ..., a + 10 : a + 13]
+        m = self.model
+        sensor = int(np.flatnonzero(m.sensor_adr == a)[0])
+        if m.sensor_objtype[sensor] == mujoco.mjtObj.mjOBJ_BODY:
+            b = self.object_body_id
+            ipos, iquat = m.body_ipos[b], m.body_iquat[b]
+            quat = quat_mul(quat, quat_conj(np.broadcast_to(iquat, quat.shape)))  # R_body = R_inertial R_i^T
+            offset = rotate(quat, np.broadcast_to(ipos, pos.shape))  # COM - body origin, world
+            pos = pos - offset
+            lin = lin - np.cross(ang, offset)  # v_origin = v_com + w x (origin - com)
+        return pos, quat, np.concatenate([lin, ang], axis=-1)
 
     @staticmethod
     def from_scene(scene: Any) -> SimLayout:
@@ -243,13 +264,13 @@ class SimWindowProblem:
         after = (frames - f0) * s - 1  # state after this step = state at the frame time
         at = (frames - f0) * s  # sensors of the next step = computed at the frame time
         sens = sensors[:, at]
-        a = self.layout.object_sensor_adr
         qvel = states[:, after, 1 + self._nq : 1 + self._nq + self._nv]
+        obj_pos, obj_quat, obj_vel = self.layout.object_from_sensors(sens)
         return WindowRecord(
             frames=frames,
-            obj_pos=sens[..., a : a + 3],
-            obj_quat=sens[..., a + 3 : a + 7],
-            obj_vel=sens[..., a + 7 : a + 13],
+            obj_pos=obj_pos,
+            obj_quat=obj_quat,
+            obj_vel=obj_vel,
             keypoints={side: sens[..., h.keypoint_sensor_adrs] for side, h in self.layout.hands.items()},
             hinge_vel={side: qvel[..., h.hinge_dof_adrs] for side, h in self.layout.hands.items()},
             offsets=offsets,

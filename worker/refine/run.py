@@ -74,12 +74,12 @@ def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyfra
                 recorder.add(d, i // s)
 
     evaluator.step_python(start, control[0], hook)
-    a = layout.object_sensor_adr
     from worker.contacts import empty_contact_columns
 
+    pos, quat, vel = layout.object_from_sensors(sensors)
     return ReplayRecord(
-        object_pose=sensors[:, a : a + 7].copy(),
-        object_vel=sensors[:, a + 7 : a + 13].copy(),
+        object_pose=np.concatenate([pos, quat], axis=1),
+        object_vel=vel,
         keypoints={side: sensors[:, h.keypoint_sensor_adrs] for side, h in layout.hands.items()},
         contacts=recorder.columns() if recorder is not None else empty_contact_columns(),
         steps=control.shape[1],
