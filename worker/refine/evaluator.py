@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import mujoco
 import mujoco.rollout
@@ -62,7 +62,10 @@ class EvalStats:
     rollouts: int = 0
     sim_seconds: float = 0.0
     calls: int = 0
-    extra: dict[str, float] = field(default_factory=dict)
+    #: The split of ``sim_seconds``/``steps``: batched C rollouts vs substeps stepped from Python.
+    rollout_seconds: float = 0.0
+    python_seconds: float = 0.0
+    python_steps: int = 0
 
 
 def control_size(model: mujoco.MjModel) -> int:
@@ -124,7 +127,9 @@ class ParallelEvaluator:
             control_spec=CONTROL_SPEC,
             initial_warmstart=start.warmstart[None],
         )
-        self.stats.sim_seconds += time.perf_counter() - t0
+        elapsed = time.perf_counter() - t0
+        self.stats.sim_seconds += elapsed
+        self.stats.rollout_seconds += elapsed
         self.stats.steps += n_cand * n_steps
         self.stats.rollouts += n_cand
         self.stats.calls += 1
@@ -144,8 +149,11 @@ class ParallelEvaluator:
             mujoco.mj_step(m, d)
             if on_step is not None:
                 on_step(i, d)
-        self.stats.sim_seconds += time.perf_counter() - t0
+        elapsed = time.perf_counter() - t0
+        self.stats.sim_seconds += elapsed
+        self.stats.python_seconds += elapsed
         self.stats.steps += control.shape[0]
+        self.stats.python_steps += control.shape[0]
         return SimState.capture(m, d)
 
 

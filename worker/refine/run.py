@@ -115,6 +115,7 @@ def refine_sequence(
 
     t0 = time.perf_counter()
     prep = prepare(seq, options)
+    t_prep = time.perf_counter()
     own = evaluator is None
     ev = evaluator or ParallelEvaluator(prep.scene.model, threads)
     if not own:
@@ -157,6 +158,13 @@ def refine_sequence(
             "evaluations": int(sum(w.evaluations for w in logs)),
             "rollouts": int(stats.rollouts),
             "steps_per_second": stats.steps / max(stats.sim_seconds, 1e-9),
+            # Where the time goes: batched rollouts (CMA-ES populations) vs Python-stepped probes, commits and
+            # replays (contacts recorded), the rest being retargeting, scene compilation, CMA-ES and losses.
+            "rollout_s": stats.rollout_seconds,
+            "rollout_steps": int(stats.steps - stats.python_steps),
+            "python_step_s": stats.python_seconds,
+            "python_steps": int(stats.python_steps),
+            "prepare_s": t_prep - t0,
             "threads": threads,
         },
         num_contacts=len(final.contacts["contact_frame"]),
