@@ -70,10 +70,12 @@ def _decompose(
     import trimesh
 
     mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
-    if mesh.is_watertight:
-        hull_volume = float(mesh.convex_hull.volume)
-        if hull_volume > 0 and abs(float(mesh.volume)) / hull_volume >= CONVEX_VOLUME_RATIO:
-            return [_hull_vertices(vertices)], "hull"
+    if not mesh.is_watertight:
+        # CoACD can crash the process (segfault) on non-manifold input; an open mesh gets its hull instead.
+        return [_hull_vertices(vertices)], "hull"
+    hull_volume = float(mesh.convex_hull.volume)
+    if hull_volume > 0 and abs(float(mesh.volume)) / hull_volume >= CONVEX_VOLUME_RATIO:
+        return [_hull_vertices(vertices)], "hull"
     parts = [p for p in _run_coacd(vertices, faces, params) if len(p) >= 4]
     if not parts:
         return [_hull_vertices(vertices)], "hull"
