@@ -80,6 +80,14 @@ class _Run:
     def __init__(self, cfg: SubmitConfig, client: ApiClient, manifest: Manifest, stop: threading.Event) -> None:
         self.cfg, self.client, self.manifest, self.stop = cfg, client, manifest, stop
         self.results_dir = cfg.out_dir / RESULTS_DIR
+        #: Why the run stopped early, when the service kept failing after all retries.
+        self.unreachable: str | None = None
+
+    def give_up(self, why: str) -> None:
+        """Retries are spent: the service is down or broken. Going on would spend the same minutes of backoff
+        on every remaining sequence, so stop here (in the worker thread, before it takes the next task)."""
+        self.unreachable = self.unreachable or why
+        self.stop.set()
 
     # ------------------------------------------------------------------ submit side (worker threads)
     def prepare_and_submit(self, entry: Entry, src: Source) -> str:
@@ -106,7 +114,8 @@ class _Run:
                 self.manifest.update(entry, state="REJECTED", error=str(exc), posts=entry.posts + 1)
                 return "rejected"
             self.manifest.update(entry, error=str(exc), posts=entry.posts + 1)  # stays PENDING: re-run retries
-            return "error"
+            self.give_up(str(exc))
+            return "unreachable"
         self.manifest.update(
             entry,
             job_id=doc["id"],
@@ -124,6 +133,8 @@ class _Run:
         try:
             doc, hint = self.client.job(entry.job_id)
         except ApiError as exc:
+            if exc.status is None or exc.status >= 500:
+                self.give_up(str(exc))
             if exc.status != 404 or entry.key is None:
                 raise
             # The server does not know the job (deleted, or another deployment): forget it and submit again;
@@ -136,7 +147,12 @@ class _Run:
         self.manifest.update(entry, state=state, attempt=doc.get("attempt", entry.attempt), error=error,
                              metrics=metrics)
         if state == "SUCCEEDED" and download:
-            self.download(entry)
+            try:
+                self.download(entry)
+            except ApiError as exc:
+                if exc.status is None or exc.status >= 500:
+                    self.give_up(str(exc))
+                raise
             return "downloaded", hint
         return "state", hint
 
@@ -254,7 +270,7 @@ def run_submit(
                 futures[submit_pool.submit(run.prepare_and_submit, e, s)] = ("submit", e)
             while True:
                 if stop.is_set():
-                    interrupted = True
+                    interrupted = run.unreachable is None
                     break
                 now = time.monotonic()
                 in_flight = {e.source for kind, e in futures.values() if kind == "poll"}
@@ -276,7 +292,7 @@ def run_submit(
                         resubmitted.add(e.source)
                         submitting.add(e.source)
                         futures[submit_pool.submit(run.prepare_and_submit, e, source_of[e.source])] = ("submit", e)
-                    elif event in ("error", "lost"):
+                    elif event in ("error", "lost", "unreachable"):
                         gave_up.add(e.source)
                     else:
                         polled_once.add(e.source)
@@ -300,6 +316,12 @@ def run_submit(
 
     print_summary(console, visible)
     write_atomic(cfg.out_dir / SUMMARY_NAME, json.dumps(summary_document(visible), indent=1).encode())
+    if run.unreachable is not None:
+        console.print(
+            f"[red]Stopped: the service keeps failing[/red] ({run.unreachable}). The manifest ({manifest.path}) is up "
+            "to date; run the same command again when the service is back.",
+            highlight=False,
+        )
     if interrupted:
         console.print(
             f"[yellow]Interrupted.[/yellow] {finished_count()} of {len(visible)} finished; the manifest "
@@ -323,14 +345,14 @@ def _settle(fut: Future[Any], kind: str, entry: Entry, manifest: Manifest, conso
     except ApiError as exc:  # retries exhausted while polling/downloading: try again on the next run
         manifest.update(entry, error=str(exc))
         console.print(f"[red]error[/red] {entry.label}: {exc}", highlight=False)
-        return "error"
+        return "error" if exc.status is not None and 400 <= exc.status < 500 else "unreachable"
     except (HoiRefineError, OSError, ValueError) as exc:
         manifest.update(entry, error=f"{type(exc).__name__}: {exc}")
         console.print(f"[red]error[/red] {entry.label}: {exc}", highlight=False)
         return "error"
     if kind == "submit":
         assert isinstance(result, str)
-        if result in ("invalid", "rejected"):
+        if result in ("invalid", "rejected", "unreachable"):
             console.print(f"[red]{result}[/red] {entry.label}: {entry.error}", highlight=False)
         return result
     return str(result[0])

@@ -7,12 +7,15 @@ waits are recorded instead of slept.
 from __future__ import annotations
 
 import email.utils
+import io
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import httpx
 import pytest
+from rich.console import Console
 
 from common.errors import ApiError
 from common.job_options import JobOptions
@@ -126,3 +129,29 @@ def test_parse_retry_after() -> None:
     later = email.utils.formatdate(time.time() + 30, usegmt=True)
     assert 25 <= (parse_retry_after(later) or 0) <= 31
     assert parse_retry_after(email.utils.formatdate(time.time() - 30, usegmt=True)) == 0.0
+
+
+def test_a_run_stops_once_retries_are_spent_instead_of_trying_every_sequence(tmp_path: Path) -> None:
+    from common.sequence_io import save_sequence
+    from service.submit.runner import SubmitConfig, run_submit
+    from tests.queue_fixtures import tiny_sequence
+
+    for i in range(3):
+        save_sequence(tiny_sequence(seed=i), tmp_path / f"s{i}.npz")
+    calls: list[httpx.Request] = []
+
+    def down(request: httpx.Request) -> httpx.Response:
+        calls.append(request)
+        return httpx.Response(503, json={"title": "Database unavailable"})
+
+    client = ApiClient("http://api.test", "k", retry=RetryPolicy(max_retries=2, backoff_base_s=0.001),
+                       transport=httpx.MockTransport(down))  # fmt: skip
+    log = io.StringIO()
+    cfg = SubmitConfig(paths=[tmp_path], api_url="http://api.test", api_key="k", out_dir=tmp_path / "out",
+                       concurrency=1)  # fmt: skip
+    outcome = run_submit(cfg, client=client, console=Console(file=log, width=300))
+    assert len(calls) == 3  # one sequence: the first try + 2 retries; the other two were never sent
+    assert outcome.exit_code == 1 and not outcome.interrupted
+    assert [e.posts for e in outcome.entries] == [1, 0, 0]
+    assert all(e.state == "PENDING" for e in outcome.entries)
+    assert "the service keeps failing" in log.getvalue() and "HTTP 503" in log.getvalue()
