@@ -39,7 +39,7 @@ EXIT_OK, EXIT_FAILED, EXIT_INTERRUPTED = 0, 1, 130
 MAX_POLLS_PER_S = 20.0
 
 #: Called in the main thread after each step: ``(event, entry)`` with event one of submitted, invalid,
-#: rejected, error, state, downloaded. Tests use it to interrupt a run part-way.
+#: rejected, unreachable, error, lost (404: sent again), state, downloaded. Tests use it to interrupt a run.
 EventHook = Callable[[str, Entry], None]
 
 
