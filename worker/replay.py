@@ -74,7 +74,7 @@ def raw_replay(seq: Sequence, config: SimConfig | None = None, record_contacts: 
     data = scene.make_data()
     t2 = time.perf_counter()
     targets: dict[str, HandTargets] = {r.side: HandTargets.from_reference(r) for r in references}
-    state0, settle_steps = initial_state(scene, data, targets)
+    state0, settle_steps = initial_state(scene, data, targets, with_warmstart=True)
     controls = substep_controls(scene, targets)
     record = rollout(
         scene, data, state0, controls.ctrl, controls.mocap_pos, controls.mocap_quat, record_contacts=record_contacts

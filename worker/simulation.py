@@ -1,8 +1,10 @@
 """Single-threaded rollouts of a ``Scene`` (DESIGN §1.4): initial state, per-substep controls, stepping.
 
-One ``MjData`` per thread: ``rollout`` starts by restoring a full-physics state (``mj_setState`` with
-``mjSTATE_FULLPHYSICS``, which includes the solver warmstart), so a rollout from a saved state is
-bit-identical whatever that ``MjData`` ran before. The object is only ever placed at frame 0
+One ``MjData`` per thread: ``rollout`` starts by restoring a saved state, so a rollout from a saved state is
+bit-identical whatever that ``MjData`` ran before. In MuJoCo 4.0 ``mjSTATE_FULLPHYSICS`` does *not* hold the
+solver warmstart (``qacc_warmstart``), and a stale warmstart changes the result in the last bits; states here
+are therefore ``STATE_SPEC = FULLPHYSICS | WARMSTART``. ``rollout`` also accepts a bare FULLPHYSICS state
+(``PHYSICS_SPEC``), restoring it with a zero (cold) warmstart — deterministic as well. The object is only ever placed at frame 0
 (``initial_state``); afterwards it moves only through contact.
 
 Controls (``substep_controls``): hinge targets and wrist positions are interpolated linearly between frames,
@@ -22,7 +24,8 @@ from worker.hand_model import JOINT_LOWER, JOINT_UPPER, FloatArray, quat_to_matr
 from worker.retarget import HandReference
 from worker.scene import Scene
 
-STATE_SPEC = mujoco.mjtState.mjSTATE_FULLPHYSICS
+PHYSICS_SPEC = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
+STATE_SPEC = PHYSICS_SPEC | int(mujoco.mjtState.mjSTATE_WARMSTART)
 
 
 @dataclass
@@ -118,18 +121,28 @@ def substep_controls(scene: Scene, targets: dict[str, HandTargets]) -> Controls:
     return Controls(ctrl=ctrl, mocap_pos=mocap_pos, mocap_quat=mocap_quat)
 
 
-def state_size(scene: Scene) -> int:
-    return int(mujoco.mj_stateSize(scene.model, STATE_SPEC))
+def state_size(scene: Scene, spec: int = STATE_SPEC) -> int:
+    return int(mujoco.mj_stateSize(scene.model, spec))
 
 
-def get_state(scene: Scene, data: mujoco.MjData) -> FloatArray:
-    out = np.empty(state_size(scene))
-    mujoco.mj_getState(scene.model, data, out, STATE_SPEC)
+def get_state(scene: Scene, data: mujoco.MjData, spec: int = STATE_SPEC) -> FloatArray:
+    out = np.empty(state_size(scene, spec))
+    mujoco.mj_getState(scene.model, data, out, spec)
     return out
 
 
 def set_state(scene: Scene, data: mujoco.MjData, state: FloatArray) -> None:
-    mujoco.mj_setState(scene.model, data, np.asarray(state, dtype=np.float64), STATE_SPEC)
+    """Restore a ``STATE_SPEC`` state, or a ``PHYSICS_SPEC`` one with a cold (zero) warmstart."""
+    state = np.asarray(state, dtype=np.float64)
+    if state.shape == (state_size(scene, STATE_SPEC),):
+        mujoco.mj_setState(scene.model, data, state, STATE_SPEC)
+    elif state.shape == (state_size(scene, PHYSICS_SPEC),):
+        mujoco.mj_setState(scene.model, data, state, PHYSICS_SPEC)
+        data.qacc_warmstart[:] = 0.0
+    else:
+        raise ValueError(
+            f"state must have {state_size(scene)} (or {state_size(scene, PHYSICS_SPEC)}) values, got {state.shape}"
+        )
 
 
 def pose_hands(scene: Scene, data: mujoco.MjData, targets: dict[str, HandTargets], frame: int = 0) -> None:
@@ -145,10 +158,14 @@ def pose_hands(scene: Scene, data: mujoco.MjData, targets: dict[str, HandTargets
         data.mocap_quat[h.mocap_id] = t.wrist_quat[frame]
 
 
-def initial_state(scene: Scene, data: mujoco.MjData, targets: dict[str, HandTargets]) -> tuple[FloatArray, int]:
+def initial_state(
+    scene: Scene, data: mujoco.MjData, targets: dict[str, HandTargets], with_warmstart: bool = False
+) -> tuple[FloatArray, int]:
     """The frame-0 state: hands at their frame-0 targets, object at ``scene.object_init_pose`` at rest, then
     ``config.settle_seconds`` of simulation with the hands held (the object settles on the table by physics
-    alone). Returns (full-physics state with time reset to 0, settle steps taken)."""
+    alone). Returns (state with time reset to 0, settle steps taken); the state is ``PHYSICS_SPEC`` (FULLPHYSICS)
+    by default — ``data.qacc_warmstart`` then holds the settled warmstart — or ``STATE_SPEC`` with
+    ``with_warmstart``."""
     model = scene.model
     mujoco.mj_resetData(model, data)
     pose_hands(scene, data, targets, 0)
@@ -159,7 +176,7 @@ def initial_state(scene: Scene, data: mujoco.MjData, targets: dict[str, HandTarg
     for _ in range(n_settle):
         mujoco.mj_step(model, data)
     data.time = 0.0
-    return get_state(scene, data), n_settle
+    return get_state(scene, data, STATE_SPEC if with_warmstart else PHYSICS_SPEC), n_settle
 
 
 def _record_frame(scene: Scene, data: mujoco.MjData, rec: dict[str, FloatArray], i: int) -> None:

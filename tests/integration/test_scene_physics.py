@@ -1,0 +1,146 @@
+"""The MuJoCo scene: contact forces balance gravity, collision filtering, rollout determinism, controls."""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+import pytest
+
+from common.sequence import HandTrack, ObjectSpec, Sequence
+from worker.hand_model import default_geometry, forward_keypoints
+from worker.retarget import retarget_sequence
+from worker.scene import SimConfig, build_scene
+from worker.sim_config import HAND_BIT, OBJECT_BIT, TABLE_BIT
+from worker.simulation import HandTargets, initial_state, rollout, substep_controls
+
+
+def _box_sequence(frames: int = 6, mass: float = 0.5, sides: tuple[str, ...] = ("right",)) -> Sequence:
+    """A 6 cm box resting on the table; hands hovering 40 cm above it, slowly moving."""
+    hands = []
+    for i, side in enumerate(sides):
+        pos = np.column_stack([np.linspace(0.0, 0.02, frames), np.full(frames, 0.1 * (i - 0.5)), np.full(frames, 0.4)])
+        quat = np.tile([1.0, 0.0, 0.0, 0.0], (frames, 1))
+        q = np.tile(np.linspace(0, 0.3, 45), (frames, 1))
+        kp = forward_keypoints(default_geometry(side), pos, quat, q)  # type: ignore[arg-type]
+        hands.append(HandTrack(side=side, valid=np.ones(frames, dtype=bool), keypoints=kp))  # type: ignore[arg-type]
+    pose = np.tile([0.0, 0.0, 0.03, 1.0, 0.0, 0.0, 0.0], (frames, 1))
+    return Sequence(
+        name="box",
+        fps=30.0,
+        object=ObjectSpec(name="box", mass_kg=mass, primitive="box", size=np.array([0.03, 0.03, 0.03])),
+        object_pose=pose,
+        hands=hands,
+        world_from_source=np.eye(4),
+    ).validate()
+
+
+def test_box_on_table_normal_forces_sum_to_weight() -> None:
+    seq = _box_sequence(mass=0.5)
+    refs = retarget_sequence(seq)
+    scene = build_scene(seq, refs)
+    data = scene.make_data()
+    targets = {r.side: HandTargets.from_reference(r) for r in refs}
+    state, _ = initial_state(scene, data, targets)
+    controls = substep_controls(scene, targets)
+    rollout(scene, data, state, controls.ctrl, controls.mocap_pos, controls.mocap_quat)
+    mujoco.mj_forward(scene.model, data)
+    f6 = np.zeros(6)
+    total = np.zeros(3)
+    table_contacts = 0
+    for i in range(data.ncon):
+        c = data.contact[i]
+        if scene.table_geom_id in (c.geom[0], c.geom[1]):
+            mujoco.mj_contactForce(scene.model, data, i, f6)
+            total += c.frame.reshape(3, 3).T @ f6[:3]
+            table_contacts += 1
+    weight = 0.5 * -scene.model.opt.gravity[2]
+    assert table_contacts >= 4  # a box face on a plane: four corner contacts
+    assert total[2] == pytest.approx(weight, rel=0.02)
+    assert np.linalg.norm(total[:2]) < 0.02 * weight
+    z = data.qpos[scene.object_qpos_adr + 2]
+    assert z == pytest.approx(0.03, abs=0.002)  # resting, not sinking or bouncing
+
+
+def test_collision_bits_pair_hand_object_and_object_table_only() -> None:
+    seq = _box_sequence(sides=("right", "left"))
+    scene = build_scene(seq, retarget_sequence(seq))
+    m = scene.model
+
+    def collide(g1: int, g2: int) -> bool:
+        return bool((m.geom_contype[g1] & m.geom_conaffinity[g2]) or (m.geom_contype[g2] & m.geom_conaffinity[g1]))
+
+    hand_geoms = [g for g in range(m.ngeom) if int(m.geom_bodyid[g]) in scene.body_side]
+    assert len(hand_geoms) == 32  # palm + 15 segments per hand
+    obj = int(scene.object_geom_ids[0])
+    assert all(collide(g, obj) for g in hand_geoms)
+    assert not any(collide(g, scene.table_geom_id) for g in hand_geoms)
+    assert not any(collide(a, b) for a in hand_geoms for b in hand_geoms)
+    assert collide(obj, scene.table_geom_id)
+    assert {int(m.geom_contype[g]) for g in hand_geoms} == {HAND_BIT}
+    assert int(m.geom_contype[scene.table_geom_id]) == TABLE_BIT and int(m.geom_contype[obj]) == OBJECT_BIT
+
+
+def test_settings_follow_the_config() -> None:
+    seq = _box_sequence()
+    cfg = SimConfig(finger_kp=20.0, finger_kv=1.0, iterations=7)
+    scene = build_scene(seq, retarget_sequence(seq), cfg)
+    m = scene.model
+    assert m.opt.timestep == pytest.approx(1 / 240) and m.opt.iterations == 7 and m.opt.noslip_iterations == 10
+    assert m.opt.integrator == mujoco.mjtIntegrator.mjINT_IMPLICITFAST and m.opt.solver == mujoco.mjtSolver.mjSOL_NEWTON
+    ids = scene.hands["right"].actuator_ids
+    np.testing.assert_allclose(m.actuator_gainprm[ids, 0], 20.0)
+    np.testing.assert_allclose(m.actuator_biasprm[ids, 1:3], [[-20.0, -1.0]] * 45)
+    np.testing.assert_allclose(m.geom_solref[int(scene.object_geom_ids[0])], [0.003, 1.0])
+    np.testing.assert_allclose(m.eq_solref[0], [0.01, 1.0])
+    assert scene.substeps_per_frame == 8
+
+
+def test_rollout_from_saved_state_is_bit_identical() -> None:
+    seq = _box_sequence(frames=5)
+    refs = retarget_sequence(seq)
+    scene = build_scene(seq, refs)
+    data = scene.make_data()
+    targets = {r.side: HandTargets.from_reference(r) for r in refs}
+    state, _ = initial_state(scene, data, targets, with_warmstart=True)
+    c = substep_controls(scene, targets)
+    first = rollout(scene, data, state, c.ctrl, c.mocap_pos, c.mocap_quat, record_states=True)
+    # Dirty the MjData with an unrelated rollout, then repeat from the mid-sequence state.
+    rollout(scene, data, first.final_state, c.ctrl[::-1].copy(), c.mocap_pos, c.mocap_quat)
+    assert first.states is not None
+    again = rollout(scene, data, first.states[2], c.ctrl[16:], c.mocap_pos[16:], c.mocap_quat[16:])
+    assert np.array_equal(again.final_state, first.final_state)
+    assert np.array_equal(again.keypoints["right"], first.keypoints["right"][2:])
+    fresh = rollout(scene, scene.make_data(), state, c.ctrl, c.mocap_pos, c.mocap_quat)
+    assert np.array_equal(fresh.final_state, first.final_state)
+
+
+def test_substep_controls_interpolate_to_the_next_frame() -> None:
+    seq = _box_sequence(frames=4)
+    refs = retarget_sequence(seq)
+    scene = build_scene(seq, refs)
+    targets = {r.side: HandTargets.from_reference(r) for r in refs}
+    c = substep_controls(scene, targets)
+    spf, h = scene.substeps_per_frame, scene.hands["right"]
+    assert c.ctrl.shape == (3 * spf, 45) and c.mocap_pos.shape == (3 * spf, 1, 3)
+    np.testing.assert_allclose(c.ctrl[spf - 1, h.actuator_ids], targets["right"].q[1])
+    np.testing.assert_allclose(c.mocap_pos[2 * spf - 1, h.mocap_id], targets["right"].wrist_pos[2])
+    np.testing.assert_allclose(c.mocap_pos[spf // 2 - 1, h.mocap_id], np.mean(targets["right"].wrist_pos[:2], axis=0))
+    np.testing.assert_allclose(np.linalg.norm(c.mocap_quat, axis=-1), 1.0)
+    with pytest.raises(ValueError, match="ctrl"):
+        rollout(scene, scene.make_data(), np.zeros(1), c.ctrl[:, :3], c.mocap_pos, c.mocap_quat)
+
+
+def test_sensors_report_keypoints_and_object() -> None:
+    seq = _box_sequence(frames=3)
+    refs = retarget_sequence(seq)
+    scene = build_scene(seq, refs)
+    data = scene.make_data()
+    targets = {r.side: HandTargets.from_reference(r) for r in refs}
+    initial_state(scene, data, targets)
+    mujoco.mj_forward(scene.model, data)
+    h = scene.hands["right"]
+    sensed = np.array([data.sensordata[a : a + 3] for a in h.keypoint_sensor_adr])
+    np.testing.assert_allclose(sensed, data.site_xpos[h.keypoint_site_ids])
+    a = scene.object_sensor_adr
+    np.testing.assert_allclose(data.sensordata[a : a + 3], data.qpos[scene.object_qpos_adr : scene.object_qpos_adr + 3])
+    np.testing.assert_allclose(np.abs(data.sensordata[a + 3 : a + 7] @ data.qpos[scene.object_qpos_adr + 3 :][:4]), 1.0)
