@@ -12,15 +12,16 @@ from rich.table import Table
 
 from service.submit.manifest import FAILED_STATES, Entry
 
-#: Metrics of DESIGN §1.8 in table order: (key in the result summary, label, format). The worker writes
-#: unit-suffixed keys (``worker.cli_refine.format_metrics_table``); bare names are read as a fallback.
+#: Metrics of DESIGN §1.8 in table order: (key in the result summary, label, format). Keys are
+#: ``worker.metrics.METRIC_KEYS``; unit-suffixed spellings (``E_t_cm``) of older results are read too.
 METRICS: tuple[tuple[str, str, str], ...] = (
-    ("E_t_cm", "E_t (cm)", "{:.2f}"),
-    ("E_r_deg", "E_r (deg)", "{:.2f}"),
-    ("E_j_cm", "E_j (cm)", "{:.2f}"),
-    ("E_ft_cm", "E_ft (cm)", "{:.2f}"),
+    ("E_t", "E_t (cm)", "{:.2f}"),
+    ("E_r", "E_r (deg)", "{:.2f}"),
+    ("E_j", "E_j (cm)", "{:.2f}"),
+    ("E_ft", "E_ft (cm)", "{:.2f}"),
     ("success", "success rate", "{:.0%}"),
 )
+_UNIT_SUFFIX = {"E_t": "_cm", "E_r": "_deg", "E_j": "_cm", "E_ft": "_cm"}
 STATE_ORDER = ("PENDING", "QUEUED", "RUNNING", "SUCCEEDED", "FAILED", "CANCELLED", "REJECTED", "INVALID")
 
 
@@ -61,7 +62,7 @@ def _number(value: Any) -> float | None:
 def _metric(stage: Any, key: str) -> float | None:
     if not isinstance(stage, dict):
         return None
-    for name in (key, key.rsplit("_", 1)[0]):  # E_t_cm, then E_t
+    for name in (key, key + _UNIT_SUFFIX.get(key, "")):
         if name in stage:
             return _number(stage[name])
     return None

@@ -186,7 +186,7 @@ def test_interrupt_and_resume_submits_each_sequence_once(
     assert "broken" in text and "INVALID" in text
     doc = json.loads((out / "summary.json").read_text())
     assert doc["states"] == {"INVALID": 1, "SUCCEEDED": SEQUENCES}
-    assert doc["mean_metrics"]["raw"]["E_t_cm"] == pytest.approx(means)
+    assert doc["mean_metrics"]["raw"]["E_t"] == pytest.approx(means)
 
     # The per-key limit of 2 active jobs made the server answer 429 + Retry-After; the tool waited it out.
     assert deployment.throttled > 0
