@@ -67,7 +67,6 @@ def test_pool_and_job_settings_are_checked() -> None:
 
 def test_worker_waits_for_an_unmigrated_database_says_why_and_stops_on_sigterm(tmp_path: Path) -> None:
     import subprocess
-    import time
 
     from worker.runtime.supervisor import hoi_refine_command
 
@@ -76,9 +75,18 @@ def test_worker_waits_for_an_unmigrated_database_says_why_and_stops_on_sigterm(t
         [*hoi_refine_command(), "worker", "--job-kind", "selftest"],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )  # fmt: skip
-    time.sleep(4.0)
+    watchdog = threading.Timer(60, proc.kill)
+    watchdog.start()
+    seen: list[str] = []
+    assert proc.stdout is not None
+    for line in proc.stdout:
+        seen.append(line)
+        if sum("database unreachable during schema check" in x for x in seen) >= 2:
+            break
     proc.send_signal(signal.SIGTERM)
-    out, _ = proc.communicate(timeout=30)
+    rest, _ = proc.communicate(timeout=30)
+    watchdog.cancel()
+    out = "".join(seen) + rest
     assert proc.returncode == 0, out
     lines = [line for line in out.splitlines() if "database unreachable during schema check" in line]
     assert len(lines) >= 2, out  # retried with backoff, and said so each time
