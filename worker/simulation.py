@@ -4,8 +4,8 @@ One ``MjData`` per thread: ``rollout`` starts by restoring a saved state, so a r
 bit-identical whatever that ``MjData`` ran before. In MuJoCo 4.0 ``mjSTATE_FULLPHYSICS`` does *not* hold the
 solver warmstart (``qacc_warmstart``), and a stale warmstart changes the result in the last bits; states here
 are therefore ``STATE_SPEC = FULLPHYSICS | WARMSTART``. ``rollout`` also accepts a bare FULLPHYSICS state
-(``PHYSICS_SPEC``), restoring it with a zero (cold) warmstart — deterministic as well. The object is only ever placed at frame 0
-(``initial_state``); afterwards it moves only through contact.
+(``PHYSICS_SPEC``), restoring it with a zero (cold) warmstart — deterministic as well. The object is only
+ever placed at frame 0 (``initial_state``); afterwards it moves only through contact.
 
 Controls (``substep_controls``): hinge targets and wrist positions are interpolated linearly between frames,
 wrist rotations by slerp; substep s of frame f uses the fraction (s + 1) / substeps_per_frame towards frame
