@@ -14,7 +14,9 @@ f + 1, so the last substep of a frame reaches the next frame's targets exactly.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import mujoco
 import numpy as np
@@ -94,7 +96,7 @@ def slerp(q0: FloatArray, q1: FloatArray, t: FloatArray) -> FloatArray:
     return np.asarray(out / np.linalg.norm(out, axis=-1, keepdims=True))
 
 
-def substep_controls(scene: Scene, targets: dict[str, HandTargets]) -> Controls:
+def substep_controls(scene: Scene, targets: Mapping[Any, HandTargets]) -> Controls:
     """Per-substep controls taking the hands from frame 0 to frame F-1 of ``targets`` ((F-1)·spf steps)."""
     model = scene.model
     missing = set(scene.hands) - set(targets)
@@ -145,7 +147,7 @@ def set_state(scene: Scene, data: mujoco.MjData, state: FloatArray) -> None:
         )
 
 
-def pose_hands(scene: Scene, data: mujoco.MjData, targets: dict[str, HandTargets], frame: int = 0) -> None:
+def pose_hands(scene: Scene, data: mujoco.MjData, targets: Mapping[Any, HandTargets], frame: int = 0) -> None:
     """Put every hand exactly at its target pose of ``frame`` (root, hinges, mocap and servo targets)."""
     for side, h in scene.hands.items():
         t = targets[side]
@@ -159,7 +161,7 @@ def pose_hands(scene: Scene, data: mujoco.MjData, targets: dict[str, HandTargets
 
 
 def initial_state(
-    scene: Scene, data: mujoco.MjData, targets: dict[str, HandTargets], with_warmstart: bool = False
+    scene: Scene, data: mujoco.MjData, targets: Mapping[Any, HandTargets], with_warmstart: bool = False
 ) -> tuple[FloatArray, int]:
     """The frame-0 state: hands at their frame-0 targets, object at ``scene.object_init_pose`` at rest, then
     ``config.settle_seconds`` of simulation with the hands held (the object settles on the table by physics
