@@ -97,6 +97,7 @@ class WorkerLoop:
         self.jobs_done: dict[str, int] = {}
         self._lock = threading.Lock()
         self._current: CurrentJob | None = None
+        self._last_requeue = -float("inf")
         self._heartbeat: Heartbeat | None = None
 
     # ------------------------------------------------------------------ control (any thread)
@@ -148,9 +149,14 @@ class WorkerLoop:
     def run_once(self) -> str:
         """Claim and run at most one job; returns its outcome or ``"idle"``."""
         # Expired leases of dead workers go back to QUEUED before we look for work (issue #5.2).
-        requeued = self._db("requeue_expired", self.queue.requeue_expired)
-        if requeued:
-            log.info("requeued %d job(s) whose lease expired", requeued)
+        # At most once per heartbeat interval: an idle worker polls every second, and each requeue is a write
+        # transaction (on SQLite it takes the database write lock).
+        now = time.monotonic()
+        if now - self._last_requeue >= self.heartbeat_interval:
+            self._last_requeue = now
+            requeued = self._db("requeue_expired", self.queue.requeue_expired)
+            if requeued:
+                log.info("requeued %d job(s) whose lease expired", requeued)
         if self.stop_event.is_set():
             return "idle"  # do not claim a job only to release it at once
         claimed = self._db("claim", lambda: self.queue.claim(self.worker_id, lease_seconds=self.lease_seconds))
