@@ -135,11 +135,13 @@ class SimWindowProblem:
         weights: dict[str, float],
         evaluator: ParallelEvaluator,
         initial: SimState,
+        lookahead: int = 1,
     ) -> None:
         self.layout, self.spaces, self.obj, self.hand_targets = layout, spaces, obj, hands
         self.weights, self.evaluator, self.initial = weights, evaluator, initial
         self.sides = tuple(spaces)
         self.first_window = 1  # keyframe 0 stays zero: the settled frame-0 state is the reference's
+        self.lookahead = lookahead
         first = spaces[self.sides[0]]
         self.n_keyframes = first.n_keyframes
         self.interval, self.substeps, self.num_frames = first.interval, first.substeps, first.num_frames
@@ -155,7 +157,7 @@ class SimWindowProblem:
         return self.initial
 
     def window(self, j: int) -> tuple[int, int]:
-        return keyframe_window(j, self.n_keyframes, self.interval, self.num_frames)
+        return keyframe_window(j, self.n_keyframes, self.interval, self.num_frames, self.lookahead)
 
     def evaluate(
         self, j: int, state: SimState, keyframes: dict[str, FloatArray], candidates: dict[str, FloatArray]

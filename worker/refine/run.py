@@ -27,6 +27,11 @@ from worker.refine.windowed import CmaSettings, RefineProgress, WindowLog, optim
 
 __all__ = ["ParallelEvaluator", "RefineOutcome", "RefineProgress", "ReplayRecord", "refine_sequence", "replay"]
 
+#: Keyframe intervals simulated past the optimised keyframe: 1 is the (k1..k4) window of DESIGN §1.6; 2 lets
+#: the optimiser see whether a grasp holds one interval longer (on DexYCB dev it turned a dropped lift into a
+#: success and lowered E_t elsewhere, for 28% more simulated steps; see bench/results/refine_dev.md).
+LOOKAHEAD = 2
+
 #: Skip a window when no hand touches the object and its loss per frame is below this (see windowed).
 SKIP_LOSS_PER_FRAME = 0.3
 
@@ -89,7 +94,7 @@ def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyfra
 def _problem(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, weights: dict[str, float]
              ) -> SimWindowProblem:
     return SimWindowProblem(prep.layout, prep.spaces, prep.obj_targets, prep.hand_targets,
-                            weights or resolve_weights(prep.options.loss_weights), evaluator, start)
+                            weights or resolve_weights(prep.options.loss_weights), evaluator, start, LOOKAHEAD)
 
 
 def cma_settings(options: JobOptions, interval: int) -> CmaSettings:

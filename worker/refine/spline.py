@@ -74,14 +74,16 @@ def substep_times(frame_start: int, frame_end: int, substeps: int) -> FloatArray
     return frame_start + np.arange(n, dtype=np.float64) / substeps
 
 
-def keyframe_window(j: int, n_keyframes: int, interval: int, num_frames: int) -> tuple[int, int]:
-    """Frames [start, end] simulated when optimising keyframe j: from keyframe j-2 to keyframe j+1.
+def keyframe_window(j: int, n_keyframes: int, interval: int, num_frames: int, lookahead: int = 1
+                    ) -> tuple[int, int]:
+    """Frames [start, end] simulated when optimising keyframe j: from keyframe j-2 to keyframe j+lookahead.
 
-    Keyframe j shapes the segments starting at j-2, j-1, j, j+1; the window simulates the first three
-    (the fourth is revisited by the next window), starting from the committed state at keyframe j-2.
+    Keyframe j shapes the segments starting at j-2, j-1, j, j+1; the window simulates from the committed
+    state at keyframe j-2 up to keyframe j+1 (lookahead 1, the window (k1..k4) of DESIGN §1.6), or further
+    so the optimiser sees more of the consequences (the offset is held there, see ``controls.offsets``).
     """
     if not 0 <= j < n_keyframes:
         raise ValueError(f"keyframe index {j} outside [0, {n_keyframes})")
     start = max(0, (j - 2) * interval)
-    end = min(num_frames - 1, (j + 1) * interval)
+    end = min(num_frames - 1, (j + lookahead) * interval)
     return start, max(end, min(start + 1, num_frames - 1))
