@@ -1,11 +1,13 @@
 """The built-in synthetic grasp-and-lift (issue item 9): no data and no licence needed.
 
-A right hand (the built-in template hand) approaches a 0.25 kg cylinder standing on the table, wraps its
-fingers around it from the side (palm facing the cylinder, thumb on top), lifts it 20 cm and holds it. The
-clean trajectory is physically consistent: the object rests until the hand has closed, then moves rigidly with
-the wrist. The *observed* keypoints then get vision-like errors — hovering ring/pinky fingers, index/middle
-fingers that sink into the object, a wrist offset and per-keypoint jitter — and the object pose gets small
-jitter, so the example looks like a vision-aligned demonstration.
+A right hand (the built-in template hand) comes down over a 0.2 kg box (5.6 x 5.6 x 9 cm) standing on the
+table, closes the index, middle and ring fingers on one face and the thumb on the opposite face (a grasp solved
+once by ``worker.grasp_synthesis`` and shipped in ``worker/data/example_grasp.npz``; each finger stops 4 mm
+inside the surface so the position servos press), lifts the box 20 cm and holds it. The clean trajectory is
+kinematically consistent: the object rests until the hand has closed, then moves rigidly with the wrist. The
+*observed* keypoints then get vision-like errors — a hovering middle finger and pinky, index and ring fingers
+that sink into the box, a wrist offset and per-keypoint jitter — and the object pose gets small jitter, so the
+example looks like a vision-aligned demonstration.
 
 ``example_sequence()`` is the 72-frame (2.4 s at 30 fps) demo; ``short_example_sequence()`` a 24-frame version
 for quick tests. Both are deterministic (seeded).
@@ -18,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.sequence import HandTrack, ObjectSpec, Sequence
-from worker.grasp_synthesis import cached_box_grasp
+from worker.grasp_synthesis import cached_box_grasp, close_to_contact
 from worker.hand_mjcf import matrix_to_quat
 from worker.hand_model import (
     FINGERS,
@@ -57,7 +59,7 @@ def _smoothstep(x: FloatArray) -> FloatArray:
 #: Finger flexion direction (MCP, PIP, DIP) used for the observation errors.
 _FLEX_PATTERN = np.array([0.0, 0.9, 0.0, 0.0, 1.0, 0.0, 0.0, 0.7, 0.0])
 #: Half-extents of the example box (5.6 x 5.6 x 9 cm) and its mass.
-BOX_HALF = (0.028, 0.028, 0.045)
+BOX_HALF: tuple[float, float, float] = (0.028, 0.028, 0.045)
 
 
 def _object_spec(half_extents: FloatArray) -> ObjectSpec:
@@ -70,7 +72,8 @@ def synthetic_grasp_and_lift(timeline: Timeline | None = None, seed: int = 0, er
     geometry = default_geometry("right")
     grasp = cached_box_grasp(TEMPLATE_HAND_LENGTH, BOX_HALF)
     half = np.array(BOX_HALF)
-    pos_g, q_grasp = grasp.wrist_pos + np.array([0.0, 0.0, half[2]]), grasp.q
+    q_grasp = close_to_contact(geometry, grasp, half, penetration=0.004)
+    pos_g = grasp.wrist_pos + np.array([0.0, 0.0, half[2]])
     quat_g = matrix_to_quat(grasp.wrist_rot)
     t = np.arange(tl.total, dtype=np.float64)
     approach = _smoothstep(t / max(tl.approach, 1))
@@ -84,6 +87,9 @@ def synthetic_grasp_and_lift(timeline: Timeline | None = None, seed: int = 0, er
     wrist_quat = np.tile(quat_g, (tl.total, 1))
     q_open = grasp.q_open
     q = q_open + close[:, None] * (q_grasp - q_open)
+    # The thumb closes a little after the fingers, so it presses the box against fingers already in place.
+    thumb_close = _smoothstep((t - t_close0 - 0.3 * tl.close) / max(0.7 * tl.close, 1))
+    q[:, :9] = q_open[:9] + thumb_close[:, None] * (q_grasp[:9] - q_open[:9])
     obj_pose = np.tile(np.array([0.0, 0.0, half[2], 1.0, 0.0, 0.0, 0.0]), (tl.total, 1))
     obj_pose[:, 2] += lift  # rigidly with the wrist once lifting starts (lift is 0 before)
 

@@ -124,6 +124,27 @@ def synthesize_box_grasp(geometry: HandGeometry, half: FloatArray, penetration: 
     )
 
 
+def close_to_contact(
+    geometry: HandGeometry, grasp: BoxGrasp, half: FloatArray, penetration: float = 0.002
+) -> FloatArray:
+    """Per finger, the point on the straight path ``q_open -> q`` where its capsules first sink ``penetration``
+    into the box (fingers that never touch keep ``q``): the least-squares grasp may overshoot by millimetres,
+    and a finger that sinks deep pushes the box before the others arrive."""
+    alphas = np.linspace(0.0, 1.0, 201)
+    q_out = grasp.q.copy()
+    for f in range(5):
+        sl = slice(9 * f, 9 * f + 9)
+        trials = np.tile(grasp.q, (len(alphas), 1))
+        trials[:, sl] = grasp.q_open[sl] + alphas[:, None] * (grasp.q[sl] - grasp.q_open[sl])
+        pts, radii, _ = _capsule_samples(geometry, trials)
+        world = pts[:, f] @ grasp.wrist_rot.T + grasp.wrist_pos
+        clearance = (_box_sdf(world, np.asarray(half)) - radii[:, f]).min(axis=(1, 2))
+        hit = np.flatnonzero(clearance <= -penetration)
+        if hit.size:
+            q_out[sl] = trials[hit[0], sl]
+    return q_out
+
+
 #: The solved example grasp shipped with the package (solving takes ~40 s on 2 shared cores).
 GRASP_FILE = Path(__file__).parent / "data" / "example_grasp.npz"
 _GRASP_VERSION = 1
