@@ -7,15 +7,15 @@ import pytest
 
 from common.result_format import CONTACT_KEYS, read_arrays, read_contacts, read_summary
 from worker.example import example_sequence
-from worker.replay import raw_replay, replay_result_bytes
+from worker.replay import ReplayResult, raw_replay, replay_result_bytes
 
 
 @pytest.fixture(scope="module")
-def replay():  # type: ignore[no-untyped-def]
+def replay() -> ReplayResult:
     return raw_replay(example_sequence(errors=False))
 
 
-def test_replay_records_every_frame(replay) -> None:  # type: ignore[no-untyped-def]
+def test_replay_records_every_frame(replay: ReplayResult) -> None:
     rec = replay.record
     assert rec.object_pose.shape == (72, 7) and rec.object_vel.shape == (72, 6)
     assert rec.keypoints["right"].shape == (72, 21, 3)
@@ -28,7 +28,7 @@ def test_replay_records_every_frame(replay) -> None:  # type: ignore[no-untyped-
     assert replay.metrics["E_j"] < 3.0  # the hand follows its reference (cm)
 
 
-def test_contacts_are_physical(replay) -> None:  # type: ignore[no-untyped-def]
+def test_contacts_are_physical(replay: ReplayResult) -> None:
     c = replay.contacts
     n = len(c["contact_frame"])
     assert n > 5
@@ -44,7 +44,7 @@ def test_contacts_are_physical(replay) -> None:  # type: ignore[no-untyped-def]
     assert np.all(np.linalg.norm(c["contact_pos_world"] - pose[:, :3], axis=1) < 0.2)
 
 
-def test_result_file_round_trip(replay) -> None:  # type: ignore[no-untyped-def]
+def test_result_file_round_trip(replay: ReplayResult) -> None:
     blob = replay_result_bytes(replay)
     summary = read_summary(blob)
     assert summary["metrics"]["raw"]["E_t"] == pytest.approx(replay.metrics["E_t"])
