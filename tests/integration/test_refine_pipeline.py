@@ -1,4 +1,4 @@
-"""The refinement end to end on a synthetic push (tests/integration/refine_synthetic.py): parameter
+"""The refinement end to end on a synthetic push (tests/integration/test_refine_synthetic.py): parameter
 recovery, determinism, verify, loss ablation, keyframe interval at 60 fps, and the CLI."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from common.errors import HoiRefineError, ResultMismatchError
 from common.job_options import JobOptions
 from common.result_format import read_arrays, read_summary
 from common.sequence_io import save_sequence
-from tests.integration.refine_synthetic import push_sequence, recovery_case
+from tests.integration.test_refine_synthetic import push_sequence, recovery_case
 from worker.refine.evaluator import ParallelEvaluator
 from worker.refine.prepare import initial_state, prepare
 from worker.refine.problem import SimWindowProblem

@@ -1,4 +1,4 @@
-"""A synthetic push whose object motion is, by construction, what a known hand motion does in simulation
+"""Helpers (no tests here): a synthetic push whose object motion is, by construction, what a known hand motion
 (for the refinement's parameter-recovery, determinism and verify tests)."""
 
 from __future__ import annotations
