@@ -1,5 +1,5 @@
-"""Helpers (no tests here): a synthetic push whose object motion is, by construction, what a known hand motion
-(for the refinement's parameter-recovery, determinism and verify tests)."""
+"""Helpers (no tests here): a synthetic push whose object motion is, by construction, what a known hand
+motion does in simulation (for the refinement's parameter-recovery, determinism and verify tests)."""
 
 from __future__ import annotations
 
