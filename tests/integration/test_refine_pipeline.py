@@ -10,7 +10,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from common.errors import HoiRefineError, ResultMismatchError
+from common.cli import main as cli_main
+from common.errors import ResultMismatchError
 from common.job_options import JobOptions
 from common.result_format import read_arrays, read_summary
 from common.sequence_io import save_sequence
@@ -20,22 +21,6 @@ from worker.refine.prepare import initial_state, prepare
 from worker.refine.problem import SimWindowProblem
 from worker.refine.result import verify_result
 from worker.refine.run import RefineOutcome, refine_sequence
-
-
-def cli_main(argv: list[str]) -> int:
-    """``hoi-refine`` restricted to this package's subcommands (same error mapping as ``common.cli.main``)."""
-    import argparse
-
-    from worker import cli_refine
-
-    parser = argparse.ArgumentParser(prog="hoi-refine")
-    cli_refine.register(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(argv)
-    try:
-        return int(args.func(args) or 0)
-    except HoiRefineError:
-        return 2
-
 
 # The budget that recovers the synthetic push (more than the product defaults: 6 windows, 2 s of video).
 RECOVERY = JobOptions(seed=7, popsize=12, max_generations=8, free_wrist_translation=True)
