@@ -126,7 +126,7 @@ def test_bad_input_names_its_field(label: str, mutate: Callable[[Sequence], None
 
 
 def test_more_frames_than_the_limit() -> None:
-    with pytest.raises(SequenceValidationError, match="object_pose.*limit of 5"):
+    with pytest.raises(SequenceValidationError, match=r"object_pose.*limit of 5"):
         _good().validate(max_frames=5)
 
 
