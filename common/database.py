@@ -15,6 +15,7 @@ installed package without an ``alembic.ini`` in the working directory.
 from __future__ import annotations
 
 import time
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -79,7 +80,9 @@ def alembic_config(url: str) -> Config:
     return cfg
 
 
+@lru_cache(maxsize=1)
 def head_revision() -> str | None:
+    """The newest migration shipped with this code (read once: /readyz asks on every probe)."""
     return ScriptDirectory.from_config(alembic_config("sqlite://")).get_current_head()
 
 

@@ -13,10 +13,17 @@ from typing import Any
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from sqlalchemy import exc as sa_exc
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 
-from common.errors import FieldProblem, HoiRefineError, LimitExceededError, SequenceValidationError
+from common.errors import (
+    DatabaseUnavailableError,
+    FieldProblem,
+    HoiRefineError,
+    LimitExceededError,
+    SequenceValidationError,
+)
 
 PROBLEM_JSON = "application/problem+json"
 log = logging.getLogger("hoi_refine.service")
@@ -95,6 +102,13 @@ def _allowed_methods(request: Request) -> list[str]:
     return sorted(methods)
 
 
+async def _database_unavailable(_request: Request, exc: Exception) -> JSONResponse:
+    # The database is down or every pooled connection is busy: a retry later can succeed, so 503, not 500.
+    log.warning("database unavailable: %s", type(exc).__name__)
+    detail = "the database is unavailable or saturated; retry later"
+    return problem_response(503, DatabaseUnavailableError.title, detail, headers={"Retry-After": "5"})
+
+
 async def _unexpected_error(_request: Request, exc: Exception) -> JSONResponse:
     log.exception("unhandled error", exc_info=exc)
     return problem_response(500, "Internal error", "an unexpected error occurred; it has been logged")
@@ -104,4 +118,6 @@ def install_problem_handlers(app: FastAPI) -> None:
     app.add_exception_handler(HoiRefineError, _hoi_refine_error)
     app.add_exception_handler(RequestValidationError, _request_validation_error)
     app.add_exception_handler(StarletteHTTPException, _http_error)
+    app.add_exception_handler(sa_exc.OperationalError, _database_unavailable)
+    app.add_exception_handler(sa_exc.TimeoutError, _database_unavailable)
     app.add_exception_handler(Exception, _unexpected_error)

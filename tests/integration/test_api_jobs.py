@@ -206,3 +206,18 @@ def test_dexycb_upload_is_accepted_when_ycb_dir_is_set(
     resp = api.client.post("/v1/jobs", headers=api.headers, files=files)
     assert resp.status_code == 202, resp.text
     assert resp.json()["num_frames"] > 5
+
+
+def test_unreachable_database_answers_503_not_500() -> None:
+    from fastapi.testclient import TestClient
+
+    from common.database import create_engine_for
+    from common.settings import Settings
+    from service.app import create_app
+
+    engine = create_engine_for("postgresql+psycopg://postgres@127.0.0.1:1/nowhere?connect_timeout=2")
+    client = TestClient(create_app(Settings(), engine))
+    assert client.get("/readyz").status_code == 503
+    resp = client.get("/v1/jobs", headers={"Authorization": "Bearer hoi_anything"})
+    assert resp.status_code == 503 and resp.headers["content-type"] == PROBLEM and resp.headers["Retry-After"] == "5"
+    engine.dispose()
