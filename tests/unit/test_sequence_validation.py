@@ -144,7 +144,9 @@ def test_file_formats_round_trip_and_reject_bad_input() -> None:
     back = sequence_from_npz_bytes(sequence_to_npz_bytes(seq))
     np.testing.assert_allclose(back.object_pose, seq.object_pose)
     d = sequence_to_json_dict(seq)
-    np.testing.assert_allclose(sequence_from_json_dict(d).hands[0].keypoints, np.asarray(seq.hands[0].keypoints))
+    np.testing.assert_allclose(
+        np.asarray(sequence_from_json_dict(d).hands[0].keypoints), np.asarray(seq.hands[0].keypoints)
+    )
     d["fps"] = -1
     with pytest.raises(SequenceValidationError, match="fps"):
         sequence_from_json_dict(d)
