@@ -45,6 +45,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, default=None, help="folder of DexYCB dev NPZs")
     parser.add_argument("--stride", type=int, default=3, help="use every n-th valid frame (default 3)")
     parser.add_argument("--limit", type=int, default=0, help="use only the first n sequences (0 = all)")
+    parser.add_argument("--sequence-stride", type=int, default=1, help="use every n-th sequence (default 1 = all)")
     parser.add_argument("--components", type=int, default=20)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--out", type=Path, default=POSE_BASIS_FILE)
@@ -57,6 +58,7 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         data = root / "dexycb" / "dev"
     files = sorted(data.glob("*.npz"))
+    files = files[:: args.sequence_stride]
     if args.limit:
         files = files[: args.limit]
     if not files:
@@ -66,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
         chunks = list(pool.map(_hinges, [(str(f), args.stride) for f in files], chunksize=4))
     q = np.concatenate(chunks)
     provenance = {
-        "data": f"DexYCB development split ({data.name}/): {len(files)} sequences",
+        "data": f"DexYCB development split ({data.name}/): {len(files)} sequences (every {args.sequence_stride})",
         "sequences": len(files),
         "subjects": sorted({f.name.split("__")[0] for f in files}),
         "frames": int(q.shape[0]),
