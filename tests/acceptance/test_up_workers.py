@@ -62,6 +62,15 @@ def _arrays(blob: bytes) -> dict[str, np.ndarray]:
 
 @pytest.mark.parametrize("empty_db_url", BACKENDS, indirect=True)
 def test_up_two_workers_crash_cancel_and_stop(db_url: str, tmp_path: Path) -> None:
+    log = tmp_path / "up.log"
+    try:
+        _scenario(db_url, tmp_path, log)
+    except Exception as exc:
+        tail = log.read_text(errors="replace")[-6000:] if log.exists() else "(no log)"
+        raise AssertionError(f"{exc!r}\n--- hoi-refine up log (tail) ---\n{tail}") from exc
+
+
+def _scenario(db_url: str, tmp_path: Path, log: Path) -> None:
     from worker.example import short_example_sequence
     from worker.refine.run import refine_sequence
 
@@ -74,7 +83,6 @@ def test_up_two_workers_crash_cancel_and_stop(db_url: str, tmp_path: Path) -> No
     }
     queue = JobQueue(create_engine_for(db_url))
     payloads = [sequence_to_npz_bytes(short_example_sequence(seed=i)) for i in range(4)]
-    log = tmp_path / "up.log"
     with local_deployment(log, workers=2, threads_per_worker=1, port=_free_port(), env=env) as dep:
         client = ApiClient(dep.base_url, dep.api_key)
         ids = [client.submit_npz(p, SHORT.model_copy(update={"seed": i}))["id"] for i, p in enumerate(payloads)]
