@@ -71,6 +71,10 @@ def aggregate(rows: list[dict[str, Any]], which: str) -> dict[str, float]:
     }
 
 
+def _sum(rows: list[dict[str, Any]], key: str) -> float:
+    return float(sum(r["timings"].get(key, 0.0) for r in rows))
+
+
 def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) -> str:
     import os
     import platform
@@ -105,6 +109,13 @@ def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) 
         f"* share of wall time inside simulation: **{share:.1f} %** (target >= 85 %); "
         f"{steps_s:.0f} physics steps per second of simulation time with {args.threads} threads",
         f"* windows skipped (no hand-object contact and loss already low): {skipped} of {windows}",
+        f"* where the time goes (sums over the sequences): batched CMA-ES rollouts {_sum(rows, 'rollout_s'):.0f} s "
+        f"({_sum(rows, 'rollout_steps') / max(_sum(rows, 'rollout_s'), 1e-9):.0f} steps/s), Python-stepped "
+        f"probes, commits and replays {_sum(rows, 'python_step_s'):.0f} s "
+        f"({_sum(rows, 'python_steps') / max(_sum(rows, 'python_step_s'), 1e-9):.0f} steps/s), retargeting and "
+        f"scene compilation {_sum(rows, 'prepare_s'):.0f} s, the rest (CMA-ES, losses, I/O) "
+        f"{sum(walls) - _sum(rows, 'rollout_s') - _sum(rows, 'python_step_s') - _sum(rows, 'prepare_s'):.0f} s "
+        f"of {sum(walls):.0f} s",
         "",
         "## Per sequence",
         "",
