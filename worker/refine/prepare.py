@@ -4,6 +4,7 @@ loss targets and the frame-0 state (DESIGN §1.1-1.5). Shared by ``run.refine_se
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from typing import Any
 
@@ -51,33 +52,32 @@ class Prepared:
 
 
 def pose_basis(references: list[Any]) -> tuple[dict[str, PoseBasis10], str]:
-    """The packaged pose basis (``worker.pose_basis``) per side; without it, a PCA of this sequence's own
-    reference hinge angles (documented fallback, named in the result's provenance)."""
+    """The packaged pose basis (``worker.pose_basis``, one PCA over the built-in hand's hinges, used for both
+    sides since the left hand mirrors the right with the same hinge conventions); without the packaged file,
+    a PCA of this sequence's own reference hinge angles (a documented fallback named in the provenance)."""
+    from common.errors import ConfigurationError
+    from worker.pose_basis import load_pose_basis
+
     try:
-        import importlib
-
-        pb: Any = importlib.import_module("worker.pose_basis")  # the foundation's packaged basis
-
-        out = {}
-        for r in references:
-            b = pb.load_pose_basis(r.side) if hasattr(pb, "load_pose_basis") else pb.load_basis(r.side)
-            out[r.side] = PoseBasis10(np.asarray(b.components[:10], dtype=np.float64),
-                                      np.asarray(b.stddev[:10], dtype=np.float64))
-        return out, str(getattr(b, "provenance", "worker.pose_basis"))
-    except (ImportError, AttributeError):
-        pass
+        packaged = load_pose_basis()
+    except ConfigurationError:
+        packaged = None
+    if packaged is not None and packaged.components.shape[0] >= 10:
+        basis = PoseBasis10(np.asarray(packaged.components[:10], dtype=np.float64),
+                            np.asarray(packaged.stddev[:10], dtype=np.float64))
+        source = json.dumps(packaged.provenance, sort_keys=True)[:300]
+        return {r.side: basis for r in references}, f"worker.pose_basis (packaged): {source}"
     out = {}
     for r in references:
         q = r.q[r.valid] if r.valid.sum() >= 2 else r.q
-        centred = q - q.mean(axis=0)
-        _, sing, vt = np.linalg.svd(centred, full_matrices=False)
+        _, sing, vt = np.linalg.svd(q - q.mean(axis=0), full_matrices=False)
         comps = np.zeros((10, 45))
         k = min(10, vt.shape[0])
         comps[:k] = vt[:k]
         std = np.full(10, 0.05)
         std[:k] = np.maximum(sing[:k] / np.sqrt(max(len(q) - 1, 1)), 0.05)
         out[r.side] = PoseBasis10(comps, std)
-    return out, "fallback: PCA of this sequence's reference hinge angles (worker.pose_basis not available)"
+    return out, "fallback: PCA of this sequence's reference hinge angles (packaged pose basis missing)"
 
 
 def prepare(seq: Sequence, options: JobOptions, config: Any = None) -> Prepared:
