@@ -17,17 +17,16 @@ from __future__ import annotations
 import time
 from functools import lru_cache
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import sqlalchemy as sa
-from alembic import command
-from alembic.config import Config
-from alembic.runtime.migration import MigrationContext
-from alembic.script import ScriptDirectory
 from sqlalchemy.engine import Engine
 from sqlalchemy.engine.url import make_url
 
 from common.errors import DatabaseUnavailableError
+
+if TYPE_CHECKING:
+    from alembic.config import Config
 
 #: Execution option that makes the next transaction on a SQLite connection ``BEGIN IMMEDIATE``.
 IMMEDIATE = "sqlite_begin_immediate"
@@ -73,6 +72,8 @@ def create_engine_for(url: str, **kwargs: Any) -> Engine:
 
 def alembic_config(url: str) -> Config:
     """Alembic config built in code (``script_location`` = this package's ``migrations``)."""
+    # Alembic is imported only here and below: workers and claimers open engines without paying for it.
+    from alembic.config import Config
     cfg = Config()
     cfg.set_main_option("script_location", str(MIGRATIONS_DIR))
     # ConfigParser interpolation: a literal % in a URL (escaped passwords, options) must be doubled.
@@ -83,10 +84,12 @@ def alembic_config(url: str) -> Config:
 @lru_cache(maxsize=1)
 def head_revision() -> str | None:
     """The newest migration shipped with this code (read once: /readyz asks on every probe)."""
+    from alembic.script import ScriptDirectory
     return ScriptDirectory.from_config(alembic_config("sqlite://")).get_current_head()
 
 
 def current_revision(engine: Engine) -> str | None:
+    from alembic.runtime.migration import MigrationContext
     with engine.connect() as conn:
         return MigrationContext.configure(conn).get_current_revision()
 
@@ -96,6 +99,7 @@ def is_at_head(engine: Engine) -> bool:
 
 
 def upgrade_to_head(url: str) -> None:
+    from alembic import command
     command.upgrade(alembic_config(url), "head")
 
 
