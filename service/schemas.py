@@ -124,12 +124,14 @@ class JobPublic(BaseModel):
     summary: dict[str, Any] | None = None
 
     @classmethod
-    def from_record(cls, job: JobRecord, now: datetime | None = None) -> JobPublic:
+    def from_record(cls, job: JobRecord) -> JobPublic:
         progress = None
         if job.progress is not None:
             progress = ProgressPublic.model_validate(job.progress)
-            if progress.eta_s is None and job.state == "RUNNING" and job.started_at and now:
-                progress.eta_s = _eta(progress, (now - job.started_at).total_seconds())
+            if progress.eta_s is None and job.state == "RUNNING" and job.started_at:
+                # Rate up to the last heartbeat (updated_at), not up to now: the representation, and so its
+                # ETag, then changes only when the job does.
+                progress.eta_s = _eta(progress, (job.updated_at - job.started_at).total_seconds())
         return cls(
             id=job.id, name=job.name, state=job.state,
             attempt=job.attempt, max_attempts=job.max_attempts, priority=job.priority, num_frames=job.num_frames,

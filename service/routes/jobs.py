@@ -9,7 +9,6 @@ import numpy as np
 from fastapi import APIRouter, Depends, Header, Query, Request, Response
 from starlette.concurrency import run_in_threadpool
 
-from common.db_models import utcnow
 from common.errors import FieldProblem, InvalidRequestError
 from common.result_format import read_arrays, read_contacts
 from common.sequence_io import sequence_to_json_dict
@@ -71,7 +70,7 @@ async def submit_job(
         queue.submit, key_id, sub.payload, sub.options, idempotency_key, sub.sequence.name, sub.sequence.num_frames
     )
     response.headers["Location"] = f"/v1/jobs/{job.id}"
-    return _job_response(response, JobPublic.from_record(job, utcnow()), settings.poll_retry_after_seconds)
+    return _job_response(response, JobPublic.from_record(job), settings.poll_retry_after_seconds)
 
 
 @router.get("", response_model=JobsPublic, summary="List your jobs, newest first")
@@ -83,8 +82,7 @@ def list_jobs(
     state: JobState | None = None,
 ) -> JobsPublic:
     jobs, token = queue.list(key_id, state=state, page_size=page_size, page_token=page_token)
-    now = utcnow()
-    return JobsPublic(data=[JobPublic.from_record(j, now) for j in jobs], count=len(jobs), next_page_token=token)
+    return JobsPublic(data=[JobPublic.from_record(j) for j in jobs], count=len(jobs), next_page_token=token)
 
 
 @router.get(
@@ -101,7 +99,7 @@ def get_job(
     key_id: KeyDep,
     if_none_match: Annotated[str | None, Header()] = None,
 ) -> Any:
-    job = JobPublic.from_record(queue.get(key_id, job_id), utcnow())
+    job = JobPublic.from_record(queue.get(key_id, job_id))
     body = job.model_dump_json().encode()
     etag = f'"{hashlib.sha256(body).hexdigest()[:32]}"'
     headers = {"ETag": etag}
@@ -115,13 +113,13 @@ def get_job(
 @router.post("/{job_id}:cancel", response_model=JobPublic, summary="Cancel (QUEUED at once, RUNNING by flag)",
              responses={409: PROBLEM})  # fmt: skip
 def cancel_job(job_id: str, response: Response, queue: QueueDep, settings: SettingsDep, key_id: KeyDep) -> JobPublic:
-    job = JobPublic.from_record(queue.cancel(key_id, job_id), utcnow())
+    job = JobPublic.from_record(queue.cancel(key_id, job_id))
     return _job_response(response, job, settings.poll_retry_after_seconds)
 
 
 @router.post("/{job_id}:retry", response_model=JobPublic, summary="Requeue a FAILED job", responses={409: PROBLEM})
 def retry_job(job_id: str, response: Response, queue: QueueDep, settings: SettingsDep, key_id: KeyDep) -> JobPublic:
-    job = JobPublic.from_record(queue.retry(key_id, job_id), utcnow())
+    job = JobPublic.from_record(queue.retry(key_id, job_id))
     return _job_response(response, job, settings.poll_retry_after_seconds)
 
 

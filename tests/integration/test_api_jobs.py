@@ -54,6 +54,9 @@ def test_json_submission_polling_headers_and_etag(api: ApiHarness) -> None:
     progress = moved.json()["progress"]
     assert progress["window"] == 2 and progress["best_loss"] == 0.25 and progress["eta_s"] >= 0
     assert moved.json()["state"] == "RUNNING" and moved.json()["started_at"] is not None
+    # Until the next heartbeat the running job's representation (ETA included) stays the same.
+    again = api.client.get(f"/v1/jobs/{job['id']}", headers={**api.headers, "If-None-Match": moved.headers["ETag"]})
+    assert again.status_code == 304
 
 
 def test_multipart_submission_and_idempotency_key(api: ApiHarness) -> None:
