@@ -154,6 +154,19 @@ class JobsPublic(BaseModel):
     next_page_token: str | None = Field(description="Pass as page_token for the next page; null on the last page")
 
 
+class JobEventPublic(BaseModel):
+    id: int
+    at: datetime
+    kind: str = Field(description="submitted, claimed, requeued, released, cancel_requested, cancelled, "
+                      "succeeded, failed, retried, deleted")  # fmt: skip
+    detail: dict[str, Any]
+
+
+class JobEventsPublic(BaseModel):
+    job_id: str
+    events: list[JobEventPublic]
+
+
 class ContactPublic(BaseModel):
     frame: int
     hand: str

@@ -15,6 +15,8 @@ from common.sequence_io import sequence_to_json_dict
 from service.deps import KeyDep, QueueDep, SettingsDep, reject_unknown_query_parameters
 from service.schemas import (
     ContactsPublic,
+    JobEventPublic,
+    JobEventsPublic,
     JobPublic,
     JobsPublic,
     JobState,
@@ -172,6 +174,14 @@ def get_contacts(
 def get_metrics(job_id: str, queue: QueueDep, key_id: KeyDep) -> MetricsPublic:
     _, summary = queue.get_result(key_id, job_id)
     return MetricsPublic(job_id=job_id, metrics=dict(summary.get("metrics", {})))
+
+
+@router.get("/{job_id}/events", response_model=JobEventsPublic, summary="The job's state changes, oldest first")
+def get_events(job_id: str, queue: QueueDep, key_id: KeyDep) -> JobEventsPublic:
+    rows = queue.events(key_id, job_id)
+    return JobEventsPublic(
+        job_id=job_id, events=[JobEventPublic(id=e.id, at=e.at, kind=e.kind, detail=e.detail) for e in rows]
+    )
 
 
 @router.get("/{job_id}/input", summary="The submitted sequence in the native JSON form")

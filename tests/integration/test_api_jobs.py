@@ -40,6 +40,8 @@ def test_json_submission_polling_headers_and_etag(api: ApiHarness) -> None:
     assert resp.headers["Location"] == f"/v1/jobs/{job['id']}"
     assert job["state"] == "QUEUED" and job["attempt"] == 1 and job["priority"] == 3 and job["num_frames"] == 5
     assert job["options"]["keyframe_interval"] == 5
+    stored = api.client.get(f"/v1/jobs/{job['id']}/input", headers=api.headers).json()
+    assert np.allclose(stored["object_pose"], json_body()["object_pose"]) and stored["name"] == "tiny-box"
     got = api.client.get(f"/v1/jobs/{job['id']}", headers=api.headers)
     assert got.status_code == 200 and got.headers["Retry-After"] == "3"
     etag = got.headers["ETag"]
@@ -111,7 +113,7 @@ def test_auth_and_owner_scoping(api: ApiHarness) -> None:
     job_id = api.client.post("/v1/jobs", json=json_body(), headers=api.headers).json()["id"]
     other = api.other_key_headers()
     for method, path in [("GET", ""), ("POST", ":cancel"), ("POST", ":retry"), ("DELETE", ""), ("GET", "/result"),
-                         ("GET", "/contacts"), ("GET", "/metrics")]:  # fmt: skip
+                         ("GET", "/contacts"), ("GET", "/metrics"), ("GET", "/events"), ("GET", "/input")]:  # fmt: skip
         assert api.client.request(method, f"/v1/jobs/{job_id}{path}", headers=other).status_code == 404
     assert api.client.get("/v1/jobs", headers=other).json()["count"] == 0
 
@@ -140,6 +142,9 @@ def test_result_contacts_and_metrics_after_completion(api: ApiHarness) -> None:
     assert backwards.status_code == 422 and fields(backwards) == {"end"}
     metrics = api.client.get(f"/v1/jobs/{job_id}/metrics", headers=api.headers).json()
     assert metrics["metrics"] == summary["metrics"]
+    events = api.client.get(f"/v1/jobs/{job_id}/events", headers=api.headers).json()["events"]
+    assert [e["kind"] for e in events] == ["submitted", "claimed", "succeeded"]
+    assert events[1]["detail"]["worker_id"] == "w"
 
 
 def test_cancel_retry_delete_and_listing(api: ApiHarness) -> None:
