@@ -5,9 +5,10 @@ long-lived ``run`` call itself (a re-run would be a second, unleased execution);
 Ray restarts an actor whose process died, and the pool driver (``worker.runtime.pool``) calls ``run``
 again on it. The job that the dead process held is requeued by the queue once its lease expires.
 
-``max_concurrency=2`` makes the actor threaded, so ``stop()`` and ``status()`` are answered while ``run``
-is busy. The actor receives the driver's ``HOI_REFINE_*`` settings explicitly: on a cluster the actor's
-process does not inherit the driver's environment.
+``max_concurrency=4`` makes the actor threaded, so ``stop()``, ``status()`` and ``pid()`` are answered while
+``run`` is busy (and while a duplicate ``run`` call waits for the first). The actor receives the driver's
+``HOI_REFINE_*`` settings explicitly: on a cluster the actor's process does not inherit the driver's
+environment.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from __future__ import annotations
 import logging
 import os
 import sys
+import threading
 from typing import Any
 
 log = logging.getLogger(__name__)
@@ -50,6 +52,7 @@ class WorkerActor:
         get_settings.cache_clear()
         settings = get_settings()
         self.worker_id = worker_id
+        self._run_lock = threading.Lock()
         self.engine = create_engine_for(settings.resolved_database_url())
         self.queue = JobQueue(self.engine, settings=settings)
         self.job_fn = make_job_function(job_kind, threads=threads)
@@ -63,7 +66,10 @@ class WorkerActor:
         log.info("actor %s ready (pid %d, %d thread(s), job kind %s)", worker_id, os.getpid(), threads, job_kind)
 
     def run(self) -> dict[str, int]:
-        return self.loop.run()
+        # One loop per actor, even if Ray delivers a run call that the driver saw fail during a restart
+        # (ActorUnavailableError means "may or may not have run"): a second call waits for the first.
+        with self._run_lock:
+            return self.loop.run()
 
     def stop(self) -> None:
         self.loop.stop()
@@ -80,4 +86,4 @@ def remote_worker_class(threads: int) -> Any:
     import ray
 
     remote: Any = ray.remote  # its overloads do not cover the options-only form
-    return remote(num_cpus=threads, max_restarts=-1, max_task_retries=0, max_concurrency=2)(WorkerActor)
+    return remote(num_cpus=threads, max_restarts=-1, max_task_retries=0, max_concurrency=4)(WorkerActor)

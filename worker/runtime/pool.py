@@ -59,6 +59,11 @@ class _Slot:
     actor: Any
     run_ref: Any = None
     restarts: int = 0
+    #: The actor died and its restarted process has not answered yet.
+    down: bool = False
+    pid: int | None = None
+    #: A restart was just seen: the run call made during it may still fail once.
+    stale_call: bool = False
     last_status: dict[str, Any] = field(default_factory=dict)
 
 
@@ -178,23 +183,51 @@ class WorkerPool:
             ready = []
             time.sleep(timeout)
         for slot in self.slots:
-            if slot.run_ref is None or slot.run_ref not in ready:
+            if slot.run_ref is None:
+                continue
+            if slot.run_ref not in ready:
+                if slot.pid is None or slot.down:
+                    self._check_pid(slot)
                 continue
             try:
                 counts = ray.get(slot.run_ref)
                 log.warning("worker %s returned %s; starting its loop again", slot.worker_id, counts)
-            except Exception as exc:  # RayActorError: the process died; Ray restarts it (max_restarts=-1)
-                slot.restarts += 1
-                log.warning(
-                    "worker %s died (%s); Ray restarts it (restart %d)", slot.worker_id, type(exc).__name__,
-                    slot.restarts,
-                )
+            except Exception as exc:  # the process died; Ray restarts it (max_restarts=-1)
+                stale = slot.stale_call and type(exc).__name__ == "ActorUnavailableError"
+                slot.stale_call = False
+                if stale:  # the run call made while it restarted: the restarted process never got it
+                    log.debug("worker %s: run call from before the restart failed; calling again", slot.worker_id)
+                elif not slot.down:
+                    log.warning(
+                        "worker %s (pid %s) is down (%s); Ray restarts it", slot.worker_id, slot.pid,
+                        type(exc).__name__,
+                    )
+                # Calls made while it restarts fail (ActorUnavailableError): keep calling run until one holds.
+                slot.down = not stale
             slot.run_ref = slot.actor.run.remote()
         self._requeue_expired()
         if self.config.health_file:
             from pathlib import Path
 
             Path(self.config.health_file).touch()
+
+    @staticmethod
+    def _check_pid(slot: _Slot) -> None:
+        """Learn the actor's pid; a new pid after a death is a restart (logged once)."""
+        import ray
+
+        try:
+            pid = int(ray.get(slot.actor.pid.remote(), timeout=0.5))
+        except Exception:
+            return
+        if slot.pid is not None and pid != slot.pid:
+            slot.restarts += 1
+            log.warning(
+                "worker %s was restarted by Ray: pid %d -> %d (restart %d)", slot.worker_id, slot.pid, pid,
+                slot.restarts,
+            )
+            slot.stale_call = True
+        slot.pid, slot.down = pid, False
 
     def _requeue_expired(self) -> None:
         lease = get_settings().lease_seconds
