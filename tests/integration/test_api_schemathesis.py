@@ -7,6 +7,7 @@ database, which is migrated by the module fixture before the first request.
 
 from __future__ import annotations
 
+import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -35,6 +36,7 @@ def api_key() -> Iterator[str]:
     _, plaintext = app.state.queue.create_api_key("schemathesis")
     yield plaintext
     _ENGINE.dispose()
+    shutil.rmtree(_DB_DIR, ignore_errors=True)
 
 
 @pytest.mark.slow
