@@ -260,7 +260,7 @@ def sequence_from_json_dict(
             return None
         try:
             return np.asarray(value, dtype=dtype)
-        except (ValueError, TypeError):
+        except (ValueError, TypeError, OverflowError):
             problems.append(FieldProblem(path, "must be a (nested) list of numbers of a regular shape"))
             return None
 
@@ -294,7 +294,7 @@ def sequence_from_json_dict(
             else:
                 obj.primitive = kind
                 obj.size = arr(prim.get("size"), "object.primitive.size")
-                if obj.size is None:
+                if prim.get("size") is None:
                     problems.append(FieldProblem("object.primitive.size", "is required"))
         if "mesh" in od:
             mesh = od["mesh"] if isinstance(od["mesh"], dict) else {}
