@@ -28,8 +28,10 @@ class SimConfig:
     #: the light finger segments stay stable; the servo behaves like a first-order lag of kv/kp = 60 ms.
     finger_kp: float = 50.0
     finger_kv: float = 3.0
-    #: Hinge armature (kg·m²) and passive damping; small, they only regularise the light segments.
-    hinge_armature: float = 1e-4
+    #: Hinge armature (kg·m²) and passive damping. The armature matters: with light segments alone (1e-4) the
+    #: contact solver resolves penetration by throwing the fingers back instead of building grip force, and raw
+    #: replay of DexYCB lifts nothing (0/16); 3e-3 lifts 4/16 with the same hand tracking and steps faster.
+    hinge_armature: float = 3e-3
     hinge_damping: float = 0.0
     #: Hand tissue density (kg/m³) -> segment masses from the capsule volumes.
     hand_density: float = 1100.0
