@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.sequence import HandTrack, ObjectSpec, Sequence
-from worker.grasp_synthesis import cached_box_grasp, close_to_contact
+from worker.grasp_synthesis import cached_box_grasp
 from worker.hand_mjcf import matrix_to_quat
 from worker.hand_model import (
     FINGERS,
@@ -70,9 +70,9 @@ def synthetic_grasp_and_lift(timeline: Timeline | None = None, seed: int = 0, er
     """Build the example sequence (world frame = source frame, table z = 0); see the module docstring."""
     tl = timeline or Timeline()
     geometry = default_geometry("right")
-    grasp = cached_box_grasp(TEMPLATE_HAND_LENGTH, BOX_HALF)
+    grasp = cached_box_grasp(TEMPLATE_HAND_LENGTH, BOX_HALF, MASS_KG)
     half = np.array(BOX_HALF)
-    q_grasp = close_to_contact(geometry, grasp, half, penetration=0.004)
+    q_grasp = grasp.q
     pos_g = grasp.wrist_pos + np.array([0.0, 0.0, half[2]])
     quat_g = matrix_to_quat(grasp.wrist_rot)
     t = np.arange(tl.total, dtype=np.float64)

@@ -147,20 +147,35 @@ def close_to_contact(
 
 #: The solved example grasp shipped with the package (solving takes ~40 s on 2 shared cores).
 GRASP_FILE = Path(__file__).parent / "data" / "example_grasp.npz"
-_GRASP_VERSION = 1
+_GRASP_VERSION = 2
 
 
-def _grasp_key(hand_length: float, half: tuple[float, float, float]) -> FloatArray:
-    return np.array([_GRASP_VERSION, hand_length, *half], dtype=np.float64)
+def _grasp_key(hand_length: float, half: tuple[float, float, float], mass: float) -> FloatArray:
+    return np.array([_GRASP_VERSION, hand_length, *half, mass], dtype=np.float64)
 
 
-def write_grasp_file(hand_length: float, half: tuple[float, float, float], path: Path = GRASP_FILE) -> BoxGrasp:
-    """Solve and store the example grasp (``python -m worker.grasp_synthesis`` regenerates the shipped file)."""
-    grasp = synthesize_box_grasp(default_geometry("right", hand_length), np.array(half))
+def finalize_grasp(geometry: HandGeometry, grasp: BoxGrasp, half: FloatArray, mass: float) -> BoxGrasp:
+    """Stop each finger 4 mm inside the box (``close_to_contact``), then choose the thumb by simulated holding
+    (``worker.grasp_hold``); the open hand is a quarter of the final hinge angles."""
+    from worker.grasp_hold import select_thumb
+
+    q = close_to_contact(geometry, grasp, half, penetration=0.004)
+    q = select_thumb(geometry, grasp, q, np.asarray(half), mass)
+    q_open = np.clip(0.25 * q, JOINT_LOWER, JOINT_UPPER)
+    q_open[:9] = 0.0  # the thumb comes in straight (its closing path is checked against the box)
+    return BoxGrasp(grasp.wrist_rot, grasp.wrist_pos, q, q_open, grasp.cost)
+
+
+def write_grasp_file(
+    hand_length: float, half: tuple[float, float, float], mass: float, path: Path = GRASP_FILE
+) -> BoxGrasp:
+    """Solve, finalise and store the example grasp (``python -m worker.grasp_synthesis`` regenerates the file)."""
+    geometry = default_geometry("right", hand_length)
+    grasp = finalize_grasp(geometry, synthesize_box_grasp(geometry, np.array(half)), np.array(half), mass)
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez(
         path,
-        key=_grasp_key(hand_length, half),
+        key=_grasp_key(hand_length, half, mass),
         wrist_rot=grasp.wrist_rot,
         wrist_pos=grasp.wrist_pos,
         q=grasp.q,
@@ -171,12 +186,13 @@ def write_grasp_file(hand_length: float, half: tuple[float, float, float], path:
 
 
 @lru_cache(maxsize=4)
-def cached_box_grasp(hand_length: float, half: tuple[float, float, float]) -> BoxGrasp:
-    """The box grasp for the right template hand of ``hand_length``: read from the shipped file when it was
-    solved for these inputs, else solved now (and memoised per process)."""
+def cached_box_grasp(hand_length: float, half: tuple[float, float, float], mass: float) -> BoxGrasp:
+    """The finalised box grasp for the right template hand of ``hand_length``: read from the shipped file when
+    it was made for these inputs, else solved now (~1 min; memoised per process)."""
     if GRASP_FILE.is_file():
         with np.load(GRASP_FILE) as data:
-            if np.allclose(data["key"], _grasp_key(hand_length, half)):
+            key = _grasp_key(hand_length, half, mass)
+            if data["key"].shape == key.shape and np.allclose(data["key"], key):
                 return BoxGrasp(
                     wrist_rot=data["wrist_rot"],
                     wrist_pos=data["wrist_pos"],
@@ -184,12 +200,13 @@ def cached_box_grasp(hand_length: float, half: tuple[float, float, float]) -> Bo
                     q_open=data["q_open"],
                     cost=float(data["cost"]),
                 )
-    return synthesize_box_grasp(default_geometry("right", hand_length), np.array(half))
+    geometry = default_geometry("right", hand_length)
+    return finalize_grasp(geometry, synthesize_box_grasp(geometry, np.array(half)), np.array(half), mass)
 
 
 if __name__ == "__main__":
-    from worker.example import BOX_HALF
+    from worker.example import BOX_HALF, MASS_KG
     from worker.hand_model import TEMPLATE_HAND_LENGTH
 
-    solved = write_grasp_file(TEMPLATE_HAND_LENGTH, BOX_HALF)
+    solved = write_grasp_file(TEMPLATE_HAND_LENGTH, BOX_HALF, MASS_KG)
     print(f"wrote {GRASP_FILE} (residual {solved.cost:.4f})")
