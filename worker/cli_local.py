@@ -2,8 +2,8 @@
 
 ``inspect SEQ`` says what a sequence file holds and whether it validates (exit 2 with the field-named message
 when it does not); ``replay SEQ --out RESULT.npz`` runs the raw replay (reference driven, no optimisation)
-and prints the metrics; ``demo`` shows the built-in example (refined when the refinement is installed, the raw
-replay with ``--raw``). Heavy imports stay inside the handlers.
+and prints the metrics; ``demo`` runs the built-in example end to end through a local deployment (``--local``:
+refined in-process; ``--raw``: raw replay only). Heavy imports stay inside the handlers.
 """
 
 from __future__ import annotations
@@ -41,9 +41,23 @@ def register(subparsers: Any) -> None:
     r.add_argument("--out", type=Path, default=None, help="result file to write (.npz)")
     r.set_defaults(func=cmd_replay)
 
-    d = subparsers.add_parser("demo", help="run the built-in example (no data or licence needed)")
-    d.add_argument("--raw", action="store_true", help="only the raw replay, no refinement")
-    d.add_argument("--out", type=Path, default=None, help="also write the raw-replay result file (.npz)")
+    d = subparsers.add_parser(
+        "demo",
+        help="run the built-in example end to end (no data or licence needed)",
+        description=(
+            "By default: start `hoi-refine up --workers 2` (API + local Ray + 2 workers, SQLite under var/), "
+            "submit the built-in grasp-and-lift over HTTP, follow its progress, print raw vs refined metrics and "
+            "save the result and contacts under --out-dir, then stop the deployment. --local refines in this "
+            "process instead (no server); --raw only replays the observation without optimisation."
+        ),
+    )
+    mode = d.add_mutually_exclusive_group()
+    mode.add_argument("--local", action="store_true", help="refine in this process, without the service")
+    mode.add_argument("--raw", action="store_true", help="only the raw replay, no refinement")
+    d.add_argument("--api", default=None, help="use this running service instead of starting one (with --key)")
+    d.add_argument("--key", default=None, help="API key for --api")
+    d.add_argument("--out-dir", type=Path, default=Path("var/demo"), help="where the service demo saves files")
+    d.add_argument("--out", type=Path, default=None, help="with --raw: also write the raw-replay result (.npz)")
     d.set_defaults(func=cmd_demo)
 
 
@@ -151,16 +165,26 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_demo(args: argparse.Namespace) -> int:
-    if not args.raw:
-        import importlib
+def _free_port() -> int:
+    """A port the OS says is free now, so the demo does not collide with a server already on 8000."""
+    import socket
 
-        try:
-            refine_cli = importlib.import_module("worker.cli_refine")
-        except ImportError:
-            refine_cli = None
-        if refine_cli is not None and hasattr(refine_cli, "run_demo"):
-            return int(refine_cli.run_demo())
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    if args.local:
+        from worker.cli_refine import run_demo as run_local_demo
+
+        return int(run_local_demo())
+    if not args.raw:
+        from worker.runtime.demo_client import run_demo as run_service_demo
+
+        if args.api:
+            return run_service_demo(base_url=args.api, api_key=args.key, out_dir=args.out_dir)
+        return run_service_demo(out_dir=args.out_dir, port=_free_port())
     from rich.console import Console
 
     from worker.example import example_sequence
