@@ -109,8 +109,25 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     for key, value in _describe(seq):
         table.add_row(key, value)
     console.print(table)
+    _check_mano(seq, console)
     console.print("[bold green]valid[/]: every field passed validation")
     return 0
+
+
+def _check_mano(seq: Any, console: Any) -> None:
+    """MANO-only hands cannot run without the model files: say so, then raise the error that names
+    ``HOI_REFINE_MANO_DIR`` (``common.cli.main`` prints it and exits 2). No torch is imported."""
+    from common.errors import ManoModelMissingError
+    from worker.mano import mano_available, require_mano_models
+
+    try:
+        require_mano_models(seq)
+    except ManoModelMissingError:
+        console.print("[bold red]cannot run[/]: a hand is given only as MANO parameters and the MANO model is missing")
+        raise
+    sides = [h.side for h in seq.hands if h.mano is not None]
+    if sides and mano_available(sides):
+        console.print(f"MANO model found for the {' and '.join(sides)} hand: the MANO hand is used")
 
 
 def metrics_table(title: str, columns: dict[str, dict[str, Any]]) -> Any:

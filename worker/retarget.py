@@ -197,5 +197,25 @@ def retarget_keypoints(
 
 
 def retarget_sequence(seq: Sequence) -> list[HandReference]:
-    """Retarget every hand of a sequence, in ``seq.hands`` order."""
-    return [retarget_hand(seq, h) for h in seq.hands]
+    """Retarget every hand of a sequence, in ``seq.hands`` order — the one place replay, refinement and the
+    worker get their references from.
+
+    A hand with MANO parameters, when ``HOI_REFINE_MANO_DIR`` holds its model file, becomes a reference on its
+    own MANO hand (``worker.mano.pose.mano_reference``: exact hinges, per-part hulls; DESIGN §1.1-1.2);
+    otherwise its keypoints are retargeted by IK. A MANO-only hand without the model file raises
+    ``ManoModelMissingError`` naming the setting.
+    """
+    refs = []
+    for hand in seq.hands:
+        if hand.mano is not None:
+            from worker.mano import mano_available, mano_model_path
+
+            if mano_available([hand.side]):
+                from worker.mano.pose import mano_reference  # imports this module: kept lazy
+
+                refs.append(mano_reference(seq, hand))
+                continue
+            if hand.keypoints is None:
+                mano_model_path(hand.side)  # raises the clear error
+        refs.append(retarget_hand(seq, hand))
+    return refs

@@ -4,6 +4,7 @@ describe a subject's MANO hand as the built-in articulated hand (geometry, hulls
 torch/smplx are only imported when something is decoded (``pip install .[mano]``). Entry points:
 
 * ``ensure_keypoints(seq)`` (here) — call after loading, before anything reads ``HandTrack.keypoints``;
+  ``require_mano_models(seq)`` only checks that the model files of MANO-only hands exist (no torch);
 * ``worker.mano.decode``: ``decode_mano``, ``load_mano_model``;
 * ``worker.mano.hand_geometry``: ``mano_hand_geometry`` (HandGeometry + part hulls), ``rotations_to_hinges``,
   ``hinges_to_rotations``;
@@ -14,7 +15,7 @@ torch/smplx are only imported when something is decoded (``pip install .[mano]``
 
 from __future__ import annotations
 
-from worker.mano.ensure import ensure_keypoints
+from worker.mano.ensure import ensure_keypoints, require_mano_models
 from worker.mano.pickle_io import load_mano_pickle, mano_available, mano_model_path
 from worker.mano.synthetic_model import build_test_mano_model
 
@@ -24,4 +25,5 @@ __all__ = [
     "load_mano_pickle",
     "mano_available",
     "mano_model_path",
+    "require_mano_models",
 ]

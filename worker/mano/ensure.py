@@ -15,13 +15,21 @@ from common.sequence import Sequence
 from worker.mano.pickle_io import mano_model_path
 
 
+def require_mano_models(seq: Sequence, mano_dir: Path | str | None = None) -> list[int]:
+    """Indices of the MANO-only hands (MANO parameters, no keypoints); raises ``ManoModelMissingError`` (naming
+    ``HOI_REFINE_MANO_DIR`` and the file) when the model of one of them is missing. Cheap: imports no torch,
+    so ``hoi-refine inspect`` can call it."""
+    todo = [i for i, h in enumerate(seq.hands) if h.keypoints is None and h.mano is not None]
+    for i in todo:
+        mano_model_path(seq.hands[i].side, mano_dir)
+    return todo
+
+
 def ensure_keypoints(seq: Sequence, mano_dir: Path | str | None = None) -> Sequence:
     """``seq`` itself when no hand needs decoding, else a copy whose MANO-only hands have keypoints."""
-    todo = [i for i, h in enumerate(seq.hands) if h.keypoints is None and h.mano is not None]
+    todo = require_mano_models(seq, mano_dir)  # fails on a missing file before importing torch
     if not todo:
         return seq
-    for i in todo:  # fail on a missing file before importing torch
-        mano_model_path(seq.hands[i].side, mano_dir)
     from worker.mano.decode import decode_mano
 
     hands = list(seq.hands)

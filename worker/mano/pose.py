@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from common.errors import SequenceValidationError
 from common.sequence import FloatArray, HandTrack, ManoParams, Sequence, Side
 from worker.mano.decode import full_hand_pose, load_mano_model, local_rotations
 from worker.mano.hand_geometry import ManoHandGeometry, hinges_to_rotations, mano_hand_geometry, rotations_to_hinges
@@ -108,12 +109,14 @@ def mano_reference(seq: Sequence, hand: HandTrack, mano_dir: Path | str | None =
     """World-frame reference of a MANO hand on its own MANO geometry (invalid frames interpolated)."""
     if hand.mano is None:
         raise ValueError(f"the {hand.side} hand has no MANO parameters")
+    valid = np.asarray(hand.valid, dtype=bool)
+    if not valid.any():
+        raise SequenceValidationError.single(f"hands[{hand.side}].valid", "no frame has a valid hand")
     mgeo = mano_hand_geometry(mano_dir, hand.side, hand.mano.betas)
     pos, rot, q = mano_hand_pose(hand.mano, mgeo, mano_dir)
     world = seq.world_transform()
     pos = pos @ world[:3, :3].T + world[:3, 3]
     rot = world[:3, :3] @ rot
-    valid = np.asarray(hand.valid, dtype=bool)
     t_all, vidx = np.arange(len(valid), dtype=np.float64), np.flatnonzero(valid)
     for arr in (pos, q):
         for c in range(arr.shape[1]):
@@ -132,9 +135,16 @@ def mano_reference(seq: Sequence, hand: HandTrack, mano_dir: Path | str | None =
     from worker.hand_model import forward_keypoints
 
     fitted = forward_keypoints(mgeo.geometry, pos, quat, q)
+    # Targets as in ``retarget_keypoints``: observed keypoints where the hand has them (valid frames), else
+    # the MANO hand's own; the residual is then the MANO fit's distance to the observation.
+    targets, residual = fitted.copy(), np.where(valid, 0.0, np.nan)
+    if hand.keypoints is not None:
+        observed = seq.keypoints_world(hand)
+        targets[valid] = observed[valid]
+        residual[valid] = 1e3 * np.linalg.norm(fitted[valid] - observed[valid], axis=2).mean(axis=1)
     return HandReference(
-        side=hand.side, geometry=mgeo.geometry, wrist_pos=pos, wrist_quat=quat, q=q, keypoints=fitted,
-        valid=valid.copy(), residual_mm=np.where(valid, 0.0, np.nan),
+        side=hand.side, geometry=mgeo.geometry, wrist_pos=pos, wrist_quat=quat, q=q, keypoints=targets,
+        valid=valid.copy(), residual_mm=residual,
     )  # fmt: skip
 
 
