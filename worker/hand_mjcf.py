@@ -4,6 +4,9 @@ The palm is a free body welded to a mocap body (``{side}_mocap``); 15 capsule se
 (named ``{side}_{HINGE_NAMES[i]}``), position servos with the same names, and sites ``{side}_kp{j}`` at the
 21 keypoints, each with a ``framepos`` sensor ``{side}_kp{j}``. The body chain reproduces
 ``hand_model.finger_kinematics`` exactly (MuJoCo composes a body's hinges in order: R = R_body·R0·R1·R2).
+A body listed in ``HandGeometry.part_meshes`` (the MANO hand's per-part convex hulls) gets a mesh geom of the
+same name instead of its box/capsule (assets from ``hand_asset_xml``); bodies, hinges, sites, actuators and
+sensors are the same either way, so the refinement, contacts and metrics do not see the difference.
 """
 
 from __future__ import annotations
@@ -45,6 +48,27 @@ def hand_body_names(side: str) -> list[str]:
     return [f"{side}_palm"] + [segment_body_name(side, f, j) for f in range(5) for j in range(3)]
 
 
+def mesh_asset_name(side: str, part: str) -> str:
+    return f"{side}_{part}_hull"
+
+
+def hand_asset_xml(geometry: HandGeometry) -> str:
+    """``<mesh>`` assets of the hand's part hulls ("" for a capsule hand). Vertices only: MuJoCo takes their
+    convex hull for collision and for the mass/inertia from ``hand_density``."""
+    return "\n".join(
+        f'<mesh name="{mesh_asset_name(geometry.side, part)}" vertex="{fmt(verts)}"/>'
+        for part, verts in geometry.part_meshes.items()
+    )
+
+
+def _part_geom(geometry: HandGeometry, part: str, common: str) -> str | None:
+    """The mesh geom of body ``part`` when the geometry has its hull; the geom keeps the body's name."""
+    if part not in geometry.part_meshes:
+        return None
+    side = geometry.side
+    return f'<geom name="{side}_{part}" type="mesh" mesh="{mesh_asset_name(side, part)}" {common}/>'
+
+
 def hand_worldbody_xml(geometry: HandGeometry, config: SimConfig, wrist_pos: FloatArray, wrist_quat: FloatArray) -> str:
     """The mocap body and the hand's body tree, placed at the given wrist pose."""
     side = geometry.side
@@ -66,7 +90,8 @@ def hand_worldbody_xml(geometry: HandGeometry, config: SimConfig, wrist_pos: Flo
     y1 = float(knuckles[:, 1].max()) + float(geometry.radii[4, 0])
     half = [(x1 - x0) / 2, (y1 - y0) / 2, geometry.palm_half_thickness]
     centre = [(x0 + x1) / 2, (y0 + y1) / 2, 0.0]
-    lines.append(f'  <geom name="{side}_palm" type="box" size="{fmt(half)}" pos="{fmt(centre)}" {geom_common}/>')
+    box = f'<geom name="{side}_palm" type="box" size="{fmt(half)}" pos="{fmt(centre)}" {geom_common}/>'
+    lines.append("  " + (_part_geom(geometry, "palm", geom_common) or box))
     lines.append(f'  <site name="{side}_kp0" pos="0 0 0" size="{0.004 * s:.4g}"/>')
     for f in range(5):
         base_kp = FINGER_BASE_KEYPOINT[f]
@@ -89,10 +114,12 @@ def hand_worldbody_xml(geometry: HandGeometry, config: SimConfig, wrist_pos: Flo
             length, radius = float(geometry.lengths[f, j]), float(geometry.radii[f, j])
             # The distal capsule ends *at* the fingertip keypoint (MANO tips lie on the skin surface).
             end = max(length - radius, 0.3 * length) if j == 2 else length
+            hull = _part_geom(geometry, f"{FINGERS[f]}{j + 1}", geom_common)
             lines.append(
-                f'{indent}  <geom name="{name}" type="capsule" fromto="0 0 0 {end:.6g} 0 0" size="{radius:.6g}" '
-                f"{geom_common}/>"
-            )
+                f"{indent}  "
+                + (hull or f'<geom name="{name}" type="capsule" fromto="0 0 0 {end:.6g} 0 0" size="{radius:.6g}" '
+                   f"{geom_common}/>")
+            )  # fmt: skip
             lines.append(f'{indent}  <site name="{side}_kp{base_kp + j}" pos="0 0 0" size="{0.003 * s:.4g}"/>')
             if j == 2:
                 lines.append(
@@ -137,6 +164,9 @@ def hand_mjcf(geometry: HandGeometry, config: SimConfig | None = None) -> str:
     return f"""<mujoco model="hoi-refine-hand-{side}">
   <compiler angle="radian" autolimits="true"/>
   <option timestep="{config.timestep:.9g}" integrator="{config.integrator}"/>
+  <asset>
+{hand_asset_xml(geometry)}
+  </asset>
   <worldbody>
 {hand_worldbody_xml(geometry, config, np.zeros(3), np.array([1.0, 0, 0, 0]))}
   </worldbody>
@@ -151,4 +181,7 @@ def hand_mjcf(geometry: HandGeometry, config: SimConfig | None = None) -> str:
 """
 
 
-__all__ = ["HINGE_AXES", "fmt", "hand_body_names", "hand_mjcf", "matrix_to_quat", "segment_body_name"]
+__all__ = [
+    "HINGE_AXES", "fmt", "hand_asset_xml", "hand_body_names", "hand_mjcf", "matrix_to_quat", "mesh_asset_name",
+    "segment_body_name",
+]  # fmt: skip

@@ -30,6 +30,8 @@ FINGERS: tuple[str, ...] = ("thumb", "index", "middle", "ring", "pinky")
 HINGE_AXES: tuple[str, ...] = ("abd", "flex", "twist")
 #: The 45 hinges, finger-major (thumb, index, middle, ring, pinky), joints 1..3, axes (abd, flex, twist).
 HINGE_NAMES: tuple[str, ...] = tuple(f"{f}{j}_{a}" for f in FINGERS for j in (1, 2, 3) for a in HINGE_AXES)
+#: The hand's bodies without the side prefix: the palm, then the 15 segments finger-major ("thumb1".."pinky3").
+BODY_PARTS: tuple[str, ...] = ("palm", *(f"{f}{j}" for f in FINGERS for j in (1, 2, 3)))
 #: Keypoint index of each finger's first joint (MANO21 order); the finger's keypoints are base..base+3.
 FINGER_BASE_KEYPOINT: tuple[int, ...] = (1, 5, 9, 13, 17)
 #: Palm keypoints (rigid in the wrist frame): wrist and the 5 finger bases.
@@ -88,7 +90,9 @@ class HandGeometry:
 
     ``bases`` (5,3): first-joint position of each finger; ``rest_rot`` (5,3,3): finger rest frame (columns x, y,
     z in the wrist frame); ``lengths`` (5,3): segment lengths; ``radii`` (5,3): capsule radii;
-    ``palm_half_thickness``; ``scale``: hand length / template hand length.
+    ``palm_half_thickness``; ``scale``: hand length / template hand length. ``part_meshes`` (optional, the MANO
+    hand, DESIGN §1.1): body name without side ("palm", "index2", ...) -> convex-hull vertices (n,3) in that
+    body's frame; ``hand_mjcf`` then emits mesh geoms for those bodies instead of the box/capsules.
     """
 
     side: Side
@@ -99,12 +103,18 @@ class HandGeometry:
     palm_half_thickness: float
     scale: float
     meta: dict[str, float] = field(default_factory=dict)
+    part_meshes: dict[str, FloatArray] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         for name, shape in (("bases", (5, 3)), ("rest_rot", (5, 3, 3)), ("lengths", (5, 3)), ("radii", (5, 3))):
             arr = getattr(self, name)
             if np.shape(arr) != shape:
                 raise ValueError(f"HandGeometry.{name} must have shape {shape}, got {np.shape(arr)}")
+        for part, verts in self.part_meshes.items():
+            if part not in BODY_PARTS:
+                raise ValueError(f"HandGeometry.part_meshes: unknown body {part!r} (expected one of {BODY_PARTS})")
+            if np.ndim(verts) != 2 or np.shape(verts)[1] != 3 or len(verts) < 4:
+                raise ValueError(f"HandGeometry.part_meshes[{part!r}] must have shape (n>=4, 3), got {np.shape(verts)}")
         if self.side not in ("right", "left"):
             raise ValueError(f"HandGeometry.side must be 'right' or 'left', got {self.side!r}")
 

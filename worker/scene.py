@@ -28,6 +28,7 @@ from common.sequence import Sequence
 from worker.hand_mjcf import (
     fmt,
     hand_actuator_xml,
+    hand_asset_xml,
     hand_body_names,
     hand_equality_xml,
     hand_sensor_xml,
@@ -126,6 +127,7 @@ def scene_xml(seq: Sequence, references: list[HandReference], config: SimConfig)
   <size memory="8M"/>
   <asset>
 {obj.assets}
+{chr(10).join(hand_asset_xml(r.geometry) for r in references)}
   </asset>
   <worldbody>
     <geom name="table" type="plane" size="0 0 1" contype="{TABLE_BIT}" conaffinity="{OBJECT_BIT}" condim="3"

@@ -1,12 +1,14 @@
 """MANO hands through the physics (issue #6 item 3): ``retarget_sequence`` picks the MANO reference when the
 model files are configured, IK on keypoints otherwise, and the clear error for MANO-only hands without them;
-``hoi-refine replay`` runs a MANO-only sequence end to end on the synthetic MANO model."""
+the scene's hand is then the subject's MANO mesh (per-part convex hulls, same bodies and hinges); ``hoi-refine
+replay`` runs a MANO-only sequence end to end on the synthetic MANO model."""
 
 from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
 
+import mujoco
 import numpy as np
 import pytest
 
@@ -17,6 +19,7 @@ from common.sequence_io import save_sequence
 from common.settings import get_settings
 from worker.mano import build_test_mano_model, ensure_keypoints
 from worker.retarget import retarget_sequence
+from worker.scene import Scene, build_scene
 
 T = 8
 
@@ -94,3 +97,68 @@ def test_replay_cli_mano_only(mano_dir: Path, tmp_path: Path, monkeypatch: pytes
     assert summary["frames"] == T and summary["ik_residual_mm"]["right"] == 0.0
     contacts = read_contacts(out.read_bytes())
     assert summary["num_contacts"] == len(contacts) > 0 and {c["hand"] for c in contacts} == {"right"}
+
+
+def _part_world_vertices(scene: Scene, data: mujoco.MjData, part: str) -> np.ndarray:
+    model = scene.model
+    geom = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, f"right_{part}")
+    assert model.geom_type[geom] == mujoco.mjtGeom.mjGEOM_MESH, part
+    mesh = model.geom_dataid[geom]
+    verts = model.mesh_vert[model.mesh_vertadr[mesh] : model.mesh_vertadr[mesh] + model.mesh_vertnum[mesh]]
+    return np.asarray(data.geom_xpos[geom] + verts @ data.geom_xmat[geom].reshape(3, 3).T)
+
+
+def test_scene_hand_is_the_mano_mesh(mano_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every hand body carries its MANO part hull; posed by the reference, the hulls lie on the MANO mesh that
+    smplx poses from the same parameters (up to pose correctives and blend skinning near the joints)."""
+    from worker.hand_mjcf import hand_mjcf
+    from worker.hand_model import BODY_PARTS, default_geometry
+    from worker.mano.decode import decode_mano, load_mano_model
+    from worker.mano.synthetic_model import MANO_FINGER_START
+
+    _use_mano_dir(monkeypatch, mano_dir)
+    seq = mano_grasp_sequence()
+    (ref,) = retarget_sequence(seq)
+    scene = build_scene(seq, [ref])
+    capsule_scene = build_scene(seq, [dataclasses.replace(ref, geometry=default_geometry("right"))])
+    for attr in ("njnt", "nu", "nsensor", "nsite", "nbody"):  # same bodies, hinges, servos, sites, sensors
+        assert getattr(scene.model, attr) == getattr(capsule_scene.model, attr), attr
+    assert 'type="mesh"' not in capsule_scene.xml and "right_palm_hull" in scene.xml
+    mujoco.MjModel.from_xml_string(hand_mjcf(ref.geometry))  # the standalone hand compiles too
+
+    t, hand = 4, scene.hands["right"]
+    data = scene.make_data()
+    posed = decode_mano(seq.hands[0].mano, "right", return_vertices=True).vertices  # type: ignore[arg-type]
+    assert posed is not None
+    world = seq.world_transform()
+    mesh = posed[t] @ world[:3, :3].T + world[:3, 3]
+    part_of = np.asarray(load_mano_model("right").data["weights"]).argmax(axis=1)
+    joint = dict(zip(BODY_PARTS, [0] + [s + j for s in MANO_FINGER_START for j in range(3)], strict=True))
+
+    def max_gap_mm(q: np.ndarray) -> float:
+        data.qpos[hand.root_qpos_adr : hand.root_qpos_adr + 7] = np.concatenate([ref.wrist_pos[t], ref.wrist_quat[t]])
+        data.qpos[hand.qpos_adr] = q
+        mujoco.mj_kinematics(scene.model, data)
+        gaps = [
+            np.linalg.norm(_part_world_vertices(scene, data, p)[:, None] - mesh[part_of == k][None], axis=2).min(1)
+            for p, k in joint.items()
+        ]
+        return 1e3 * float(np.concatenate(gaps).max())
+
+    assert max_gap_mm(ref.q[t]) < 2.5
+    assert max_gap_mm(np.zeros(45)) > 10.0  # the check above can fail: an unposed hand is far off
+
+
+def test_part_meshes_are_checked() -> None:
+    from worker.hand_mjcf import hand_asset_xml
+    from worker.hand_model import default_geometry
+
+    geo = default_geometry("left")
+    assert hand_asset_xml(geo) == ""
+    cube = np.array([[x, y, z] for x in (0, 0.01) for y in (0, 0.01) for z in (0, 0.01)])
+    with_mesh = dataclasses.replace(geo, part_meshes={"index2": cube})
+    assert hand_asset_xml(with_mesh).startswith('<mesh name="left_index2_hull"')
+    with pytest.raises(ValueError, match="unknown body 'index4'"):
+        dataclasses.replace(geo, part_meshes={"index4": cube})
+    with pytest.raises(ValueError, match=r"part_meshes\['palm'\] must have shape"):
+        dataclasses.replace(geo, part_meshes={"palm": cube[:3]})

@@ -135,6 +135,7 @@ def mano_hand_geometry(mano_dir: Path | str | None, side: Side, betas: FloatArra
         palm_half_thickness=float(np.percentile(palm_z, 95) - np.percentile(palm_z, 5)) / 2,
         scale=hand_length / TEMPLATE_HAND_LENGTH,
         meta={"mano_vertices": float(len(verts))},
+        part_meshes={h.name: h.vertices for h in hulls},  # mesh geoms in the MJCF (DESIGN §1.1)
     )
     return ManoHandGeometry(side, geometry, hulls, wrist, kp[0].copy(), frames, joints, kp)
 
