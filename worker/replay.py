@@ -2,7 +2,8 @@
 
 ``raw_replay(seq)`` retargets every hand, builds the scene, simulates the object from its frame-0 pose and
 returns trajectories, contacts, metrics and timings; ``replay_result_bytes`` writes it in the
-``common.result_format`` layout (summary: ``metrics.raw``, config, versions, timings, IK residual).
+``common.result_format`` layout (summary: ``metrics.raw``, config, versions, timings, IK residual, hand model),
+plus ``S_mano_*`` parameters of the driven pose for hands whose reference came from MANO.
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ class ReplayResult:
     metrics: dict[str, Any]
     timings: dict[str, float] = field(default_factory=dict)
     steps: int = 0
+    mano_arrays: dict[str, np.ndarray] = field(default_factory=dict)  # S_mano_* of MANO hands
 
     @property
     def contacts(self) -> dict[str, np.ndarray]:
@@ -89,6 +91,11 @@ def raw_replay(seq: Sequence, config: SimConfig | None = None, record_contacts: 
         {r.side: r.valid for r in references},
     )
     steps = settle_steps + record.steps
+    mano_arrays: dict[str, np.ndarray] = {}
+    if any(r.from_mano for r in references):  # the driven pose as MANO parameters (DESIGN §1.7)
+        from worker.mano.pose import reference_mano_arrays
+
+        mano_arrays = reference_mano_arrays(seq, references)
     timings = {
         "retarget_s": t1 - t0,
         "build_scene_s": t2 - t1,
@@ -106,6 +113,7 @@ def raw_replay(seq: Sequence, config: SimConfig | None = None, record_contacts: 
         metrics=metrics,
         timings=timings,
         steps=steps,
+        mano_arrays=mano_arrays,
     )
 
 
@@ -124,6 +132,7 @@ def replay_summary(result: ReplayResult) -> dict[str, Any]:
         "simulated_steps": result.steps,
         "ik_residual_mm": result.ik_residual_mm(),
         "hand_length_m": {r.side: r.geometry.hand_length for r in result.references},
+        "hand_model": {r.side: "MANO" if r.from_mano else "built-in" for r in result.references},
         "object_collision": result.scene.object_collision,
         "num_contacts": len(result.contacts["contact_frame"]),
     }
@@ -149,6 +158,7 @@ def replay_arrays(result: ReplayResult) -> dict[str, np.ndarray]:
     for key, val in result.metrics["per_frame"].items():
         arrays[f"metrics_raw_{key}"] = val
     arrays.update(result.contacts)
+    arrays.update(result.mano_arrays)
     return arrays
 
 

@@ -47,6 +47,8 @@ class HandReference:
     ``wrist_pos`` (T,3), ``wrist_quat`` (T,4) wxyz (sign-continuous), ``q`` (T,45) hinge angles in HINGE_NAMES
     order, ``keypoints`` (T,21,3) the target keypoints (observed where valid, the fitted hand's where
     interpolated), ``valid`` (T,), ``residual_mm`` (T,) mean keypoint distance of the fit (NaN where invalid).
+    ``from_mano``: the hand is the subject's MANO hand posed from MANO parameters (results then also carry
+    ``S_mano_*`` parameters, ``worker.mano.pose.mano_result_arrays``).
     """
 
     side: Side
@@ -57,6 +59,7 @@ class HandReference:
     keypoints: FloatArray
     valid: npt.NDArray[np.bool_]
     residual_mm: FloatArray
+    from_mano: bool = False
 
     @property
     def num_frames(self) -> int:

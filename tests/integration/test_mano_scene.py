@@ -162,3 +162,29 @@ def test_part_meshes_are_checked() -> None:
         dataclasses.replace(geo, part_meshes={"index4": cube})
     with pytest.raises(ValueError, match=r"part_meshes\['palm'\] must have shape"):
         dataclasses.replace(geo, part_meshes={"palm": cube[:3]})
+
+
+def test_raw_replay_result_carries_mano_params(mano_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A MANO hand's replay result holds ``right_mano_*`` parameters that decode to the input hand (the driven
+    reference is exact); a keypoint hand's result holds none."""
+    from common.result_format import read_arrays
+    from worker.mano.decode import decode_mano
+    from worker.replay import raw_replay, replay_result_bytes
+
+    _use_mano_dir(monkeypatch, mano_dir)
+    seq = mano_grasp_sequence(5)
+    blob = replay_result_bytes(raw_replay(seq, record_contacts=True))
+    arrays = read_arrays(blob)
+    assert read_summary(blob)["hand_model"] == {"right": "MANO"}
+    back = ManoParams(
+        arrays["right_mano_global_orient"], arrays["right_mano_hand_pose"], arrays["right_mano_trans"],
+        arrays["right_mano_betas"], str(arrays["right_mano_pose_format"]),  # type: ignore[arg-type]
+        bool(arrays["right_mano_flat_hand_mean"]),
+    )  # fmt: skip
+    np.testing.assert_allclose(back.betas, seq.hands[0].mano.betas)  # type: ignore[union-attr]
+    want = decode_mano(seq.hands[0].mano, "right").keypoints  # type: ignore[arg-type]
+    np.testing.assert_allclose(decode_mano(back, "right").keypoints[1:], want[1:], atol=1e-8)  # frame 0 invalid
+
+    keypoint_hand = dataclasses.replace(ensure_keypoints(seq).hands[0], mano=None)
+    arrays = read_arrays(replay_result_bytes(raw_replay(dataclasses.replace(seq, hands=[keypoint_hand]))))
+    assert "right_q_target" in arrays and not any("mano" in k for k in arrays)

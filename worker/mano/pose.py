@@ -3,7 +3,8 @@
 * ``mano_hand_pose``: MANO parameters -> wrist position/rotation + hinge angles (source frame), exact
   (``hand_geometry`` module doc); ``mano_reference`` wraps it as a world-frame ``HandReference``, the
   MANO-input counterpart of ``worker.retarget.retarget_hand`` (no IK needed).
-* ``hand_pose_to_mano``: the way back, for the refined result's MANO parameters (DESIGN §1.7).
+* ``hand_pose_to_mano``: the way back, for the refined result's MANO parameters (DESIGN §1.7);
+  ``mano_result_arrays`` / ``reference_mano_arrays`` give the result file's ``S_mano_*`` arrays.
 * ``mano_pca_basis``: MANO's hand PCA for the control parameterisation (DESIGN §1.3). MANO's components
   live in its 45-D axis-angle space; the refinement needs a basis over the 45 hinge angles, so the components
   are mapped through the (smooth) rotation -> hinge conversion, linearised at MANO's mean pose.
@@ -144,8 +145,20 @@ def mano_reference(seq: Sequence, hand: HandTrack, mano_dir: Path | str | None =
         residual[valid] = 1e3 * np.linalg.norm(fitted[valid] - observed[valid], axis=2).mean(axis=1)
     return HandReference(
         side=hand.side, geometry=mgeo.geometry, wrist_pos=pos, wrist_quat=quat, q=q, keypoints=targets,
-        valid=valid.copy(), residual_mm=residual,
+        valid=valid.copy(), residual_mm=residual, from_mano=True,
     )  # fmt: skip
+
+
+def reference_mano_arrays(seq: Sequence, references: list[HandReference], mano_dir: Path | str | None = None
+                          ) -> dict[str, np.ndarray]:  # fmt: skip
+    """``S_mano_*`` result arrays of the hands whose reference came from MANO, at the references' own poses
+    (what a raw replay drives; a refinement passes its refined trajectory to ``mano_result_arrays`` instead)."""
+    out: dict[str, np.ndarray] = {}
+    for ref in references:
+        if ref.from_mano:
+            hand = next(h for h in seq.hands if h.side == ref.side)
+            out.update(mano_result_arrays(seq, hand, ref.wrist_pos, ref.wrist_quat, ref.q, mano_dir))
+    return out
 
 
 @dataclass(frozen=True)
