@@ -84,7 +84,9 @@ def test_retarget_sequence_dispatch(mano_dir: Path, monkeypatch: pytest.MonkeyPa
         retarget_sequence(dataclasses.replace(seq, hands=[empty]))
 
 
-def test_replay_cli_mano_only(mano_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_replay_cli_mano_only(
+    mano_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
     from common.cli import main
 
     src, out = tmp_path / "mano.npz", tmp_path / "result.npz"
@@ -92,6 +94,8 @@ def test_replay_cli_mano_only(mano_dir: Path, tmp_path: Path, monkeypatch: pytes
     _use_mano_dir(monkeypatch, None)
     assert main(["replay", str(src), "--out", str(out)]) == 2 and not out.exists()
     _use_mano_dir(monkeypatch, mano_dir)
+    capsys.readouterr()
+    assert main(["inspect", str(src)]) == 0 and "the MANO hand is used" in capsys.readouterr().out
     assert main(["replay", str(src), "--out", str(out)]) == 0
     summary = read_summary(out.read_bytes())
     assert summary["frames"] == T and summary["ik_residual_mm"]["right"] == 0.0
