@@ -48,7 +48,8 @@ def _job_response(response: Response, job: JobPublic, retry_after: int) -> JobPu
     status_code=202,
     response_model=JobPublic,
     summary="Submit a sequence for refinement",
-    responses={409: PROBLEM, 413: PROBLEM, 429: PROBLEM},
+    # 400: a multipart body the form parser refuses (e.g. more parts than it accepts).
+    responses={400: PROBLEM, 409: PROBLEM, 413: PROBLEM, 429: PROBLEM},
     openapi_extra={
         "requestBody": {
             "required": True,
