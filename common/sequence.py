@@ -318,6 +318,9 @@ def _validate_hand(problems: list[FieldProblem], name: str, hand: HandTrack, t: 
 
 def _validate_rigid(problems: list[FieldProblem], name: str, mat: FloatArray) -> None:
     rot = mat[:3, :3]
+    if np.abs(rot).max() > 2.0:  # a rotation's entries are within [-1, 1]; also keeps rot @ rot.T finite
+        problems.append(FieldProblem(name, "upper-left 3x3 must be a rotation (entries within [-1, 1])"))
+        return
     if not np.allclose(rot @ rot.T, np.eye(3), atol=1e-4) or np.linalg.det(rot) < 0:
         problems.append(FieldProblem(name, "upper-left 3x3 must be a rotation (orthonormal, det +1)"))
     if not np.allclose(mat[3], [0, 0, 0, 1], atol=1e-9):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from typing import Any
 
 import pytest
@@ -37,3 +38,12 @@ def test_missing_size_is_required() -> None:
 def test_valid_document_parses() -> None:
     seq = sequence_from_json_dict(_doc([0.05, 0.05, 0.05]))
     assert seq.num_frames == 1 and seq.object.primitive == "box"
+
+
+def test_huge_world_transform_is_rejected_without_overflow() -> None:
+    doc = _doc([0.05, 0.05, 0.05])
+    doc["world_from_camera"] = [[1e300, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # an overflow RuntimeWarning would fail the test
+        with pytest.raises(SequenceValidationError, match="world_from_camera"):
+            sequence_from_json_dict(doc)
