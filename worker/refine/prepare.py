@@ -51,7 +51,22 @@ class Prepared:
         return np.concatenate([self.obj_targets.pos, self.obj_targets.quat], axis=1)
 
 
-def pose_basis(references: list[Any]) -> tuple[dict[str, PoseBasis10], str]:
+def mano_pose_basis(seq: Sequence, reference: Any, like: PoseBasis10) -> PoseBasis10:
+    """MANO's own hand PCA (DESIGN §1.3: "MANO's own PCA when MANO is used"), as hinge changes per unit
+    coefficient. Each component is scaled so one unit moves the hinges by as much (RMS) as one unit of the
+    built-in basis's component of the same rank, which keeps CMA-ES's step size and bounds meaningful."""
+    from worker.mano.pose import mano_pca_basis
+
+    hand = seq.hand(reference.side)
+    assert hand is not None and hand.mano is not None
+    mano = mano_pca_basis(None, reference.side, betas=hand.mano.betas, n_components=10)
+    comps = np.asarray(mano.components[:10], dtype=np.float64)
+    norms = np.maximum(np.linalg.norm(comps, axis=1), 1e-9)
+    builtin_norms = np.linalg.norm(like.components, axis=1) * like.stddev
+    return PoseBasis10(comps / norms[:, None], builtin_norms)
+
+
+def pose_basis(references: list[Any], seq: Sequence | None = None) -> tuple[dict[str, PoseBasis10], str]:
     """The packaged pose basis (``worker.pose_basis``, one PCA over the built-in hand's hinges, used for both
     sides since the left hand mirrors the right with the same hinge conventions); without the packaged file,
     a PCA of this sequence's own reference hinge angles (a documented fallback named in the provenance)."""
@@ -66,7 +81,15 @@ def pose_basis(references: list[Any]) -> tuple[dict[str, PoseBasis10], str]:
         basis = PoseBasis10(np.asarray(packaged.components[:10], dtype=np.float64),
                             np.asarray(packaged.stddev[:10], dtype=np.float64))
         source = json.dumps(packaged.provenance, sort_keys=True)[:300]
-        return {r.side: basis for r in references}, f"worker.pose_basis (packaged): {source}"
+        bases = {r.side: basis for r in references}
+        mano_sides = [r.side for r in references if getattr(r, "from_mano", False) and seq is not None]
+        for r in references:
+            if r.side in mano_sides:
+                assert seq is not None
+                bases[r.side] = mano_pose_basis(seq, r, basis)
+        if mano_sides:
+            source += f"; MANO PCA basis for {', '.join(mano_sides)}"
+        return bases, f"worker.pose_basis (packaged): {source}"
     out = {}
     for r in references:
         q = r.q[r.valid] if r.valid.sum() >= 2 else r.q
@@ -89,7 +112,7 @@ def prepare(seq: Sequence, options: JobOptions, config: Any = None) -> Prepared:
     scene = build_scene(seq, references, config)
     layout = SimLayout.from_scene(scene)
     interval = options.keyframe_interval or default_keyframe_interval(seq.fps)
-    bases, provenance = pose_basis(references)
+    bases, provenance = pose_basis(references, seq)
     from worker.hand_model import JOINT_LIMITS
 
     spaces: dict[str, HandControlSpace] = {

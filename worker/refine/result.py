@@ -76,6 +76,13 @@ def build_arrays(
         arrays[f"{s}_keypoints_sim"] = final.keypoints[s]
         arrays[f"{s}_keypoints_ref"] = ref.keypoints
         arrays[f"{s}_valid"] = ref.valid
+        if getattr(ref, "from_mano", False):
+            # The refined hand as MANO parameters (issue #6): exact because the scene used the MANO geometry.
+            from worker.mano.pose import mano_result_arrays
+
+            hand = prep.seq.hand(s)
+            assert hand is not None
+            arrays.update(mano_result_arrays(prep.seq, hand, p, r, q))
     for name, m in (("raw", m_raw), ("refined", m_ref)):
         for key, val in m["per_frame"].items():
             arrays[f"metrics_{name}_{key}"] = val
