@@ -10,36 +10,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from common.errors import InputError
-from common.job_options import LOSS_NAMES, JobOptions
-
-
-def parse_weights(text: str) -> dict[str, float]:
-    """``object_pose=1,hand_joints=0.5`` -> {"object_pose": 1.0, "hand_joints": 0.5}."""
-    out: dict[str, float] = {}
-    for item in filter(None, (p.strip() for p in text.split(","))):
-        name, sep, value = item.partition("=")
-        name = name.strip()
-        if not sep or name not in LOSS_NAMES:
-            raise InputError(f"--weights: expected NAME=VALUE with NAME one of {', '.join(LOSS_NAMES)}; got {item!r}")
-        try:
-            out[name] = float(value)
-        except ValueError as exc:
-            raise InputError(f"--weights: {name} must be a number, got {value!r}") from exc
-        if not out[name] >= 0:
-            raise InputError(f"--weights: {name} must be >= 0, got {value}")
-    return out
-
-
-def options_from_args(args: argparse.Namespace) -> JobOptions:
-    return JobOptions(
-        seed=args.seed,
-        keyframe_interval=args.keyframe_interval,
-        max_generations=args.max_generations,
-        popsize=args.popsize,
-        loss_weights=parse_weights(args.weights) if args.weights else {},
-        free_wrist_translation=args.free_wrist_translation,
-    )
+from common.job_options import JobOptions
+from common.job_options_cli import add_job_option_arguments, job_options_from_args
 
 
 def register(subparsers: Any) -> None:
@@ -51,12 +23,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("sequence", type=Path, help="sequence file (.npz native or DexYCB, .json, DexYCB folder)")
     p.add_argument("--out", type=Path, required=True, help="result file to write (.npz)")
     p.add_argument("--threads", type=int, default=1, help="simulation threads (default 1)")
-    p.add_argument("--seed", type=int, default=0, help="CMA-ES seed (default 0)")
-    p.add_argument("--keyframe-interval", type=int, default=None, help="frames between keyframes (round(fps/6))")
-    p.add_argument("--max-generations", type=int, default=None, help="CMA-ES generations per window")
-    p.add_argument("--popsize", type=int, default=None, help="CMA-ES population size")
-    p.add_argument("--weights", default="", help=f"loss weights, e.g. object_pose=1,hand_joints=0.5 ({LOSS_NAMES})")
-    p.add_argument("--free-wrist-translation", action="store_true", help="also optimise a wrist translation offset")
+    add_job_option_arguments(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_refine)
 
@@ -70,24 +37,17 @@ def register(subparsers: Any) -> None:
 
 
 def _load(path: Path) -> Any:
+    """Any sequence file ``load_sequence`` reads (native NPZ/JSON, DexYCB NPZ or folder); missing -> clear error."""
     from common.sequence_io import load_sequence
 
-    if path.suffix.lower() == ".npz":
-        import numpy as np
-
-        with np.load(path, allow_pickle=False) as data:
-            if "object_name" in data.files and "hand_joints" in data.files:
-                from common.dexycb import load_dexycb_npz
-
-                return load_dexycb_npz(path)
     return load_sequence(path)
 
 
 def _refine(args: argparse.Namespace) -> int:
     from worker.refine.run import refine_sequence
 
+    options = job_options_from_args(args)  # before loading: a bad flag should not wait for a slow load
     seq = _load(args.sequence)
-    options = options_from_args(args)
     outcome = refine_sequence(seq, options, threads=args.threads, progress=None if args.quiet else _ProgressBar())
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_bytes(outcome.to_npz_bytes())

@@ -13,56 +13,10 @@ import os
 from pathlib import Path
 from typing import Any
 
-from common.errors import ConfigurationError, InputError
-from common.job_options import LOSS_NAMES, JobOptions
+from common.errors import ConfigurationError
+from common.job_options_cli import add_job_option_arguments, job_options_from_args
 
 DEFAULT_OUT = Path("hoi-refine-submit")
-
-
-def parse_weights(text: str) -> dict[str, float]:
-    """``name=value,...`` -> loss weights; names from ``common.job_options.LOSS_NAMES``."""
-    weights: dict[str, float] = {}
-    for item in filter(None, (part.strip() for part in text.split(","))):
-        name, sep, value = item.partition("=")
-        name = name.strip()
-        if not sep or name not in LOSS_NAMES:
-            raise argparse.ArgumentTypeError(
-                f"--weights wants name=value pairs with names from {', '.join(LOSS_NAMES)}; got {item!r}"
-            )
-        try:
-            weights[name] = float(value)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"--weights: {name} needs a number, got {value!r}") from None
-    return weights
-
-
-def add_job_option_arguments(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("job options (see common.job_options.JobOptions)")
-    g.add_argument("--seed", type=int, default=0, help="CMA-ES seed (default 0)")
-    g.add_argument("--keyframe-interval", type=int, default=None, help="frames between keyframes (default fps/6)")
-    g.add_argument("--max-generations", type=int, default=None, help="CMA-ES generations per window")
-    g.add_argument("--popsize", type=int, default=None, help="CMA-ES population size")
-    g.add_argument("--weights", type=parse_weights, default={}, help="loss weights, e.g. object_pose=2,hand_joints=0.5")
-    g.add_argument("--free-wrist-translation", action="store_true", help="also optimise a wrist translation offset")
-    g.add_argument("--priority", type=int, default=0, help="queue priority, -100..100 (higher runs first)")
-
-
-def job_options_from_args(args: argparse.Namespace) -> JobOptions:
-    from pydantic import ValidationError
-
-    try:
-        return JobOptions(
-            seed=args.seed,
-            keyframe_interval=args.keyframe_interval,
-            max_generations=args.max_generations,
-            popsize=args.popsize,
-            loss_weights=args.weights,
-            free_wrist_translation=args.free_wrist_translation,
-            priority=args.priority,
-        )
-    except ValidationError as exc:
-        problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'options'}: {e['msg']}" for e in exc.errors())
-        raise InputError(f"invalid job options: {problems}") from None
 
 
 def _positive_int(text: str) -> int:
@@ -99,7 +53,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("--wait", action="store_true", help="wait for every job and download results + contacts")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"manifest + results folder (default {DEFAULT_OUT})")
     p.add_argument("--poll-interval", type=float, default=2.0, help="longest pause between polls of a job (s)")
-    add_job_option_arguments(p)
+    add_job_option_arguments(p, queue=True)
     p.set_defaults(func=_cmd_submit)
 
 

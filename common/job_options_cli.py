@@ -1,0 +1,66 @@
+"""The job-option flags shared by every command that starts refinements (``refine``, ``submit``).
+
+One definition, so the flags, their help and their validation cannot drift apart between the local CLI and
+the bulk client; ``JobOptions`` (``common.job_options``) stays the single contract behind them.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from pydantic import ValidationError
+
+from common.errors import InputError
+from common.job_options import LOSS_NAMES, JobOptions
+
+
+def parse_weights(text: str) -> dict[str, float]:
+    """``name=value,...`` -> loss weights (an argparse ``type``); names from ``LOSS_NAMES``."""
+    weights: dict[str, float] = {}
+    for item in filter(None, (part.strip() for part in text.split(","))):
+        name, sep, value = item.partition("=")
+        name = name.strip()
+        if not sep or name not in LOSS_NAMES:
+            raise argparse.ArgumentTypeError(
+                f"--weights wants name=value pairs with names from {', '.join(LOSS_NAMES)}; got {item!r}"
+            )
+        try:
+            weights[name] = float(value)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"--weights: {name} needs a number, got {value!r}") from None
+        if not weights[name] >= 0:
+            raise argparse.ArgumentTypeError(f"--weights: {name} must be >= 0, got {value}")
+    return weights
+
+
+def add_job_option_arguments(parser: argparse.ArgumentParser, queue: bool = False) -> None:
+    """Add the ``JobOptions`` flags; ``queue`` also adds ``--priority`` (meaningful only to the service)."""
+    g = parser.add_argument_group("job options (see common.job_options.JobOptions)")
+    g.add_argument("--seed", type=int, default=0, help="CMA-ES seed (default 0)")
+    g.add_argument("--keyframe-interval", type=int, default=None, help="frames between keyframes (default fps/6)")
+    g.add_argument("--max-generations", type=int, default=None, help="CMA-ES generations per window")
+    g.add_argument("--popsize", type=int, default=None, help="CMA-ES population size")
+    g.add_argument(
+        "--weights", type=parse_weights, default={},
+        help=f"loss weights, e.g. object_pose=2,hand_joints=0.5 (names: {', '.join(LOSS_NAMES)}; 0 disables a term)",
+    )  # fmt: skip
+    g.add_argument("--free-wrist-translation", action="store_true", help="also optimise a wrist translation offset")
+    if queue:
+        g.add_argument("--priority", type=int, default=0, help="queue priority, -100..100 (higher runs first)")
+
+
+def job_options_from_args(args: argparse.Namespace) -> JobOptions:
+    """The parsed flags as ``JobOptions``; out-of-range values raise ``InputError`` naming the option."""
+    try:
+        return JobOptions(
+            seed=args.seed,
+            keyframe_interval=args.keyframe_interval,
+            max_generations=args.max_generations,
+            popsize=args.popsize,
+            loss_weights=args.weights,
+            free_wrist_translation=args.free_wrist_translation,
+            priority=getattr(args, "priority", 0),
+        )
+    except ValidationError as exc:
+        problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'options'}: {e['msg']}" for e in exc.errors())
+        raise InputError(f"invalid job options: {problems}") from None
