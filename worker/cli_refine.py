@@ -69,16 +69,26 @@ def _verify(args: argparse.Namespace) -> int:
 
 
 class _ProgressBar:
-    """One rewritten stderr line: window i/N, best loss, evaluations, ETA."""
+    """Window i/N, best loss, evaluations, ETA: one rewritten line on a terminal; in a log (not a TTY), one
+    line per finished window instead of hundreds of carriage-return updates."""
+
+    def __init__(self) -> None:
+        self._tty = sys.stderr.isatty()
+        self._last_window = -1
 
     def __call__(self, p: Any) -> None:
         width = 24
         done = int(width * p.window / max(p.windows, 1))
         bar = "#" * done + "-" * (width - done)
-        sys.stderr.write(
-            f"\r[{bar}] window {p.window}/{p.windows}  best loss {p.best_loss:9.3f}  "
-            f"evals {p.evaluations:6d}  skipped {p.skipped}  elapsed {p.elapsed_s:5.1f}s  ETA {p.eta_s:5.1f}s "
+        text = (
+            f"[{bar}] window {p.window}/{p.windows}  best loss {p.best_loss:9.3f}  "
+            f"evals {p.evaluations:6d}  skipped {p.skipped}  elapsed {p.elapsed_s:5.1f}s  ETA {p.eta_s:5.1f}s"
         )
+        if self._tty:
+            sys.stderr.write(f"\r{text} ")
+        elif p.window != self._last_window:
+            sys.stderr.write(f"{text}\n")
+            self._last_window = p.window
         sys.stderr.flush()
 
 

@@ -13,3 +13,8 @@ Modules, in pipeline order:
 * ``run``        ``refine_sequence`` (the entry point the Ray worker calls) and the from-scratch replay;
 * ``result``     the result arrays/summary and ``verify_result``.
 """
+
+import warnings
+
+# cma warns at import when matplotlib is absent; only its plotting needs it and we never plot.
+warnings.filterwarnings("ignore", message="Could not import matplotlib", category=UserWarning)
