@@ -12,8 +12,6 @@ window loss), timings (wall-clock: excluded from determinism comparisons).
 
 from __future__ import annotations
 
-import importlib.metadata as md
-import platform
 from dataclasses import asdict
 from typing import TYPE_CHECKING, Any
 
@@ -38,16 +36,12 @@ VERIFY_TOLERANCE_M = 1e-6
 
 
 def versions() -> dict[str, str]:
+    """The raw replay's package versions plus the optimiser's."""
     import cma
-    import mujoco
 
-    out = {"python": platform.python_version(), "mujoco": mujoco.__version__, "numpy": np.__version__,
-           "cma": str(cma.__version__).split()[0]}
-    try:
-        out["hoi-refine"] = md.version("hoi-refine")
-    except md.PackageNotFoundError:  # pragma: no cover - source tree without install
-        out["hoi-refine"] = "unknown"
-    return out
+    from worker.replay import versions as replay_versions
+
+    return {**replay_versions(), "cma": str(cma.__version__).split()[0]}
 
 
 def build_arrays(
