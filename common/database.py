@@ -14,6 +14,7 @@ installed package without an ``alembic.ini`` in the working directory.
 
 from __future__ import annotations
 
+import sys
 import time
 from functools import lru_cache
 from pathlib import Path
@@ -74,7 +75,9 @@ def alembic_config(url: str) -> Config:
     """Alembic config built in code (``script_location`` = this package's ``migrations``)."""
     # Alembic is imported only here and below: workers and claimers open engines without paying for it.
     from alembic.config import Config
-    cfg = Config()
+
+    # Config's stdout default is bound when alembic is first imported; pass today's stream (tests swap it).
+    cfg = Config(stdout=sys.stdout)
     cfg.set_main_option("script_location", str(MIGRATIONS_DIR))
     # ConfigParser interpolation: a literal % in a URL (escaped passwords, options) must be doubled.
     cfg.set_main_option("sqlalchemy.url", url.replace("%", "%%"))
