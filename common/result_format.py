@@ -4,7 +4,10 @@ Written by the worker (``replay`` and ``refine``), stored by the queue, read by 
 result has (F = frames, N = contacts over all frames):
 
 * ``summary_json``: JSON text — metrics (``metrics.raw`` / ``metrics.refined``), config, seed, versions,
-  timings. Read it with ``read_summary``.
+  and the deterministic ``timings`` counters (simulated steps, candidate evaluations, rollouts). Read it with
+  ``read_summary``, which also merges in ``timings_json``.
+* ``timings_json`` (absent when written without the wall clock): JSON text — the run-dependent ``timings``
+  figures (``is_wall_clock``: seconds ``*_s``, ``sim_share``, ``steps_per_second``, ``threads``).
 * ``object_pose_sim`` (F,7) world x y z qw qx qy qz; ``object_vel_sim`` (F,6) linear, angular (world).
 * per hand side S: ``S_q_target`` (F,45), ``S_wrist_pos`` (F,3), ``S_wrist_quat`` (F,4),
   ``S_keypoints_sim`` (F,21,3); refinement adds ``S_keyframes`` (K,13+) and optional MANO fields.
@@ -12,17 +15,32 @@ result has (F = frames, N = contacts over all frames):
   ``contact_body`` (N,) str hand body name, ``contact_pos_world`` (N,3), ``contact_pos_object`` (N,3),
   ``contact_normal`` (N,3) world (from object to hand), ``contact_force`` (N,3) world,
   ``contact_torque`` (N,3) world, ``contact_depth`` (N,) penetration in metres (>= 0).
+
+Members are written by ``common.npz_writer`` in a fixed order — ``summary_json``, ``timings_json``, then the
+arrays sorted by key — with fixed zip timestamps, so equal results give equal bytes; without the wall clock
+two runs with the same input, options and seed give identical files. ``content_digest`` hashes everything but
+``timings_json``, to compare results whose wall clock differs.
 """
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
+import zipfile
 from typing import Any
 
 import numpy as np
 
 from common.errors import UnsupportedFormatError
+from common.npz_writer import deterministic_npz_bytes
+
+SUMMARY_KEY = "summary_json"
+TIMINGS_KEY = "timings_json"
+#: Members that are JSON text rather than data arrays (``read_arrays`` leaves them out).
+JSON_KEYS: tuple[str, ...] = (SUMMARY_KEY, TIMINGS_KEY)
+#: ``timings`` entries that depend on the machine or the run, not on input, options and seed.
+_WALL_CLOCK_NAMES = frozenset({"sim_share", "steps_per_second", "threads"})
 
 CONTACT_KEYS: tuple[str, ...] = (
     "contact_frame",
@@ -37,14 +55,37 @@ CONTACT_KEYS: tuple[str, ...] = (
 )
 
 
-def write_result_npz(arrays: dict[str, Any], summary: dict[str, Any]) -> bytes:
-    """Serialise a result; ``summary`` must be JSON-serialisable."""
+def is_wall_clock(key: str) -> bool:
+    """Whether a ``timings`` entry is run-dependent: seconds (``*_s``), rates and shares of them, the threads."""
+    return key.endswith("_s") or key in _WALL_CLOCK_NAMES
+
+
+def write_result_npz(arrays: dict[str, Any], summary: dict[str, Any], wall_clock: bool = True) -> bytes:
+    """Serialise a result; ``summary`` must be JSON-serialisable.
+
+    ``summary["timings"]`` is split: the wall-clock entries (``is_wall_clock``) go to ``timings_json``, or are
+    dropped when ``wall_clock`` is False (for reproducibility checks), the deterministic counters stay.
+    """
     missing = [k for k in CONTACT_KEYS if k not in arrays]
     if missing:
         raise ValueError(f"result is missing contact arrays {missing}")
-    buf = io.BytesIO()
-    np.savez_compressed(buf, summary_json=np.array(json.dumps(summary, sort_keys=True)), **arrays)
-    return buf.getvalue()
+    clashing = [k for k in JSON_KEYS if k in arrays]
+    if clashing:
+        raise ValueError(f"{clashing} are reserved for the JSON members")
+    stored = dict(summary)
+    members: dict[str, Any] = {SUMMARY_KEY: None}  # first member; filled in below
+    if "timings" in summary:
+        timings: dict[str, Any] = summary["timings"]
+        stored["timings"] = {k: v for k, v in timings.items() if not is_wall_clock(k)}
+        if wall_clock:
+            members[TIMINGS_KEY] = _json_array({k: v for k, v in timings.items() if is_wall_clock(k)})
+    members[SUMMARY_KEY] = _json_array(stored)
+    members.update((k, arrays[k]) for k in sorted(arrays))
+    return deterministic_npz_bytes(members)
+
+
+def _json_array(doc: dict[str, Any]) -> np.ndarray:
+    return np.array(json.dumps(doc, sort_keys=True))
 
 
 def _open(blob: bytes) -> Any:
@@ -55,16 +96,40 @@ def _open(blob: bytes) -> Any:
 
 
 def read_summary(blob: bytes) -> dict[str, Any]:
+    """The summary, its ``timings`` holding the deterministic counters and (when stored) the wall clock."""
     with _open(blob) as data:
-        if "summary_json" not in data.files:
+        if SUMMARY_KEY not in data.files:
             raise UnsupportedFormatError("not a hoi-refine result file: no summary_json")
-        out: dict[str, Any] = json.loads(str(data["summary_json"]))
+        out: dict[str, Any] = json.loads(str(data[SUMMARY_KEY]))
+        if TIMINGS_KEY in data.files:
+            out["timings"] = {**out.get("timings", {}), **json.loads(str(data[TIMINGS_KEY]))}
         return out
 
 
 def read_arrays(blob: bytes) -> dict[str, np.ndarray]:
+    """The data arrays (the JSON members excluded: ``read_summary`` reads those)."""
     with _open(blob) as data:
-        return {k: data[k] for k in data.files}
+        return {k: data[k] for k in data.files if k not in JSON_KEYS}
+
+
+def content_digest(blob: bytes) -> str:
+    """SHA-256 (hex) over every member but ``timings_json``: equal for two runs whose only difference is the
+    wall clock. Hashes names and uncompressed bytes in sorted name order, so neither the compressor nor the
+    member order matters."""
+    try:
+        zf = zipfile.ZipFile(io.BytesIO(blob))
+    except zipfile.BadZipFile as exc:
+        raise UnsupportedFormatError(f"not a hoi-refine result file: {exc}") from exc
+    digest = hashlib.sha256()
+    with zf:
+        for name in sorted(zf.namelist()):
+            if name == f"{TIMINGS_KEY}.npy":
+                continue
+            payload = zf.read(name)
+            # Lengths frame each field, so no two different member lists hash the same byte stream.
+            digest.update(f"{len(name)}:{name}:{len(payload)}:".encode())
+            digest.update(payload)
+    return digest.hexdigest()
 
 
 def read_contacts(blob: bytes, start: int | None = None, end: int | None = None) -> list[dict[str, Any]]:

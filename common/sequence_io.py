@@ -24,6 +24,7 @@ from typing import Any, cast
 import numpy as np
 
 from common.errors import FieldProblem, SequenceValidationError, UnsupportedFormatError
+from common.npz_writer import deterministic_npz_bytes
 from common.sequence import (
     PRIMITIVE_SIZE_LEN,
     HandTrack,
@@ -66,7 +67,7 @@ def load_mesh_file(path: Path, field: str = "object.mesh_file") -> tuple[np.ndar
 
 
 def sequence_to_npz_bytes(seq: Sequence) -> bytes:
-    """Serialise to the native NPZ format (compressed)."""
+    """Serialise to the native NPZ format (compressed, deterministic: ``common.npz_writer``)."""
     arrays: dict[str, Any] = {
         "format": np.array(FORMAT_NAME),
         "format_version": np.array(FORMAT_VERSION),
@@ -105,9 +106,9 @@ def sequence_to_npz_bytes(seq: Sequence) -> bytes:
             arrays[f"{s}_mano_betas"] = m.betas
             arrays[f"{s}_mano_pose_format"] = np.array(m.pose_format)
             arrays[f"{s}_mano_flat_hand_mean"] = np.array(bool(m.flat_hand_mean))
-    buf = io.BytesIO()
-    np.savez_compressed(buf, **arrays)
-    return buf.getvalue()
+    # Fixed zip timestamps and member order: the bytes are embedded in refinement results (``sequence_npz``),
+    # which must be identical between runs.
+    return deterministic_npz_bytes(arrays)
 
 
 def _npz_get(data: Any, key: str, required: bool = True) -> Any:

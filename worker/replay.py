@@ -3,7 +3,9 @@
 ``raw_replay(seq)`` retargets every hand, builds the scene, simulates the object from its frame-0 pose and
 returns trajectories, contacts, metrics and timings; ``replay_result_bytes`` writes it in the
 ``common.result_format`` layout (summary: ``metrics.raw``, config, versions, timings, IK residual, hand model),
-plus ``S_mano_*`` parameters of the driven pose for hands whose reference came from MANO.
+plus ``S_mano_*`` parameters of the driven pose for hands whose reference came from MANO. The timings are all
+wall clock (``*_s``, ``steps_per_second``): the file stores them in ``timings_json``; the deterministic step
+count is ``simulated_steps``.
 """
 
 from __future__ import annotations
@@ -162,6 +164,6 @@ def replay_arrays(result: ReplayResult) -> dict[str, np.ndarray]:
     return arrays
 
 
-def replay_result_bytes(result: ReplayResult) -> bytes:
-    """Serialise a replay with ``common.result_format.write_result_npz``."""
-    return write_result_npz(replay_arrays(result), replay_summary(result))
+def replay_result_bytes(result: ReplayResult, wall_clock: bool = True) -> bytes:
+    """Serialise a replay with ``common.result_format.write_result_npz`` (``wall_clock=False``: no timings)."""
+    return write_result_npz(replay_arrays(result), replay_summary(result), wall_clock=wall_clock)

@@ -7,7 +7,8 @@ the optimised offsets, ``S_q_target``/``S_wrist_pos``/``S_wrist_quat`` the per-f
 padded); ``sequence_npz`` (uint8) the input sequence in the native NPZ format, so ``verify`` needs nothing
 else. Summary JSON: kind, sequence, fps, frames, metrics.raw / metrics.refined, options, config (simulation
 settings, keyframe interval, CMA-ES settings, loss weights), seed, versions, windows (count, skipped, per
-window loss), timings (wall-clock: excluded from determinism comparisons).
+window loss), timings (the deterministic counters; the wall-clock figures are stored in the ``timings_json``
+member, see ``common.result_format``, and ``read_summary`` merges them back).
 """
 
 from __future__ import annotations

@@ -2,8 +2,9 @@
 
 Raw replay (zero offsets) -> sliding-window CMA-ES -> from-scratch replay of the final controls from frame 0.
 The result is that replay, never a stitching of window rollouts. Deterministic: the same sequence, options
-and seed give the same arrays and summary (apart from ``summary["timings"]``, which holds wall-clock
-measurements and the thread count), whatever the number of threads.
+and seed give the same arrays and summary whatever the number of threads, apart from the wall-clock entries of
+``summary["timings"]`` (seconds, rates, ``sim_share`` and the thread count; ``common.result_format.is_wall_clock``).
+The result file keeps those in a separate member, so ``to_npz_bytes(wall_clock=False)`` gives identical bytes.
 """
 
 from __future__ import annotations
@@ -53,10 +54,11 @@ class RefineOutcome:
     summary: dict[str, Any]
     keyframes: dict[str, FloatArray] = field(default_factory=dict)
 
-    def to_npz_bytes(self) -> bytes:
+    def to_npz_bytes(self, wall_clock: bool = True) -> bytes:
+        """The result file; ``wall_clock=False`` leaves out the run-dependent timings (identical bytes)."""
         from common.result_format import write_result_npz
 
-        return write_result_npz(self.arrays, self.summary)
+        return write_result_npz(self.arrays, self.summary, wall_clock=wall_clock)
 
 
 def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyframes: dict[str, FloatArray],
@@ -155,6 +157,8 @@ def refine_sequence(
     arrays = build_arrays(prep, keyframes, final, raw, m_raw, m_ref, logs)
     summary = build_summary(
         prep, settings, weights, logs, scalar_metrics(m_raw), scalar_metrics(m_ref),
+        # Counters (steps, evaluations, rollouts) are deterministic; seconds (*_s), rates, sim_share and the
+        # thread count are wall clock and go to the result's timings_json (common.result_format.is_wall_clock).
         timings={
             "wall_s": wall,
             "sim_s": stats.sim_seconds,
