@@ -25,11 +25,21 @@ def register(subparsers: Any) -> None:
     p.add_argument("--threads", type=int, default=1, help="simulation threads (default 1)")
     add_job_option_arguments(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--no-wall-clock",
+        action="store_true",
+        help="leave the wall-clock timings (seconds, rates, thread count) out of the result file, for "
+        "reproducibility checks: two runs with the same input, options and seed then give identical files "
+        "(the step and evaluation counters stay)",
+    )
     p.set_defaults(func=_refine)
 
     v = subparsers.add_parser(
         "verify",
         help="re-simulate a result's stored controls and fail if the object trajectory differs",
+        description="Re-simulates the stored keyframes from frame 0 and compares the object trajectory; also "
+        "prints the result's content sha256 (every member but the wall-clock timings), which two runs with the "
+        "same input, options and seed share.",
     )
     v.add_argument("result", type=Path, help="result file written by `hoi-refine refine`")
     v.add_argument("--sequence", type=Path, default=None, help="sequence file (default: the one embedded)")
@@ -50,7 +60,7 @@ def _refine(args: argparse.Namespace) -> int:
     seq = _load(args.sequence)
     outcome = refine_sequence(seq, options, threads=args.threads, progress=None if args.quiet else _ProgressBar())
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_bytes(outcome.to_npz_bytes())
+    args.out.write_bytes(outcome.to_npz_bytes(wall_clock=not args.no_wall_clock))
     if not args.quiet:
         print(file=sys.stderr)
     print(format_metrics_table(outcome.summary))
@@ -59,12 +69,16 @@ def _refine(args: argparse.Namespace) -> int:
 
 
 def _verify(args: argparse.Namespace) -> int:
+    from common.result_format import content_digest
     from worker.refine.result import verify_result
 
     seq = _load(args.sequence) if args.sequence else None
-    report = verify_result(args.result.read_bytes(), seq)
+    blob = args.result.read_bytes()
+    report = verify_result(blob, seq)
     print(f"verify: OK - object trajectory reproduced over {report['frames']} frames "
           f"(max position difference {report['max_pos_diff_m']:.3g} m)")
+    # Equal for two runs with the same input, options and seed even when their wall-clock timings differ.
+    print(f"content sha256 {content_digest(blob)} (all but the wall-clock timings)")
     return 0
 
 

@@ -1,9 +1,11 @@
 """The refinement end to end on a synthetic push (tests/integration/test_refine_synthetic.py): parameter
-recovery, determinism, verify, loss ablation, keyframe interval at 60 fps, and the CLI."""
+recovery, determinism (identical result bytes without the wall clock), verify, loss ablation, keyframe interval
+at 60 fps, and the CLI."""
 
 from __future__ import annotations
 
 import io
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -13,7 +15,7 @@ import pytest
 from common.cli import main as cli_main
 from common.errors import ResultMismatchError
 from common.job_options import JobOptions
-from common.result_format import read_arrays, read_summary
+from common.result_format import content_digest, read_arrays, read_summary, write_result_npz
 from common.sequence_io import save_sequence
 from tests.integration.test_refine_synthetic import push_sequence, recovery_case
 from worker.refine.evaluator import ParallelEvaluator
@@ -45,12 +47,10 @@ def test_parameter_recovery_from_a_shifted_hand(recovered: tuple[Any, RefineOutc
     assert np.median(forward) > 0.5
 
 
-def _comparable(blob: bytes) -> tuple[dict[str, Any], dict[str, bytes]]:
-    summary = read_summary(blob)
-    summary.pop("timings")  # wall-clock seconds and the thread count: the only run-dependent part
-    arrays = {k: v.dtype.str.encode() + str(v.shape).encode() + v.tobytes() for k, v in read_arrays(blob).items()
-              if k != "summary_json"}
-    return summary, arrays
+def _members(blob: bytes) -> dict[str, bytes]:
+    """Zip member name -> uncompressed bytes."""
+    with zipfile.ZipFile(io.BytesIO(blob)) as zf:
+        return {name: zf.read(name) for name in zf.namelist()}
 
 
 @pytest.mark.slow
@@ -59,11 +59,16 @@ def test_same_input_options_seed_give_identical_results_whatever_the_threads(
 ) -> None:
     seq, first = recovered
     second = refine_sequence(seq, RECOVERY, threads=1)
-    s1, a1 = _comparable(first.to_npz_bytes())
-    s2, a2 = _comparable(second.to_npz_bytes())
-    assert s1 == s2
-    assert a1.keys() == a2.keys()
-    assert [k for k in a1 if a1[k] != a2[k]] == []
+    # Without the wall clock the files are identical, byte for byte (issue #3).
+    assert first.to_npz_bytes(wall_clock=False) == second.to_npz_bytes(wall_clock=False)
+    # With it, only the timings_json member differs, and the content digest ignores it.
+    a, b = first.to_npz_bytes(), second.to_npz_bytes()
+    assert content_digest(a) == content_digest(b)
+    ma, mb = _members(a), _members(b)
+    assert ma.keys() == mb.keys()
+    assert [k for k in ma if ma[k] != mb[k]] == ["timings_json.npy"]
+    ta, tb = read_summary(a)["timings"], read_summary(b)["timings"]
+    assert (ta["threads"], tb["threads"]) == (2, 1) and ta["evaluations"] == tb["evaluations"] > 0
 
 
 @pytest.mark.slow
@@ -105,7 +110,9 @@ def test_zero_weight_changes_the_optimised_objective() -> None:
     np.testing.assert_allclose(full - ablated, only_joints, rtol=1e-9)
 
 
-def test_sixty_fps_uses_keyframes_every_ten_frames_and_cli_round_trip(tmp_path: Path) -> None:
+def test_sixty_fps_uses_keyframes_every_ten_frames_and_cli_round_trip(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     seq = push_sequence(frames=31, fps=60.0)
     prep = prepare(seq, JobOptions())
     assert prep.interval == 10 and prep.spaces["right"].n_keyframes == 4
@@ -119,13 +126,21 @@ def test_sixty_fps_uses_keyframes_every_ten_frames_and_cli_round_trip(tmp_path: 
     assert summary["config"]["keyframe_interval"] == 10
     assert summary["config"]["loss_weights"]["hand_velocity"] == 0.0
     assert summary["config"]["loss_weights"]["object_pose"] == 2.0
+    assert summary["timings"]["wall_s"] > 0 and summary["timings"]["evaluations"] > 0
+    capsys.readouterr()
     assert cli_main(["verify", str(out)]) == 0
+    assert f"content sha256 {content_digest(out.read_bytes())}" in capsys.readouterr().out
+    # --no-wall-clock: two runs write the same file, byte for byte, with the same content as the timed one.
+    again, twice = tmp_path / "again.npz", tmp_path / "twice.npz"
+    assert cli_main([*argv[:3], str(again), *argv[4:], "--no-wall-clock"]) == 0
+    assert cli_main([*argv[:3], str(twice), *argv[4:], "--no-wall-clock"]) == 0
+    assert again.read_bytes() == twice.read_bytes()
+    assert content_digest(again.read_bytes()) == content_digest(out.read_bytes())
+    assert "wall_s" not in read_summary(again.read_bytes())["timings"]
     arrays = read_arrays(out.read_bytes())
     arrays["object_pose_sim"][-1, 2] += 0.01
-    buf = io.BytesIO()
-    np.savez(buf, **arrays)
     bad = tmp_path / "tampered.npz"
-    bad.write_bytes(buf.getvalue())
+    bad.write_bytes(write_result_npz(arrays, summary))
     assert cli_main(["verify", str(bad)]) == 2
     assert cli_main(["refine", str(src), "--out", str(out), "--weights", "nonsense=1"]) == 2
 
