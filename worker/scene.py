@@ -9,8 +9,8 @@ so callers never look names up in loops:
 * object: ``object_body_id``, ``object_qpos_adr`` (7 values from there: pos, quat wxyz), ``object_dof_adr``
   (6: linear world, angular *body* frame — MuJoCo's free-joint convention), ``object_geom_ids``,
   ``object_sensor_adr`` (13 values from there: framepos 3, framequat 4, framelinvel 3, frameangvel 3, world);
-* ``substeps_per_frame``; ``object_init_pose`` (7,) the frame-0 pose used (snapped onto the table when within
-  ``config.snap_to_table_m``).
+* ``substeps_per_frame``; ``object_init_pose`` (7,) the frame-0 pose used and ``table`` the plane under it
+  (``worker.table_fit``).
 
 Collisions: hand geoms collide with object geoms only, object geoms with hand and table (contype/conaffinity
 bits in ``sim_config``). Sensors make ``mujoco.rollout`` recordings self-sufficient.
@@ -26,7 +26,6 @@ import numpy.typing as npt
 
 from common.sequence import Sequence
 from worker.hand_mjcf import (
-    fmt,
     hand_actuator_xml,
     hand_asset_xml,
     hand_body_names,
@@ -34,10 +33,12 @@ from worker.hand_mjcf import (
     hand_sensor_xml,
     hand_worldbody_xml,
 )
-from worker.hand_model import HINGE_NAMES, FloatArray, quat_to_matrix
+from worker.hand_model import HINGE_NAMES, FloatArray
 from worker.object_model import OBJECT_BODY, OBJECT_JOINT, object_mjcf
 from worker.retarget import HandReference
-from worker.sim_config import OBJECT_BIT, TABLE_BIT, SimConfig
+from worker.sim_config import SimConfig
+from worker.support_plane import SupportPlane
+from worker.table_fit import fit_table, option_xml, table_geom_xml
 
 IntArray = npt.NDArray[np.int64]
 
@@ -78,6 +79,7 @@ class Scene:
     object_sensor_adr: int
     table_geom_id: int
     object_init_pose: FloatArray
+    table: SupportPlane
     object_collision: str
     xml: str
     body_side: dict[int, str] = field(default_factory=dict)
@@ -91,14 +93,8 @@ class Scene:
 
 
 def object_start_pose(seq: Sequence, config: SimConfig) -> FloatArray:
-    """Frame-0 world pose of the object; placed exactly on the table (z = 0) when its lowest point is within
-    ``config.snap_to_table_m`` of it or below it (vision poses float or sink by a few millimetres)."""
-    pose = seq.object_pose_world()[0].copy()
-    verts = seq.object.surface_vertices() @ quat_to_matrix(pose[3:]).T + pose[:3]
-    bottom = float(verts[:, 2].min())
-    if bottom < config.snap_to_table_m:
-        pose[2] -= bottom
-    return pose
+    """Frame-0 world pose of the object (``worker.table_fit.fit_table``)."""
+    return fit_table(seq, config)[0]
 
 
 def _ids(model: mujoco.MjModel, kind: mujoco.mjtObj, names: list[str]) -> IntArray:
@@ -109,9 +105,15 @@ def _ids(model: mujoco.MjModel, kind: mujoco.mjtObj, names: list[str]) -> IntArr
     return out
 
 
-def scene_xml(seq: Sequence, references: list[HandReference], config: SimConfig) -> tuple[str, str, int]:
-    """The scene's MJCF, the object's collision method and its number of geoms."""
-    pose0 = object_start_pose(seq, config)
+def scene_xml(
+    seq: Sequence,
+    references: list[HandReference],
+    config: SimConfig,
+    start: tuple[FloatArray, SupportPlane] | None = None,
+) -> tuple[str, str, int]:
+    """The scene's MJCF, the object's collision method and its number of geoms. ``start``: the object's
+    frame-0 pose and the table under it (``fit_table``'s, computed when not given)."""
+    pose0, table = start if start is not None else fit_table(seq, config)
     obj = object_mjcf(seq.object, config, pose0[:3], pose0[3:])
     hands_body = "\n".join(hand_worldbody_xml(r.geometry, config, r.wrist_pos[0], r.wrist_quat[0]) for r in references)
     sensors = [
@@ -122,17 +124,14 @@ def scene_xml(seq: Sequence, references: list[HandReference], config: SimConfig)
     ] + [hand_sensor_xml(r.side) for r in references]
     xml = f"""<mujoco model="hoi-refine-scene">
   <compiler angle="radian" autolimits="true"/>
-  <option timestep="{config.timestep:.12g}" integrator="{config.integrator}" solver="{config.solver}"
-          iterations="{config.iterations}" noslip_iterations="{config.noslip_iterations}" cone="{config.cone}"/>
+  {option_xml(config)}
   <size memory="8M"/>
   <asset>
 {obj.assets}
 {chr(10).join(hand_asset_xml(r.geometry) for r in references)}
   </asset>
   <worldbody>
-    <geom name="table" type="plane" size="0 0 1" contype="{TABLE_BIT}" conaffinity="{OBJECT_BIT}" condim="3"
-          friction="{config.table_friction:g} 0.005 0.0001" solref="{fmt(config.contact_solref)}"
-          solimp="{fmt(config.contact_solimp)}"/>
+    {table_geom_xml(config, table)}
 {hands_body}
 {obj.body}
   </worldbody>
@@ -155,7 +154,8 @@ def build_scene(seq: Sequence, references: list[HandReference], config: SimConfi
     config = config or SimConfig()
     if not references:
         raise ValueError("references must hold at least one HandReference")
-    xml, collision, ngeom = scene_xml(seq, references, config)
+    pose0, table = fit_table(seq, config)
+    xml, collision, ngeom = scene_xml(seq, references, config, (pose0, table))
     model = mujoco.MjModel.from_xml_string(xml)
     hands: dict[str, HandHandles] = {}
     body_side: dict[int, str] = {}
@@ -198,7 +198,8 @@ def build_scene(seq: Sequence, references: list[HandReference], config: SimConfi
         object_geom_ids=_ids(model, mujoco.mjtObj.mjOBJ_GEOM, [f"object_{i}" for i in range(ngeom)]),
         object_sensor_adr=int(model.sensor_adr[obj_sensor]),
         table_geom_id=int(_ids(model, mujoco.mjtObj.mjOBJ_GEOM, ["table"])[0]),
-        object_init_pose=object_start_pose(seq, config),
+        object_init_pose=pose0,
+        table=table,
         object_collision=collision,
         xml=xml,
         body_side=body_side,

@@ -10,7 +10,8 @@ import pytest
 from common.dexycb import load_dexycb_npz
 from worker.hand_model import quat_to_matrix
 from worker.retarget import retarget_hand
-from worker.scene import SimConfig, object_start_pose
+from worker.scene import SimConfig
+from worker.table_fit import fit_table
 
 # Unflagged sequences (frame-0 object on the table), one per side, different objects.
 RIGHT = "20200709-subject-01__20200709_141754.npz"  # 002_master_chef_can
@@ -32,9 +33,10 @@ def test_table_is_at_z0_under_the_frame0_object(dexycb_dev_files: list[Path], na
     assert abs(verts[:, 2].min()) < 0.01  # object bottom within 1 cm of the table at frame 0
     kp = seq.keypoints_world(seq.hands[0])[seq.hands[0].valid]
     assert np.median(kp[:, 0, 2]) > 0.03  # the wrist moves above the table (fingertips may dip past its edge)
-    start = object_start_pose(seq, SimConfig())
-    bottom = (seq.object.surface_vertices() @ quat_to_matrix(start[3:]).T + start[:3])[:, 2].min()
-    assert bottom == pytest.approx(0.0, abs=1e-9)  # the simulation starts it exactly on the table
+    start, table = fit_table(seq, SimConfig())
+    heights = (seq.object.surface_vertices() @ quat_to_matrix(start[3:]).T + start[:3] - table.point) @ table.normal
+    assert heights.min() == pytest.approx(0.0, abs=1e-9)  # the simulation starts it exactly on the table
+    assert table.tilt_deg < 10.0
 
 
 @pytest.mark.parametrize("name", [RIGHT, LEFT])

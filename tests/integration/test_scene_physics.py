@@ -12,10 +12,14 @@ from worker.retarget import retarget_sequence
 from worker.scene import SimConfig, build_scene
 from worker.sim_config import HAND_BIT, OBJECT_BIT, TABLE_BIT
 from worker.simulation import HandTargets, initial_state, rollout, substep_controls
+from worker.table_fit import fit_table
 
 
-def _box_sequence(frames: int = 6, mass: float = 0.5, sides: tuple[str, ...] = ("right",)) -> Sequence:
-    """A 6 cm box resting on the table; hands hovering 40 cm above it, slowly moving."""
+def _box_sequence(
+    frames: int = 6, mass: float = 0.5, sides: tuple[str, ...] = ("right",), tilt_deg: float = 0.0, z: float = 0.03
+) -> Sequence:
+    """A 6 cm box resting on the table (recorded ``tilt_deg`` about x, centre at height ``z``); hands hovering
+    40 cm above it, slowly moving."""
     hands = []
     for i, side in enumerate(sides):
         pos = np.column_stack([np.linspace(0.0, 0.02, frames), np.full(frames, 0.1 * (i - 0.5)), np.full(frames, 0.4)])
@@ -23,7 +27,8 @@ def _box_sequence(frames: int = 6, mass: float = 0.5, sides: tuple[str, ...] = (
         q = np.tile(np.linspace(0, 0.3, 45), (frames, 1))
         kp = forward_keypoints(default_geometry(side), pos, quat, q)  # type: ignore[arg-type]
         hands.append(HandTrack(side=side, valid=np.ones(frames, dtype=bool), keypoints=kp))  # type: ignore[arg-type]
-    pose = np.tile([0.0, 0.0, 0.03, 1.0, 0.0, 0.0, 0.0], (frames, 1))
+    half = np.radians(tilt_deg) / 2
+    pose = np.tile([0.0, 0.0, z, np.cos(half), np.sin(half), 0.0, 0.0], (frames, 1))
     return Sequence(
         name="box",
         fps=30.0,
@@ -59,6 +64,45 @@ def test_box_on_table_normal_forces_sum_to_weight() -> None:
     assert np.linalg.norm(total[:2]) < 0.02 * weight
     z = data.qpos[scene.object_qpos_adr + 2]
     assert z == pytest.approx(0.03, abs=0.002)  # resting, not sinking or bouncing
+
+
+@pytest.mark.parametrize("max_tilt", [10.0, 0.0])
+def test_a_tilted_recorded_start_rests_as_recorded_on_a_table_laid_under_it(max_tilt: float) -> None:
+    """A box recorded 4 degrees tilted and 3 mm afloat (vision error): with the support plane it stays exactly
+    where it was recorded, held by friction; with a level table (limit 0) it falls flat."""
+    seq = _box_sequence(frames=10, tilt_deg=4.0, z=0.036)
+    refs = retarget_sequence(seq)
+    scene = build_scene(seq, refs, SimConfig(table_max_tilt_deg=max_tilt))
+    data = scene.make_data()
+    targets = {r.side: HandTargets.from_reference(r) for r in refs}
+    state, _ = initial_state(scene, data, targets)
+    controls = substep_controls(scene, targets)
+    rec = rollout(scene, data, state, controls.ctrl, controls.mocap_pos, controls.mocap_quat)
+    ref_quat = seq.object_pose_world()[0, 3:]
+    angle = np.degrees(2 * np.arccos(np.clip(np.abs(rec.object_pose[:, 3:] @ ref_quat), 0, 1)))
+    drift = np.linalg.norm(rec.object_pose[:, :3] - seq.object_pose_world()[0, :3], axis=1)
+    if max_tilt > 0:
+        assert scene.table.tilt_deg == pytest.approx(4.0, abs=1e-6)
+        assert angle.max() < 0.05 and drift.max() < 2e-4
+    else:
+        assert scene.table.tilt_deg == 0.0
+        assert angle.min() > 3.5  # fallen flat onto the level table
+
+
+def test_a_lying_cylinder_gets_a_level_table_rather_than_a_tilted_strip_it_would_roll_off() -> None:
+    """Recorded lying on its side, rolled 3 degrees about its axis: the hull strip under its centre is a
+    candidate table, but the (smooth) cylinder rolls off it in simulation, so the fit keeps a level table."""
+    seq = _box_sequence(frames=3)
+    roll = np.radians(3.0) / 2
+    lying = np.array([np.cos(np.pi / 4), 0.0, np.sin(np.pi / 4), 0.0])  # axis along x
+    quat = np.array([np.cos(roll), np.sin(roll), 0.0, 0.0])  # then rolled about x
+    w1, v1, w2, v2 = quat[0], quat[1:], lying[0], lying[1:]
+    q = np.r_[w1 * w2 - v1 @ v2, w1 * v2 + w2 * v1 + np.cross(v1, v2)]
+    seq.object = ObjectSpec(name="can", mass_kg=0.3, primitive="cylinder", size=np.array([0.03, 0.05]))
+    seq.object_pose = np.tile(np.r_[0.0, 0.0, 0.03, q], (3, 1))
+    pose, table = fit_table(seq.validate(), SimConfig())
+    assert table.tilt_deg == 0.0 and table.point[2] == 0.0
+    assert pose[2] == pytest.approx(0.03, abs=1e-3)  # snapped onto the level table
 
 
 def test_collision_bits_pair_hand_object_and_object_table_only() -> None:

@@ -1,0 +1,74 @@
+"""The table under the recorded frame-0 object (worker.support_plane)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from worker.support_plane import SupportPlane, support_candidates
+
+
+def _box_vertices(half: tuple[float, float, float], rounded: bool = False) -> np.ndarray:
+    hx, hy, hz = half
+    corners = np.array([[sx * hx, sy * hy, sz * hz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
+    if not rounded:
+        return corners
+    # Bevel every corner with points along a small sphere: the hull then has tiny facets of every orientation,
+    # among them some exactly level that the box could never rest on.
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(400, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    r = 0.004
+    inner = corners * (1 - r / np.array(half))
+    pts = [c + r * d[np.all(np.sign(d) == np.sign(c), axis=1)] for c in inner]
+    return np.concatenate(pts)
+
+
+def _posed(verts: np.ndarray, rotvec: tuple[float, float, float], pos: tuple[float, float, float]) -> np.ndarray:
+    return np.asarray(Rotation.from_rotvec(rotvec).apply(verts) + np.array(pos))
+
+
+@pytest.mark.parametrize("rounded", [False, True])
+def test_tilted_box_rests_on_its_bottom_face(rounded: bool) -> None:
+    tilt = np.radians(4.0)
+    verts = _posed(_box_vertices((0.05, 0.03, 0.02), rounded), (tilt, 0.0, 0.0), (0.1, 0.2, 0.025))
+    planes = support_candidates(verts, max_tilt_deg=10.0)
+    assert planes  # the bottom face (and, rounded, maybe bevel facets that still hold the centre)
+    plane = max(planes, key=lambda p: p.tilt_deg) if rounded else planes[0]
+    assert plane.tilt_deg == pytest.approx(4.0, abs=0.05)
+    expected_up = Rotation.from_rotvec((tilt, 0.0, 0.0)).apply([0.0, 0.0, 1.0])
+    np.testing.assert_allclose(plane.normal, expected_up, atol=3e-3)  # within 0.2 deg
+    # Every vertex is on or above the plane, and the plane touches the box.
+    heights = (verts - plane.point) @ plane.normal
+    assert heights.min() == pytest.approx(0.0, abs=1e-9)
+
+
+def test_beyond_the_tilt_limit_there_is_no_support() -> None:
+    verts = _posed(_box_vertices((0.05, 0.03, 0.02)), (np.radians(15.0), 0.0, 0.0), (0.0, 0.0, 0.03))
+    assert support_candidates(verts, max_tilt_deg=10.0) == []
+    (plane,) = support_candidates(verts, max_tilt_deg=20.0)
+    assert plane.tilt_deg == pytest.approx(15.0, abs=0.05)
+
+
+def test_lying_cylinder_offers_the_strip_under_its_centre() -> None:
+    ang = np.linspace(0, 2 * np.pi, 48, endpoint=False) + 0.03  # no strip exactly level
+    ring = np.column_stack([np.cos(ang), np.sin(ang)]) * 0.01
+    verts = np.concatenate([np.column_stack([np.full(48, x), ring]) for x in (-0.07, 0.07)])  # axis along x
+    verts[:, 2] += 0.01
+    (plane,) = support_candidates(verts, max_tilt_deg=10.0)  # only one strip holds the centre
+    assert plane.tilt_deg < 360 / 48 / 2 + 1e-6
+
+
+def test_plane_quaternion_maps_z_to_the_normal() -> None:
+    n = np.array([0.1, -0.05, 1.0])
+    plane = SupportPlane(point=np.zeros(3), normal=n / np.linalg.norm(n), tilt_deg=0.0)
+    q = plane.quat()
+    rot = Rotation.from_quat(np.r_[q[1:], q[0]])
+    np.testing.assert_allclose(rot.apply([0.0, 0.0, 1.0]), plane.normal, atol=1e-12)
+    np.testing.assert_allclose(SupportPlane.level(0.2).quat(), [1.0, 0.0, 0.0, 0.0])
+
+
+def test_bad_vertices_are_refused_by_name() -> None:
+    with pytest.raises(ValueError, match="vertices_world"):
+        support_candidates(np.zeros((3, 3)), 10.0)
