@@ -128,7 +128,7 @@ def format_metrics_table(summary: dict[str, Any]) -> str:
     lines.append(
         f"wall {t.get('wall_s', 0):.1f}s, {t.get('sim_share', 0) * 100:.0f}% in simulation, "
         f"{t.get('steps', 0)} steps, {t.get('evaluations', 0)} candidate evaluations, "
-        f"windows {w.get('count', 0)} ({w.get('skipped', 0)} skipped)"
+        f"windows {w.get('count', 0)} ({w.get('skipped', 0)} skipped, {w.get('escalated', 0)} escalated)"
     )
     return "\n".join(lines)
 

@@ -125,8 +125,9 @@ def build_summary(
             "count": len(logs),
             "skipped": int(sum(w.skipped for w in logs)),
             "optimised": int(sum(not w.skipped for w in logs)),
+            "escalated": int(sum(w.escalated for w in logs)),
             "per_window": [
-                {"keyframe": w.index, "skipped": w.skipped, "touched": w.touched,
+                {"keyframe": w.index, "skipped": w.skipped, "touched": w.touched, "escalated": w.escalated,
                  "initial_loss": w.initial_loss, "best_loss": w.best_loss, "evaluations": w.evaluations}
                 for w in logs
             ],

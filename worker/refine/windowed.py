@@ -12,6 +12,11 @@ terms).
 A window is skipped (keyframe left at its current value) when the hand does not touch the object on the
 window's frames and the current loss is already below ``skip_loss``: nothing there to fix.
 
+A window whose best loss is still above ``escalate_loss`` after the CMA-ES run gets a second, larger one
+(``escalate_factor`` x the population, a wider initial step, its own random stream) started from the best
+found: the greedy sliding window cannot undo a committed keyframe, so a grasp lost here is lost for good, and
+the budget is better spent on the few windows where the object is slipping than on every window alike.
+
 This module knows nothing of MuJoCo: it drives any ``WindowProblem``.
 """
 
@@ -19,7 +24,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 import cma
@@ -60,6 +65,9 @@ class CmaSettings:
     bound: float = 3.0
     skip_loss: float = 2.0
     seed: int = 0
+    #: A second, larger CMA-ES run for windows whose best loss stays above this (inf: never).
+    escalate_loss: float = float("inf")
+    escalate_factor: int = 2
 
 
 @dataclass
@@ -71,6 +79,7 @@ class WindowLog:
     best_loss: float
     evaluations: int
     history: list[float] = field(default_factory=list)  # best loss per generation
+    escalated: bool = False
 
 
 @dataclass
@@ -125,7 +134,13 @@ def optimise_windows(
         if not touched and base_total < settings.skip_loss:
             log.skipped = True
         else:
-            evaluations += _optimise_one(problem, settings, j, state, kf, base, log, should_stop, report)
+            best = _optimise_one(problem, settings, j, state, kf, base, log, should_stop, report)
+            evaluations += log.evaluations - 1
+            if log.best_loss > settings.escalate_loss:
+                log.escalated = True
+                before = log.evaluations
+                _optimise_one(problem, _escalated(settings), j, state, kf, best, log, should_stop, report, attempt=1)
+                evaluations += log.evaluations - before
         logs.append(log)
         report(j, log.best_loss, finished=True)
         state = problem.commit(j, state, kf)
@@ -142,13 +157,15 @@ def _optimise_one(
     log: WindowLog,
     should_stop: Callable[[], bool] | None,
     report: Callable[..., None],
-) -> int:
-    """CMA-ES on keyframe j of every hand; writes the best keyframe into ``kf``; returns evaluations."""
+    attempt: int = 0,
+) -> dict[str, float]:
+    """CMA-ES on keyframe j of every hand, started from ``kf`` (whose losses are ``base``); writes the best
+    keyframe into ``kf`` and adds to ``log``; returns each hand's best loss."""
     strategies: dict[str, Any] = {}
     for i, side in enumerate(problem.sides):
         opts = {
-            # Seed per window and hand so windows do not share random streams; never 0 (= time-seeded in cma).
-            "seed": 1 + (settings.seed * 1_000_003 + j * 7919 + i * 104_729) % (2**31 - 2),
+            # Seed per window, hand and attempt so none share random streams; never 0 (= time-seeded in cma).
+            "seed": 1 + (settings.seed * 1_000_003 + j * 7919 + i * 104_729 + attempt * 15_485_863) % (2**31 - 2),
             "popsize": settings.popsize,
             "bounds": [-settings.bound, settings.bound],
             "verbose": -9,
@@ -182,7 +199,12 @@ def _optimise_one(
         kf[side][j:] = best[side][1]
     log.best_loss = float(sum(b[0] for b in best.values()))
     log.evaluations += evals
-    return evals
+    return {s: b[0] for s, b in best.items()}
+
+
+def _escalated(settings: CmaSettings) -> CmaSettings:
+    """The settings of a hard window's second run: a larger population and a wider first step."""
+    return replace(settings, popsize=settings.popsize * settings.escalate_factor, sigma0=settings.sigma0 * 1.5)
 
 
 def _check_stop(should_stop: Callable[[], bool] | None) -> None:
