@@ -136,6 +136,7 @@ def replay_summary(result: ReplayResult) -> dict[str, Any]:
         "hand_length_m": {r.side: r.geometry.hand_length for r in result.references},
         "hand_model": {r.side: "MANO" if r.from_mano else "built-in" for r in result.references},
         "object_collision": result.scene.object_collision,
+        "table": result.scene.table.to_dict(),
         "num_contacts": len(result.contacts["contact_frame"]),
     }
 

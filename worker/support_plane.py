@@ -16,6 +16,7 @@ picks one by simulation (or a level table when none keeps the object still).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -40,6 +41,9 @@ class SupportPlane:
             return np.array([1.0, 0.0, 0.0, 0.0])
         half = 0.5 * np.arctan2(s, c)
         return np.r_[np.cos(half), np.sin(half) * axis / s]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"point": self.point.tolist(), "normal": self.normal.tolist(), "tilt_deg": self.tilt_deg}
 
     @classmethod
     def level(cls, height: float = 0.0) -> SupportPlane:

@@ -6,9 +6,10 @@ the optimised offsets, ``S_q_target``/``S_wrist_pos``/``S_wrist_quat`` the per-f
 ``metrics_{raw,refined}_*`` per-frame errors; ``window_loss_history`` (W, G) best loss per generation (NaN
 padded); ``sequence_npz`` (uint8) the input sequence in the native NPZ format, so ``verify`` needs nothing
 else. Summary JSON: kind, sequence, fps, frames, metrics.raw / metrics.refined, options, config (simulation
-settings, keyframe interval, CMA-ES settings, loss weights), seed, versions, windows (count, skipped, per
-window loss), timings (the deterministic counters; the wall-clock figures are stored in the ``timings_json``
-member, see ``common.result_format``, and ``read_summary`` merges them back).
+settings, keyframe interval, CMA-ES settings, loss weights), seed, versions, table (the plane under the frame-0
+object: point, normal, tilt_deg), windows (count, skipped, escalated, per window loss), timings (the
+deterministic counters; the wall-clock figures are stored in the ``timings_json`` member, see
+``common.result_format``, and ``read_summary`` merges them back).
 """
 
 from __future__ import annotations
@@ -132,6 +133,7 @@ def build_summary(
                 for w in logs
             ],
         },
+        "table": prep.scene.table.to_dict(),
         "num_contacts": int(num_contacts),
         "timings": timings,
     }
