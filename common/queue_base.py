@@ -21,6 +21,7 @@ from common import api_keys
 from common.database import IMMEDIATE
 from common.db_models import ACTIVE_STATES, ApiKey, Job, JobEvent, JobInput, JobResult, utcnow
 from common.errors import (
+    AuthenticationError,
     ConflictError,
     FieldProblem,
     InvalidRequestError,
@@ -37,6 +38,8 @@ events = cast(sa.Table, JobEvent.__table__)
 keys = cast(sa.Table, ApiKey.__table__)
 
 MAX_PAGE_SIZE = 500
+#: Shortest key prefix ``revoke_api_key`` accepts: ``hoi_`` and two characters of the random part.
+MIN_REVOKE_PREFIX = len(api_keys.KEY_PREFIX) + 2
 
 
 class QueueBase:
@@ -160,17 +163,60 @@ class QueueBase:
         return key_id, plaintext
 
     def authenticate(self, plaintext: str) -> str:
-        """The key id of a valid, unrevoked key; ``AuthenticationError`` otherwise."""
+        """The key id of a valid, unrevoked key; ``AuthenticationError`` otherwise ("API key revoked" for one
+        that was revoked, so its holder learns why rather than suspecting a typo)."""
         with self._read() as conn:
-            key_id = conn.execute(
-                sa.select(keys.c.id).where(keys.c.key_hash == api_keys.hash_key(plaintext), keys.c.revoked_at.is_(None))
-            ).scalar()
-        return api_keys.require_key(key_id)
+            row = conn.execute(
+                sa.select(keys.c.id, keys.c.revoked_at).where(keys.c.key_hash == api_keys.hash_key(plaintext))
+            ).first()
+        if row is not None and row.revoked_at is not None:
+            raise AuthenticationError("API key revoked")
+        return api_keys.require_key(None if row is None else row.id)
 
     def list_api_keys(self) -> builtins.list[ApiKeyRecord]:
         with self._read() as conn:
             rows = conn.execute(sa.select(keys).order_by(keys.c.created_at)).all()
-        return [ApiKeyRecord(r.id, r.name, r.prefix, r.created_at, r.revoked_at) for r in rows]
+        return [_key_record(r) for r in rows]
+
+    def revoke_api_key(self, name_or_prefix: str) -> tuple[ApiKeyRecord, bool]:
+        """Revoke the one key named by ``name_or_prefix``; returns (key, newly_revoked).
+
+        It may be the key's id, its name, the start of its displayed prefix (``hoi_ab...``, at least
+        ``MIN_REVOKE_PREFIX`` characters, so a stray letter cannot pick a key), or the key itself, whole or
+        cut anywhere past the displayed prefix (what a leak report may quote).
+        Unrevoked keys are matched first, so ``revoke alice`` picks alice's live key even if an old one of
+        hers is already revoked. ``NotFoundError`` when nothing matches, ``ConflictError`` listing the
+        candidates when several live keys do. When every match is revoked already nothing changes: the latest
+        of them comes back with newly_revoked False.
+        """
+        wanted = name_or_prefix.strip().removesuffix("...")
+        if not wanted:
+            raise NotFoundError("name the key to revoke (its name, prefix or id)")
+        digest = api_keys.hash_key(wanted)
+        now = utcnow()
+        with self._write() as conn:
+            # Operators hold a handful of keys: match in Python (SQL LIKE would read the '_' of 'hoi_' as a
+            # wildcard) over every row, locked so a concurrent revoke or create cannot slip in between.
+            rows = conn.execute(self._locked(sa.select(keys).order_by(keys.c.created_at))).all()
+            matches = [
+                r for r in rows
+                if r.id == wanted or r.name == wanted or r.key_hash == digest
+                or (len(wanted) >= MIN_REVOKE_PREFIX and (r.prefix.startswith(wanted) or wanted.startswith(r.prefix)))
+            ]  # fmt: skip
+            if not matches:
+                raise NotFoundError(f"no API key has the name, prefix or id {wanted!r} (see 'hoi-refine keys list')")
+            live = [r for r in matches if r.revoked_at is None]
+            if not live:  # nothing left to revoke: report the latest revocation
+                return _key_record(max(matches, key=lambda r: r.revoked_at)), False
+            if len(live) > 1:
+                names = "; ".join(f"{r.id} {r.prefix}... {r.name!r}" for r in live)
+                raise ConflictError(
+                    f"{wanted!r} matches {len(live)} keys ({names}); name one by its id or a longer prefix"
+                )
+            (row,) = live
+            conn.execute(sa.update(keys).where(keys.c.id == row.id).values(revoked_at=now))
+            revoked = conn.execute(sa.select(keys).where(keys.c.id == row.id)).one()
+        return _key_record(revoked), True
 
     # ------------------------------------------------------------------ row helpers
     @staticmethod
@@ -204,6 +250,10 @@ class QueueBase:
             created_at=m["created_at"], queued_at=m["queued_at"], started_at=m["started_at"],
             finished_at=m["finished_at"], updated_at=m["updated_at"], summary=m["summary"],
         )  # fmt: skip
+
+
+def _key_record(row: Row[Any]) -> ApiKeyRecord:
+    return ApiKeyRecord(row.id, row.name, row.prefix, row.created_at, row.revoked_at)
 
 
 def _encode_page_token(created_at: datetime, job_id: str) -> str:

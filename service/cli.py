@@ -26,13 +26,22 @@ def register(subparsers: Any) -> None:
     serve.add_argument("--no-migrate", action="store_true", help="do not upgrade the database at start-up")
     serve.set_defaults(func=_cmd_serve)
 
-    keys = subparsers.add_parser("keys", help="manage API keys", description="Create and list API keys.")
+    keys = subparsers.add_parser("keys", help="manage API keys", description="Create, list and revoke API keys.")
     keys_sub = keys.add_subparsers(dest="keys_command", required=True, metavar="ACTION")
     create = keys_sub.add_parser("create", help="create a key and print it (shown once; only a hash is stored)")
     create.add_argument("name", help="who the key is for")
     create.set_defaults(func=_cmd_keys_create)
-    listing = keys_sub.add_parser("list", help="list keys (names, prefixes, creation times)")
+    listing = keys_sub.add_parser("list", help="list keys (names, prefixes, creation times, revocations)")
     listing.set_defaults(func=_cmd_keys_list)
+    revoke = keys_sub.add_parser(
+        "revoke",
+        help="revoke a key: every request with it gets 401 from then on",
+        description="Revoke the one key named by its name, its id, the start of its prefix as 'keys list' shows "
+        "it (at least 6 characters, e.g. hoi_ab), or the whole key. A running server may accept the key for a "
+        "few more seconds (its lookup cache). Exit status 2 when nothing or more than one key matches.",
+    )
+    revoke.add_argument("name_or_prefix", metavar="NAME_OR_PREFIX", help="the key's name, prefix, id, or the key")
+    revoke.set_defaults(func=_cmd_keys_revoke)
 
 
 def prepare_database(url: str, wait_seconds: float, migrate: bool = True) -> None:
@@ -91,6 +100,20 @@ def _cmd_keys_list(_args: argparse.Namespace) -> int:
     rows = queue.list_api_keys()
     queue.engine.dispose()
     for key in rows:
-        revoked = f" revoked {key.revoked_at:%Y-%m-%d %H:%M}" if key.revoked_at else ""
+        revoked = f"  REVOKED {key.revoked_at:%Y-%m-%d %H:%M:%S}" if key.revoked_at else ""
         print(f"{key.id}  {key.prefix}...  {key.created_at:%Y-%m-%d %H:%M:%S}  {key.name}{revoked}")
+    return 0
+
+
+def _cmd_keys_revoke(args: argparse.Namespace) -> int:
+    # No match or several matches raise a project error: ``hoi-refine`` prints it and exits 2.
+    queue = _queue()
+    try:
+        key, newly = queue.revoke_api_key(args.name_or_prefix)
+    finally:
+        queue.engine.dispose()
+    assert key.revoked_at is not None
+    when = f"{key.revoked_at:%Y-%m-%d %H:%M:%S} UTC"
+    state = "revoked" if newly else f"was already revoked (at {when})"
+    print(f"API key {key.id} ({key.prefix}..., {key.name!r}) {state}")
     return 0

@@ -18,8 +18,11 @@ from common.errors import AuthenticationError, FieldProblem, InvalidRequestError
 from common.queue import JobQueue
 from common.settings import Settings
 
-#: Seconds a successful key lookup is remembered in-process (keys are never edited, only created).
-KEY_CACHE_SECONDS = 60.0
+#: Seconds a successful key lookup is remembered in-process. ``hoi-refine keys revoke`` runs in another
+#: process and cannot clear this cache, so this bounds how long a revoked key keeps working: short enough
+#: for revocation to bite at once in practice, long enough that a client polling every couple of seconds
+#: costs about one key lookup per cache period instead of one per request.
+KEY_CACHE_SECONDS = 5.0
 
 bearer = HTTPBearer(auto_error=False, description="An API key from `hoi-refine keys create NAME`")
 
@@ -41,7 +44,7 @@ SettingsDep = Annotated[Settings, Depends(get_app_settings)]
 async def current_key(
     request: Request, queue: QueueDep, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)]
 ) -> str:
-    """The id of the caller's API key; 401 when the header is missing or the key unknown."""
+    """The id of the caller's API key; 401 when the header is missing or the key unknown or revoked."""
     if credentials is None or not credentials.credentials:
         raise AuthenticationError("send an API key as 'Authorization: Bearer <key>'")
     digest = hash_key(credentials.credentials)
