@@ -1,4 +1,5 @@
-"""``hoi-refine submit PATH... --api URL --key KEY [--format ...] [--concurrency N] [--wait] [--out DIR]``.
+"""``hoi-refine submit PATH... --api URL --key KEY [--format ...] [--concurrency N] [--wait] [--out DIR]
+[--retry-failed]``.
 
 Job options use the same flags as the local refine command (``--seed``, ``--keyframe-interval``,
 ``--max-generations``, ``--popsize``, ``--weights name=value,...``, ``--priority``). ``--api`` and ``--key``
@@ -53,6 +54,11 @@ def register(subparsers: Any) -> None:
     p.add_argument("--wait", action="store_true", help="wait for every job and download results + contacts")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"manifest + results folder (default {DEFAULT_OUT})")
     p.add_argument("--poll-interval", type=float, default=2.0, help="longest pause between polls of a job (s)")
+    p.add_argument(
+        "--retry-failed",
+        action="store_true",
+        help="requeue jobs that ended FAILED (POST /v1/jobs/{id}:retry, once per run) instead of reporting them",
+    )
     add_job_option_arguments(p, queue=True)
     p.set_defaults(func=_cmd_submit)
 
@@ -76,5 +82,6 @@ def _cmd_submit(args: argparse.Namespace) -> int:
         wait=args.wait,
         poll_interval_s=max(0.05, args.poll_interval),
         max_frames=get_settings().max_frames,
+        retry_failed=args.retry_failed,
     )
     return run_submit(cfg).exit_code

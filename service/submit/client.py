@@ -176,6 +176,11 @@ class ApiClient:
         resp = self.request("GET", f"/v1/jobs/{job_id}")
         return resp.json(), parse_retry_after(resp.headers.get("Retry-After"))
 
+    def retry_job(self, job_id: str) -> dict[str, Any]:
+        """``POST /v1/jobs/{id}:retry``: requeue a FAILED job (409 when it is not FAILED). Returns the job."""
+        doc = self.request("POST", f"/v1/jobs/{job_id}:retry").json()
+        return doc if isinstance(doc, dict) else {}
+
     def result(self, job_id: str) -> bytes:
         """``GET /v1/jobs/{id}/result?format=npz``: the result file (``common.result_format``)."""
         return self.request("GET", f"/v1/jobs/{job_id}/result", params={"format": "npz"}).content

@@ -45,6 +45,8 @@ class Entry:
     metrics: dict[str, Any] | None = None
     #: POSTs this tool made for the entry (the server dedupes by key; this is for the record).
     posts: int = 0
+    #: Times ``--retry-failed`` requeued the FAILED job (``POST /v1/jobs/{id}:retry``; same job id).
+    retries: int = 0
     #: Sizes + mtimes of the input and the options when it was submitted (re-runs skip unchanged inputs).
     fingerprint: str | None = None
 

@@ -85,11 +85,13 @@ def metric_means(entries: list[Entry]) -> dict[str, dict[str, float | None]]:
     return out
 
 
-def summary_document(entries: list[Entry]) -> dict[str, Any]:
-    """The summary as JSON: jobs per state and mean raw / refined metrics over succeeded sequences."""
+def summary_document(entries: list[Entry], retried: int = 0) -> dict[str, Any]:
+    """The summary as JSON: jobs per state, FAILED jobs requeued by this run (``--retry-failed``) and mean
+    raw / refined metrics over succeeded sequences."""
     return {
         "states": dict(sorted(Counter(e.state for e in entries).items())),
         "total": len(entries),
+        "retried": retried,
         "succeeded_with_metrics": sum(1 for e in entries if e.state == "SUCCEEDED" and e.metrics),
         "mean_metrics": metric_means(entries),
     }
@@ -116,12 +118,23 @@ def summary_tables(entries: list[Entry]) -> tuple[Table, Table]:
     return jobs, metrics
 
 
-def print_summary(console: Console, entries: list[Entry]) -> None:
+def print_summary(console: Console, entries: list[Entry], retried: int = 0, retry_hint: bool = False) -> None:
+    """Tables, then each problem; ``retried`` FAILED jobs were requeued by this run. ``retry_hint``: the run
+    had no ``--retry-failed``, so point at it when some jobs are FAILED."""
     jobs, metrics = summary_tables(entries)
     console.print(jobs)
     console.print(metrics)
+    if retried:
+        console.print(f"retried {retried} FAILED job{'s' if retried != 1 else ''} (same job ids, new attempts)")
     problems = [e for e in entries if e.state in FAILED_STATES or (e.error and e.state == "PENDING")]
     for e in problems[:20]:
         console.print(f"[red]{e.state}[/red] {e.label}: {e.error or 'no detail'}", highlight=False)
     if len(problems) > 20:
         console.print(f"... and {len(problems) - 20} more (see the manifest)")
+    failed = sum(e.state == "FAILED" for e in entries)
+    if retry_hint and failed:
+        console.print(
+            f"{failed} job{'s' if failed != 1 else ''} FAILED on the service: run the same command with "
+            "--retry-failed to retry them",
+            highlight=False,
+        )

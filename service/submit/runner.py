@@ -5,7 +5,8 @@ the other polls jobs and, with ``wait``, downloads results and contacts as soon 
 downloads start while later sequences are still being submitted. Worker threads record every change in the
 manifest themselves (atomic save under a lock); the main thread only schedules, draws progress and turns
 Ctrl-C into a clean stop: no new work starts, requests in flight finish and are recorded, retries' waits
-end at once, and the user is told to run the same command again.
+end at once, and the user is told to run the same command again. With ``retry_failed`` a job found FAILED is
+requeued once per run (``POST /v1/jobs/{id}:retry``, same job id) instead of being reported as failed.
 """
 
 from __future__ import annotations
@@ -38,8 +39,8 @@ EXIT_OK, EXIT_FAILED, EXIT_INTERRUPTED = 0, 1, 130
 #: Status requests per second over all tracked jobs, at most (each job's pause grows with their number).
 MAX_POLLS_PER_S = 20.0
 
-#: Called in the main thread after each step: ``(event, entry)`` with event one of submitted, invalid,
-#: rejected, unreachable, error, lost (404: sent again), state, downloaded. Tests use it to interrupt a run.
+#: Called in the main thread after each step: ``(event, entry)`` with event one of submitted, invalid, rejected,
+#: unreachable, error, lost (404: sent again), state, downloaded, retried. Tests use it to interrupt a run.
 EventHook = Callable[[str, Entry], None]
 
 
@@ -56,6 +57,8 @@ class SubmitConfig:
     #: Longest pause between two polls of one job (the server's ``Retry-After`` may shorten it).
     poll_interval_s: float = 2.0
     max_frames: int | None = None
+    #: Requeue jobs that ended FAILED (once per run) rather than reporting them as failed.
+    retry_failed: bool = False
 
 
 @dataclass
@@ -64,6 +67,8 @@ class SubmitOutcome:
     interrupted: bool
     exit_code: int
     counts: dict[str, int]
+    #: FAILED jobs this run requeued (``retry_failed``).
+    retried: int = 0
 
 
 def _fingerprint(src: Source, options: JobOptions) -> str:
@@ -156,6 +161,27 @@ class _Run:
             return "downloaded", hint
         return "state", hint
 
+    def retry(self, entry: Entry) -> str:
+        """Requeue the entry's FAILED job under its id; the manifest counts it in ``retries``."""
+        assert entry.job_id is not None
+        try:
+            doc = self.client.retry_job(entry.job_id)
+        except ApiError as exc:
+            if exc.status is None or exc.status >= 500:
+                self.give_up(str(exc))
+            if exc.status == 404 and entry.key is not None:
+                self.manifest.reset(entry, entry.key)  # the server forgot the job: submit it again
+                return "lost"
+            if exc.status != 409:
+                raise
+            # No longer FAILED (requeued by someone else, or an earlier answer of ours was lost): track it.
+            doc, _ = self.client.job(entry.job_id)
+            self.manifest.update(entry, state=str(doc.get("state", entry.state)), attempt=doc.get("attempt"))
+            return "state"
+        self.manifest.update(entry, state=str(doc.get("state") or "QUEUED"), attempt=doc.get("attempt"), error=None,
+                             retries=entry.retries + 1)  # fmt: skip
+        return "retried"
+
     def download(self, entry: Entry) -> None:
         assert entry.job_id is not None
         self.results_dir.mkdir(parents=True, exist_ok=True)
@@ -234,9 +260,11 @@ def run_submit(
     ]  # fmt: skip
     submitting = {e.source for e, _ in to_submit}
     visible = [e for e, _ in entries]
+    to_retry = sum(e.state == "FAILED" and e.source not in submitting for e in visible) if cfg.retry_failed else 0
+    retrying = f"{to_retry} FAILED to retry, " if to_retry else ""
     console.print(
         f"{len(entries)} sequences: {sum(run.downloaded(e) for e in visible)} already done, "
-        f"{len(to_submit)} to check and submit, out: {cfg.out_dir}",
+        f"{len(to_submit)} to check and submit, {retrying}out: {cfg.out_dir}",
         highlight=False,
     )
 
@@ -245,6 +273,8 @@ def run_submit(
     polled_once: set[str] = set()
     gave_up: set[str] = set()  # polling/downloading failed after retries: left for the next run
     resubmitted: set[str] = set()  # jobs the server no longer knew (404), sent again once
+    retry_asked: set[str] = set()  # FAILED jobs sent to :retry this run (once each: a job failing again stays failed)
+    retried: set[str] = set()  # ... and requeued by it
     source_of = {e.source: s for e, s in entries}
     futures: dict[Future[Any], tuple[str, Entry]] = {}
     submit_pool = ThreadPoolExecutor(max_workers=cfg.concurrency, thread_name_prefix="submit")
@@ -273,6 +303,12 @@ def run_submit(
                     interrupted = run.unreachable is None
                     break
                 now = time.monotonic()
+                if cfg.retry_failed:
+                    busy = {e.source for _, e in futures.values()}
+                    for e in visible:
+                        if e.state == "FAILED" and e.job_id and e.source not in retry_asked | busy | submitting:
+                            retry_asked.add(e.source)
+                            futures[poll_pool.submit(run.retry, e)] = ("retry", e)
                 in_flight = {e.source for kind, e in futures.values() if kind == "poll"}
                 tracked = [e for e in visible if needs_tracking(e)]
                 for e in tracked:
@@ -294,6 +330,11 @@ def run_submit(
                         futures[submit_pool.submit(run.prepare_and_submit, e, source_of[e.source])] = ("submit", e)
                     elif event in ("error", "lost", "unreachable"):
                         gave_up.add(e.source)
+                    elif kind == "retry":
+                        if event == "retried":
+                            retried.add(e.source)
+                        polled_once.discard(e.source)  # track the requeued job (without --wait: one look)
+                        polls_due[e.source] = time.monotonic() + min(0.5, cfg.poll_interval_s)
                     else:
                         polled_once.add(e.source)
                         hint = fut.result()[1] if event in ("state", "downloaded") else None
@@ -314,8 +355,8 @@ def run_submit(
             client.close()
         manifest.save()
 
-    print_summary(console, visible)
-    write_atomic(cfg.out_dir / SUMMARY_NAME, json.dumps(summary_document(visible), indent=1).encode())
+    print_summary(console, visible, retried=len(retried), retry_hint=not cfg.retry_failed)
+    write_atomic(cfg.out_dir / SUMMARY_NAME, json.dumps(summary_document(visible, len(retried)), indent=1).encode())
     if run.unreachable is not None:
         console.print(
             f"[red]Stopped: the service keeps failing[/red] ({run.unreachable}). The manifest ({manifest.path}) is up "
@@ -333,7 +374,8 @@ def run_submit(
     else:
         failed = any(e.state in FAILED_STATES or e.job_id is None for e in visible)
     code = EXIT_INTERRUPTED if interrupted else EXIT_FAILED if failed else EXIT_OK
-    return SubmitOutcome(entries=visible, interrupted=interrupted, exit_code=code, counts=counts(visible))
+    return SubmitOutcome(entries=visible, interrupted=interrupted, exit_code=code, counts=counts(visible),
+                         retried=len(retried))  # fmt: skip
 
 
 def _settle(fut: Future[Any], kind: str, entry: Entry, manifest: Manifest, console: Console) -> str:
@@ -350,7 +392,7 @@ def _settle(fut: Future[Any], kind: str, entry: Entry, manifest: Manifest, conso
         manifest.update(entry, error=f"{type(exc).__name__}: {exc}")
         console.print(f"[red]error[/red] {entry.label}: {exc}", highlight=False)
         return "error"
-    if kind == "submit":
+    if kind in ("submit", "retry"):
         assert isinstance(result, str)
         if result in ("invalid", "rejected", "unreachable"):
             console.print(f"[red]{result}[/red] {entry.label}: {entry.error}", highlight=False)
