@@ -13,6 +13,7 @@ from pydantic import BaseModel, ConfigDict, Field
 LossName = Literal[
     "object_pose",
     "object_velocity",
+    "object_excursion",
     "hand_joints",
     "fingertip_contact",
     "control_consistency",
