@@ -35,6 +35,11 @@ class JobOptions(BaseModel):
         default_factory=dict, description="Overrides of the default loss weights (each >= 0)"
     )
     free_wrist_translation: bool = Field(default=False, description="Also optimise a 3-D wrist translation offset")
+    restarts: int = Field(
+        default=1, ge=0, le=5,
+        description="Refine again with another seed when the result fails the success criterion (every frame "
+        "within 3 cm / 30 deg); the best attempt is kept",
+    )  # fmt: skip
     priority: int = Field(default=0, ge=-100, le=100, description="Higher runs first (queue only)")
 
     def model_post_init(self, __context: object) -> None:

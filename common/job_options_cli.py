@@ -45,6 +45,11 @@ def add_job_option_arguments(parser: argparse.ArgumentParser, queue: bool = Fals
         help=f"loss weights, e.g. object_pose=2,hand_joints=0.5 (names: {', '.join(LOSS_NAMES)}; 0 disables a term)",
     )  # fmt: skip
     g.add_argument("--free-wrist-translation", action="store_true", help="also optimise a wrist translation offset")
+    g.add_argument(
+        "--restarts", type=int, default=1,
+        help="refine again with another seed when the result fails (every frame within 3 cm / 30 deg), up to N "
+        "times, keeping the best (default 1; 0 disables)",
+    )  # fmt: skip
     if queue:
         g.add_argument("--priority", type=int, default=0, help="queue priority, -100..100 (higher runs first)")
 
@@ -59,6 +64,7 @@ def job_options_from_args(args: argparse.Namespace) -> JobOptions:
             popsize=args.popsize,
             loss_weights=args.weights,
             free_wrist_translation=args.free_wrist_translation,
+            restarts=args.restarts,
             priority=getattr(args, "priority", 0),
         )
     except ValidationError as exc:

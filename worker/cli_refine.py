@@ -88,21 +88,22 @@ class _ProgressBar:
 
     def __init__(self) -> None:
         self._tty = sys.stderr.isatty()
-        self._last_window = -1
+        self._last_window = (0, -1)
 
     def __call__(self, p: Any) -> None:
         width = 24
         done = int(width * p.window / max(p.windows, 1))
         bar = "#" * done + "-" * (width - done)
+        again = f"attempt {p.attempt} " if getattr(p, "attempt", 1) > 1 else ""
         text = (
-            f"[{bar}] window {p.window}/{p.windows}  best loss {p.best_loss:9.3f}  "
+            f"[{bar}] {again}window {p.window}/{p.windows}  best loss {p.best_loss:9.3f}  "
             f"evals {p.evaluations:6d}  skipped {p.skipped}  elapsed {p.elapsed_s:5.1f}s  ETA {p.eta_s:5.1f}s"
         )
         if self._tty:
             sys.stderr.write(f"\r{text} ")
-        elif p.window != self._last_window:
+        elif (getattr(p, "attempt", 1), p.window) != self._last_window:
             sys.stderr.write(f"{text}\n")
-            self._last_window = p.window
+            self._last_window = (getattr(p, "attempt", 1), p.window)
         sys.stderr.flush()
 
 
@@ -130,6 +131,10 @@ def format_metrics_table(summary: dict[str, Any]) -> str:
         f"{t.get('steps', 0)} steps, {t.get('evaluations', 0)} candidate evaluations, "
         f"windows {w.get('count', 0)} ({w.get('skipped', 0)} skipped, {w.get('escalated', 0)} escalated)"
     )
+    attempts = summary.get("attempts", [])
+    if len(attempts) > 1:
+        seeds = ", ".join(f"seed {a['seed']}: {'ok' if a['success'] else 'failed'}" for a in attempts)
+        lines.append(f"{len(attempts)} attempts ({seeds}); the result is the best")
     return "\n".join(lines)
 
 

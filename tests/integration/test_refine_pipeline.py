@@ -19,6 +19,7 @@ from common.result_format import content_digest, read_arrays, read_summary, writ
 from common.sequence_io import save_sequence
 from tests.integration.test_refine_synthetic import push_sequence, recovery_case
 from worker.refine.evaluator import ParallelEvaluator
+from worker.refine.losses import ROT_SCALE
 from worker.refine.prepare import initial_state, prepare
 from worker.refine.problem import SimWindowProblem
 from worker.refine.result import verify_result
@@ -162,3 +163,19 @@ def test_two_hands_get_independent_keyframes_in_one_simulation() -> None:
     assert right.shape == left_kf.shape == (4, 13)
     assert not np.array_equal(right, left_kf)  # each hand ran its own CMA-ES
     assert verify_result(outcome.to_npz_bytes())["max_pos_diff_m"] == 0.0
+
+
+def test_a_failed_refinement_is_restarted_with_another_seed_and_the_best_attempt_kept() -> None:
+    seq, _ = recovery_case(offset_x=-0.06)  # the hand starts 2.5 cm off: a 4 x 1 budget cannot fix it
+    tiny = {"seed": 0, "popsize": 4, "max_generations": 1}
+    once = refine_sequence(seq, JobOptions(**tiny, restarts=0), threads=1)
+    twice = refine_sequence(seq, JobOptions(**tiny, restarts=1), threads=1)
+    (only,) = once.summary["attempts"]
+    assert not only["success"]
+    first, second = twice.summary["attempts"]
+    assert first == only  # the first attempt is the plain run
+    assert second["seed"] != first["seed"]
+    best = min((first, second), key=lambda a: a["E_t"] + a["E_r"] / np.degrees(ROT_SCALE))
+    assert twice.summary["metrics"]["refined"]["E_t"] == best["E_t"]  # the result is the best attempt's replay
+    assert twice.summary["timings"]["evaluations"] == first["evaluations"] + second["evaluations"]
+    assert verify_result(twice.to_npz_bytes())["max_pos_diff_m"] == 0.0

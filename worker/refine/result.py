@@ -7,7 +7,8 @@ the optimised offsets, ``S_q_target``/``S_wrist_pos``/``S_wrist_quat`` the per-f
 padded); ``sequence_npz`` (uint8) the input sequence in the native NPZ format, so ``verify`` needs nothing
 else. Summary JSON: kind, sequence, fps, frames, metrics.raw / metrics.refined, options, config (simulation
 settings, keyframe interval, CMA-ES settings, loss weights), seed, versions, table (the plane under the frame-0
-object: point, normal, tilt_deg), windows (count, skipped, escalated, per window loss), timings (the
+object: point, normal, tilt_deg), attempts (seed, success, E_t, E_r, evaluations of each CMA-ES run; the
+result is the best), windows (count, skipped, escalated, per window loss), timings (the
 deterministic counters; the wall-clock figures are stored in the ``timings_json`` member, see
 ``common.result_format``, and ``read_summary`` merges them back).
 """
@@ -101,6 +102,7 @@ def build_summary(
     m_ref: dict[str, Any],
     timings: dict[str, Any],
     num_contacts: int = 0,
+    attempts: list[dict[str, Any]] | None = None,
 ) -> dict[str, Any]:
     cfg = prep.scene.config.to_dict()
     return {
@@ -134,6 +136,7 @@ def build_summary(
             ],
         },
         "table": prep.scene.table.to_dict(),
+        "attempts": attempts or [],
         "num_contacts": int(num_contacts),
         "timings": timings,
     }

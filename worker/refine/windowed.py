@@ -93,6 +93,7 @@ class RefineProgress:
     elapsed_s: float
     eta_s: float
     skipped: int = 0
+    attempt: int = 1  # 2, 3, ...: a restart with another seed after a failed attempt (refine_sequence)
 
 
 def optimise_windows(
