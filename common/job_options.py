@@ -36,7 +36,7 @@ class JobOptions(BaseModel):
     )
     free_wrist_translation: bool = Field(default=False, description="Also optimise a 3-D wrist translation offset")
     restarts: int = Field(
-        default=1, ge=0, le=5,
+        default=2, ge=0, le=5,
         description="Refine again with another seed when the result fails the success criterion (every frame "
         "within 3 cm / 30 deg); the best attempt is kept",
     )  # fmt: skip
