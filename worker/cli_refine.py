@@ -94,16 +94,16 @@ class _ProgressBar:
         width = 24
         done = int(width * p.window / max(p.windows, 1))
         bar = "#" * done + "-" * (width - done)
-        again = f"attempt {p.attempt} " if getattr(p, "attempt", 1) > 1 else ""
+        again = f"attempt {p.attempt} " if p.attempt > 1 else ""
         text = (
             f"[{bar}] {again}window {p.window}/{p.windows}  best loss {p.best_loss:9.3f}  "
             f"evals {p.evaluations:6d}  skipped {p.skipped}  elapsed {p.elapsed_s:5.1f}s  ETA {p.eta_s:5.1f}s"
         )
         if self._tty:
             sys.stderr.write(f"\r{text} ")
-        elif (getattr(p, "attempt", 1), p.window) != self._last_window:
+        elif (p.attempt, p.window) != self._last_window:
             sys.stderr.write(f"{text}\n")
-            self._last_window = (getattr(p, "attempt", 1), p.window)
+            self._last_window = (p.attempt, p.window)
         sys.stderr.flush()
 
 

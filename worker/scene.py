@@ -42,7 +42,7 @@ from worker.table_fit import fit_table, option_xml, table_geom_xml
 
 IntArray = npt.NDArray[np.int64]
 
-__all__ = ["HandHandles", "Scene", "SimConfig", "build_scene", "object_start_pose"]
+__all__ = ["HandHandles", "Scene", "SimConfig", "build_scene"]
 
 
 @dataclass(frozen=True)
@@ -92,11 +92,6 @@ class Scene:
         return mujoco.MjData(self.model)
 
 
-def object_start_pose(seq: Sequence, config: SimConfig) -> FloatArray:
-    """Frame-0 world pose of the object (``worker.table_fit.fit_table``)."""
-    return fit_table(seq, config)[0]
-
-
 def _ids(model: mujoco.MjModel, kind: mujoco.mjtObj, names: list[str]) -> IntArray:
     out = np.array([mujoco.mj_name2id(model, kind, n) for n in names], dtype=np.int64)
     missing = [n for n, i in zip(names, out, strict=True) if i < 0]
@@ -109,11 +104,11 @@ def scene_xml(
     seq: Sequence,
     references: list[HandReference],
     config: SimConfig,
-    start: tuple[FloatArray, SupportPlane] | None = None,
+    start: tuple[FloatArray, SupportPlane],
 ) -> tuple[str, str, int]:
     """The scene's MJCF, the object's collision method and its number of geoms. ``start``: the object's
-    frame-0 pose and the table under it (``fit_table``'s, computed when not given)."""
-    pose0, table = start if start is not None else fit_table(seq, config)
+    frame-0 pose and the table under it (``fit_table``'s)."""
+    pose0, table = start
     obj = object_mjcf(seq.object, config, pose0[:3], pose0[3:])
     hands_body = "\n".join(hand_worldbody_xml(r.geometry, config, r.wrist_pos[0], r.wrist_quat[0]) for r in references)
     sensors = [

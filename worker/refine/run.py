@@ -163,28 +163,27 @@ def refine_sequence(
         raw = replay(prep, ev, start, zero)
         weights = resolve_weights(options.loss_weights)
         problem = _problem(prep, ev, start, weights)
-        best: tuple[dict[str, FloatArray], list[WindowLog], ReplayRecord, dict[str, Any], CmaSettings] | None = None
+        best: _Attempt | None = None
         for attempt in range(options.restarts + 1):
             settings = replace(cma_settings(options, prep.interval), seed=attempt_seed(options.seed, attempt))
             report = None if progress is None else _with_attempt(progress, attempt + 1)
             keyframes, logs = optimise_windows(problem, settings, progress=report, should_stop=should_stop)
-            final = replay(prep, ev, start, keyframes, record_contacts=False)
-            m = metrics(final)
+            this = _Attempt(keyframes, logs, replay(prep, ev, start, keyframes), settings)
+            m = this.metrics = metrics(this.final)
             attempts.append({"seed": settings.seed, "success": bool(m["success"]), "E_t": m["E_t"], "E_r": m["E_r"],
                              "evaluations": int(sum(w.evaluations for w in logs))})
-            if best is None or rank(m) > rank(best[3]):
-                best = (keyframes, logs, final, m, settings)
+            if best is None or rank(m) > rank(best.metrics):
+                best = this
             if m["success"]:
                 break
         assert best is not None
-        keyframes, logs, _, _, settings = best
-        final = replay(prep, ev, start, keyframes)  # again, with contacts: the result's replay
+        keyframes, logs, final, settings, m_ref = best.keyframes, best.logs, best.final, best.settings, best.metrics
         stats = ev.stats
     finally:
         if own:
             ev.close()
     wall = time.perf_counter() - t0
-    m_raw, m_ref = metrics(raw), metrics(final)
+    m_raw = metrics(raw)
     from worker.refine.result import build_arrays, build_summary
 
     arrays = build_arrays(prep, keyframes, final, raw, m_raw, m_ref, logs)
@@ -211,6 +210,17 @@ def refine_sequence(
         attempts=attempts,
     )
     return RefineOutcome(arrays, summary, keyframes)
+
+
+@dataclass
+class _Attempt:
+    """One run of the window loop: its keyframes, window logs, from-scratch replay and that replay's metrics."""
+
+    keyframes: dict[str, FloatArray]
+    logs: list[WindowLog]
+    final: ReplayRecord
+    settings: CmaSettings
+    metrics: dict[str, Any] = field(default_factory=dict)
 
 
 def _with_attempt(progress: Callable[[RefineProgress], None], attempt: int) -> Callable[[RefineProgress], None]:
