@@ -179,3 +179,24 @@ def test_a_failed_refinement_is_restarted_with_another_seed_and_the_best_attempt
     assert twice.summary["metrics"]["refined"]["E_t"] == best["E_t"]  # the result is the best attempt's replay
     assert twice.summary["timings"]["evaluations"] == first["evaluations"] + second["evaluations"]
     assert verify_result(twice.to_npz_bytes())["max_pos_diff_m"] == 0.0
+
+
+def test_verify_re_simulates_with_the_rotation_pivot_the_result_was_made_with(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import worker.refine.prepare as prepare_module
+
+    seq = push_sequence(frames=16)
+    monkeypatch.setattr(prepare_module, "ROTATION_PIVOT", "wrist")  # as results were made before the pivot
+    old = refine_sequence(seq, JobOptions(popsize=4, max_generations=1, restarts=0), threads=1)
+    monkeypatch.undo()
+    assert old.summary["config"]["rotation_pivot"] == "wrist"
+    assert np.any(old.arrays["right_keyframes"][:, 10:13] != 0)  # a rotation offset, so the pivot matters
+    assert verify_result(old.to_npz_bytes())["max_pos_diff_m"] == 0.0
+    unrecorded = {**old.summary, "config": {k: v for k, v in old.summary["config"].items() if k != "rotation_pivot"}}
+    assert verify_result(RefineOutcome(old.arrays, unrecorded).to_npz_bytes())["max_pos_diff_m"] == 0.0
+    as_if_hand = {**old.summary, "config": {**old.summary["config"], "rotation_pivot": "hand"}}
+    with pytest.raises(ResultMismatchError):
+        verify_result(RefineOutcome(old.arrays, as_if_hand).to_npz_bytes())
+    with pytest.raises(ValueError, match="rotation_pivot"):
+        prepare(seq, JobOptions(), rotation_pivot="elbow")

@@ -7,7 +7,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from worker.refine.controls import HandControlSpace, PoseBasis10, quat_exp, quat_mul
+from worker.refine.controls import HandControlSpace, PoseBasis10, quat_exp, quat_mul, quat_rotate
 from worker.refine.evaluator import ParallelEvaluator, SimState
 from worker.refine.losses import HandTargets, ObjectTargets, finite_difference_velocity, resolve_weights
 from worker.refine.problem import SimLayout, SimWindowProblem
@@ -112,6 +112,30 @@ def test_controls_shape_errors_name_the_argument() -> None:
     with pytest.raises(ValueError, match="q_limits"):
         HandControlSpace("right", np.zeros((5, 2)), np.zeros((5, 3)), np.tile([1.0, 0, 0, 0], (5, 1)),
                          np.zeros((3, 2)), PoseBasis10(np.zeros((10, 2)), np.ones(10)), 5, 8)
+
+
+def test_a_rotation_offset_turns_the_hand_about_the_pivot() -> None:
+    _, plain, _ = tiny_setup()
+    centre = plain.wrist_pos + np.array([0.08, 0.0, 0.0])  # a grasp centre 8 cm ahead of the wrist
+    pivoted = HandControlSpace("right", plain.q_ref, plain.wrist_pos, plain.wrist_quat, plain.q_limits, plain.basis,
+                               interval=5, substeps=SUBSTEPS, pivot=centre)
+    idx = np.arange(FRAMES) * SUBSTEPS
+    zero = pivoted.zero_keyframes()
+    np.testing.assert_array_equal(pivoted.controls(pivoted.offsets(zero, idx), idx)[1][0], plain.wrist_pos)
+    turn = zero.copy()
+    turn[:, 12] = 3.0  # 0.3 rad about z
+    _, p_plain, r_plain = plain.controls(plain.offsets(turn, idx), idx)
+    _, p_pivot, r_pivot = pivoted.controls(pivoted.offsets(turn, idx), idx)
+    np.testing.assert_allclose(r_pivot, r_plain)  # the same orientation ...
+    np.testing.assert_array_equal(p_plain[0], plain.wrist_pos)  # ... about the wrist, the wrist stays ...
+    arm = p_pivot[0] - centre  # ... about the pivot, the wrist swings round it at the same distance
+    np.testing.assert_allclose(np.linalg.norm(arm, axis=1), 0.08, atol=1e-12)
+    # the recorded wrist quaternion is the identity, so the hand's rotation is the offset's
+    np.testing.assert_allclose(arm, quat_rotate(r_pivot[0], np.tile([-0.08, 0.0, 0.0], (FRAMES, 1))), atol=1e-12)
+    assert np.all(arm[:, 1] < -0.02)  # turned by ~0.3 rad about +z
+    with pytest.raises(ValueError, match="pivot"):
+        HandControlSpace("right", plain.q_ref, plain.wrist_pos, plain.wrist_quat, plain.q_limits, plain.basis,
+                         interval=5, substeps=SUBSTEPS, pivot=centre[:3])
 
 
 def _problem(threads: int = 1, ref_push: float = 0.03) -> tuple[SimWindowProblem, ParallelEvaluator]:

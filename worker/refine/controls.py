@@ -4,12 +4,20 @@ Per hand, the controls at fractional frame time t are
 
     q(t)      = clip(q_ref(t) + B10^T (sigma * dtheta(t)), joint limits)   hinge position-servo targets
     R_w(t)    = exp(omega_scale * domega(t)) * R_ref(t)                     wrist orientation (mocap)
-    p_w(t)    = p_ref(t) [+ translation_scale * dp(t)]                      wrist position (mocap)
+    p_w(t)    = c(t) + exp(omega_scale * domega(t)) (p_ref(t) - c(t))
+                [+ translation_scale * dp(t)]                               wrist position (mocap)
 
 with delta(t) = [dtheta (10), domega (3)(, dp (3))] the Catmull-Rom interpolation of the keyframes
 (``spline``). dtheta is in units of each PCA component's standard deviation ("normalised to unit
 variance"), so one CMA-ES step size fits every coordinate. The reference itself is interpolated linearly
 (positions, angles) and by slerp (wrist) between frames.
+
+c(t) is the point the rotation offset turns the whole hand about (``pivot``; the wrist itself when none is
+given, which is DESIGN §1.3's ``exp(domega) R_ref`` with the translation left as recorded). The refinement
+passes the reference fingertip centroid, the centre of the grasp: a held object then turns about itself when
+the optimiser turns the hand, instead of swinging on an ~8 cm lever around the wrist, so correcting the
+object's rotation no longer moves it (and the fingertips stay near their recorded places). The wrist moves
+off its recorded path by at most |domega| * |p_ref - c| (0.3 rad * ~8 cm at the bound).
 """
 
 from __future__ import annotations
@@ -45,6 +53,13 @@ def quat_mul(a: FloatArray, b: FloatArray) -> FloatArray:
         ],
         axis=-1,
     )
+
+
+def quat_rotate(q: FloatArray, v: FloatArray) -> FloatArray:
+    """Rotate vectors v (..., 3) by unit wxyz quaternions q (..., 4): v + 2w (u x v) + 2 u x (u x v)."""
+    w, u = q[..., :1], q[..., 1:]
+    t = 2.0 * np.cross(u, v)
+    return np.asarray(v + w * t + np.cross(u, t))
 
 
 def quat_exp(rotvec: FloatArray) -> FloatArray:
@@ -114,6 +129,8 @@ class HandControlSpace:
     interval: int
     substeps: int
     free_translation: bool = False
+    #: (T, 3) world point the rotation offset turns the hand about (None: the wrist, see the module docstring).
+    pivot: FloatArray | None = None
 
     def __post_init__(self) -> None:
         if self.q_ref.ndim != 2:
@@ -124,6 +141,7 @@ class HandControlSpace:
             ("wrist_quat", self.wrist_quat, (t, 4)),
             ("q_limits", self.q_limits, (h, 2)),
             ("basis.components", self.basis.components, (N_POSE, h)),
+            *((("pivot", self.pivot, (t, 3)),) if self.pivot is not None else ()),
         ):
             if arr.shape != shape:
                 raise ValueError(f"{name} must have shape {shape}, got {arr.shape}")
@@ -135,6 +153,7 @@ class HandControlSpace:
         self._q_sub = lerp_frames(self.q_ref, times)
         self._p_sub = lerp_frames(self.wrist_pos, times)
         self._r_sub = slerp_frames(self.wrist_quat, times)
+        self._c_sub = None if self.pivot is None else lerp_frames(self.pivot, times)
         self._weights = catmull_rom_weights(times, self.interval, self.n_keyframes)
         self._pose_map = self.basis.components.T * self.basis.stddev  # (45, 10): unit coeffs -> radians
 
@@ -178,6 +197,10 @@ class HandControlSpace:
         rot = quat_exp(OMEGA_SCALE * offsets[..., N_POSE : N_POSE + N_ROT])
         quat = quat_mul(rot, np.broadcast_to(self._r_sub[idx][None], rot.shape))
         pos = np.broadcast_to(self._p_sub[idx][None], (offsets.shape[0], len(idx), 3)).copy()
+        if self._c_sub is not None:
+            # Added as a difference so a zero offset leaves the recorded path bit-identical (raw replay).
+            arm = pos - self._c_sub[idx][None]
+            pos += quat_rotate(rot, arm) - arm
         if self.free_translation:
             pos += TRANSLATION_SCALE * offsets[..., N_POSE + N_ROT :]
         return q, pos, quat

@@ -27,6 +27,12 @@ from worker.refine.spline import FloatArray, default_keyframe_interval
 #: Defaults chosen for the speed budget (2 shared cores, <= 60 s for 72 frames at 30 fps); see bench/refine.py.
 DEFAULT_POPSIZE = 10
 DEFAULT_MAX_GENERATIONS = 6
+#: What the wrist rotation offset turns the hand about (``controls``): "hand", the centroid of the reference
+#: keypoints weighted as the ``hand_joints`` loss weighs them (fingertips x2; the point about which a small
+#: rotation moves the keypoints least, and near the centre of a grasp); "grasp", the fingertip centroid;
+#: "wrist", DESIGN §1.3 as written (a held object then swings on the ~8 cm lever from the wrist).
+PIVOTS = ("hand", "grasp", "wrist")
+ROTATION_PIVOT = "hand"
 
 
 @dataclass
@@ -41,6 +47,7 @@ class Prepared:
     obj_targets: ObjectTargets
     hand_targets: dict[str, HandTargets]
     basis_provenance: str
+    rotation_pivot: str = "wrist"  # what the wrist rotation offset turns the hand about (ROTATION_PIVOT)
 
     @property
     def num_frames(self) -> int:
@@ -103,7 +110,8 @@ def pose_basis(references: list[Any], seq: Sequence | None = None) -> tuple[dict
     return out, "fallback: PCA of this sequence's reference hinge angles (packaged pose basis missing)"
 
 
-def prepare(seq: Sequence, options: JobOptions, config: Any = None) -> Prepared:
+def prepare(seq: Sequence, options: JobOptions, config: Any = None, rotation_pivot: str | None = None) -> Prepared:
+    """``rotation_pivot``: ``ROTATION_PIVOT`` when None (``verify`` passes the one a result was made with)."""
     from worker.retarget import retarget_sequence
     from worker.scene import SimConfig, build_scene
 
@@ -115,6 +123,16 @@ def prepare(seq: Sequence, options: JobOptions, config: Any = None) -> Prepared:
     bases, provenance = pose_basis(references, seq)
     from worker.hand_model import JOINT_LIMITS
 
+    pivot_kind = rotation_pivot or ROTATION_PIVOT
+    if pivot_kind not in PIVOTS:
+        raise ValueError(f"rotation_pivot must be one of {', '.join(PIVOTS)}, got {pivot_kind!r}")
+    pose = seq.object_pose_world()
+    obj = ObjectTargets(pose[:, :3], pose[:, 3:], finite_difference_velocity(pose[:, :3], pose[:, 3:], seq.fps))
+    surface = SurfaceDistance(_surface_samples(seq))
+    hands: dict[str, HandTargets] = {}
+    for r in references:
+        mask, local = contact_targets(r.keypoints, r.valid, pose[:, :3], pose[:, 3:], surface, FINGERTIP_INDICES)
+        hands[r.side] = HandTargets(r.keypoints, r.valid, FINGERTIP_INDICES, mask, local)
     spaces: dict[str, HandControlSpace] = {
         r.side: HandControlSpace(
             side=r.side,
@@ -126,17 +144,20 @@ def prepare(seq: Sequence, options: JobOptions, config: Any = None) -> Prepared:
             interval=interval,
             substeps=scene.substeps_per_frame,
             free_translation=options.free_wrist_translation,
+            pivot=pivot_track(pivot_kind, r.keypoints, hands[r.side].joint_weights),
         )
         for r in references
     }
-    pose = seq.object_pose_world()
-    obj = ObjectTargets(pose[:, :3], pose[:, 3:], finite_difference_velocity(pose[:, :3], pose[:, 3:], seq.fps))
-    surface = SurfaceDistance(_surface_samples(seq))
-    hands: dict[str, HandTargets] = {}
-    for r in references:
-        mask, local = contact_targets(r.keypoints, r.valid, pose[:, :3], pose[:, 3:], surface, FINGERTIP_INDICES)
-        hands[r.side] = HandTargets(r.keypoints, r.valid, FINGERTIP_INDICES, mask, local)
-    return Prepared(seq, options, interval, references, scene, layout, spaces, obj, hands, provenance)
+    return Prepared(seq, options, interval, references, scene, layout, spaces, obj, hands, provenance, pivot_kind)
+
+
+def pivot_track(kind: str, keypoints: FloatArray, joint_weights: FloatArray) -> FloatArray | None:
+    """(T, 3) point the wrist rotation offset turns the hand about (``PIVOTS``; None: the wrist)."""
+    if kind == "wrist":
+        return None
+    if kind == "hand":
+        return np.asarray(np.einsum("tjk,j->tk", keypoints, joint_weights), dtype=np.float64)
+    return np.asarray(keypoints[:, list(FINGERTIP_INDICES)].mean(axis=1), dtype=np.float64)
 
 
 def _surface_samples(seq: Sequence) -> FloatArray:

@@ -121,6 +121,7 @@ def build_summary(
             "cma": asdict(settings),
             "loss_weights": weights,
             "free_wrist_translation": bool(prep.options.free_wrist_translation),
+            "rotation_pivot": prep.rotation_pivot,
             "pose_basis": prep.basis_provenance,
         },
         "versions": versions(),
@@ -163,7 +164,8 @@ def verify_result(blob: bytes, sequence: Sequence | None = None) -> dict[str, An
     from worker.scene import SimConfig
 
     sim: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in summary["config"]["sim"].items()}
-    prep = prepare(sequence, options, SimConfig(**sim))
+    # Results made before the pivot was recorded turned the hand about the wrist.
+    prep = prepare(sequence, options, SimConfig(**sim), rotation_pivot=summary["config"].get("rotation_pivot", "wrist"))
     keyframes = {}
     for side, space in prep.spaces.items():
         key = f"{side}_keyframes"
