@@ -14,10 +14,10 @@ variance"), so one CMA-ES step size fits every coordinate. The reference itself 
 
 c(t) is the point the rotation offset turns the whole hand about (``pivot``; the wrist itself when none is
 given, which is DESIGN §1.3's ``exp(domega) R_ref`` with the translation left as recorded). The refinement
-passes the reference fingertip centroid, the centre of the grasp: a held object then turns about itself when
-the optimiser turns the hand, instead of swinging on an ~8 cm lever around the wrist, so correcting the
-object's rotation no longer moves it (and the fingertips stay near their recorded places). The wrist moves
-off its recorded path by at most |domega| * |p_ref - c| (0.3 rad * ~8 cm at the bound).
+passes the centroid of the reference keypoints (``prepare.ROTATION_PIVOT``), near the centre of the grasp: a
+held object then turns about itself when the optimiser turns the hand, instead of swinging on an ~8 cm lever
+around the wrist, so correcting the object's rotation no longer moves it, and the keypoints move least. The
+wrist leaves its recorded path by at most |domega| * |p_ref - c| (0.3 rad * ~8 cm at the bound).
 """
 
 from __future__ import annotations
