@@ -7,7 +7,8 @@ sequence with ``worker.refine.run.refine_sequence`` (sequentially; ``--threads``
 writes ``bench/results/refine_dev.md``: per-sequence rows and the aggregate (success rate, mean E_t, E_r,
 E_j, E_ft, median wall seconds per sequence, share of wall time inside simulation, windows skipped) against the
 issue's targets. Per-sequence summaries are cached in ``var/bench/refine/`` so an interrupted run resumes
-(``--fresh`` ignores the cache).
+(``--fresh`` ignores the cache); the cache key holds a hash of the ``common``/``worker`` sources, so a run never
+mixes results of different code.
 """
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ def run_one(path: Path, args: argparse.Namespace, cache: Path) -> dict[str, Any]
     from common.job_options import JobOptions
     from worker.refine.run import refine_sequence
 
-    key = f"{path.stem}__p{args.popsize}_g{args.max_generations}_s{args.seed}_t{args.threads}.json"
+    key = f"{path.stem}__p{args.popsize}_g{args.max_generations}_s{args.seed}_t{args.threads}_c{code_digest()}.json"
     hit = cache / key
     if hit.is_file() and not args.fresh:
         out: dict[str, Any] = json.loads(hit.read_text())
@@ -66,6 +67,18 @@ def run_one(path: Path, args: argparse.Namespace, cache: Path) -> dict[str, Any]
     cache.mkdir(parents=True, exist_ok=True)
     hit.write_text(json.dumps(summary))
     return summary
+
+
+def code_digest() -> str:
+    """A short hash of the Python sources of ``common`` and ``worker``: part of the cache key, so a resumed run
+    never mixes per-sequence results of different code into one table."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for path in sorted(p for pkg in ("common", "worker") for p in (ROOT / pkg).rglob("*.py")):
+        h.update(path.relative_to(ROOT).as_posix().encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()[:12]
 
 
 def aggregate(rows: list[dict[str, Any]], which: str) -> dict[str, float]:
