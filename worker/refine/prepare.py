@@ -47,7 +47,7 @@ class Prepared:
     obj_targets: ObjectTargets
     hand_targets: dict[str, HandTargets]
     basis_provenance: str
-    rotation_pivot: str = "wrist"  # what the wrist rotation offset turns the hand about (ROTATION_PIVOT)
+    rotation_pivot: str  # what the wrist rotation offset turns the hand about (one of PIVOTS)
 
     @property
     def num_frames(self) -> int:
