@@ -14,6 +14,7 @@ mixes results of different code.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import statistics
 import sys
@@ -69,6 +70,7 @@ def run_one(path: Path, args: argparse.Namespace, cache: Path) -> dict[str, Any]
     return summary
 
 
+@functools.cache
 def code_digest() -> str:
     """A short hash of the Python sources of ``common`` and ``worker``: part of the cache key, so a resumed run
     never mixes per-sequence results of different code into one table."""

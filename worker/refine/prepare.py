@@ -29,9 +29,9 @@ DEFAULT_POPSIZE = 10
 DEFAULT_MAX_GENERATIONS = 6
 #: What the wrist rotation offset turns the hand about (``controls``): "hand", the centroid of the reference
 #: keypoints weighted as the ``hand_joints`` loss weighs them (fingertips x2; the point about which a small
-#: rotation moves the keypoints least, and near the centre of a grasp); "grasp", the fingertip centroid;
-#: "wrist", DESIGN §1.3 as written (a held object then swings on the ~8 cm lever from the wrist).
-PIVOTS = ("hand", "grasp", "wrist")
+#: rotation moves the keypoints least, and near the centre of a grasp); "wrist", DESIGN §1.3 as written (a held
+#: object then swings on the ~8 cm lever from the wrist; results made before the pivot was recorded).
+PIVOTS = ("hand", "wrist")
 ROTATION_PIVOT = "hand"
 
 
@@ -155,9 +155,7 @@ def pivot_track(kind: str, keypoints: FloatArray, joint_weights: FloatArray) -> 
     """(T, 3) point the wrist rotation offset turns the hand about (``PIVOTS``; None: the wrist)."""
     if kind == "wrist":
         return None
-    if kind == "hand":
-        return np.asarray(np.einsum("tjk,j->tk", keypoints, joint_weights), dtype=np.float64)
-    return np.asarray(keypoints[:, list(FINGERTIP_INDICES)].mean(axis=1), dtype=np.float64)
+    return np.asarray(np.einsum("tjk,j->tk", keypoints, joint_weights), dtype=np.float64)
 
 
 def _surface_samples(seq: Sequence) -> FloatArray:
