@@ -8,9 +8,10 @@ and the grasp then carries that offset through the whole lift.
 
 ``support_candidates`` lists the planes that could lie under the object as recorded: faces of the convex hull
 of the frame-0 object within ``max_tilt_deg`` of level that hold its centre of mass. Gravity stays -z; only the
-table's plane would move, by the size of the annotation error (a few degrees, a few millimetres), which the
-object's friction holds without sliding (tan 10 deg = 0.18, far below the table friction). ``worker.table_fit``
-picks one by simulation (or a level table when none keeps the object still).
+table's plane would move, by the size of the annotation error (a few degrees, a few millimetres) or, for an object
+recorded leaning on another that is not simulated, by its lean; friction holds it without sliding (tan 25 deg =
+0.47, below the table friction of 0.8). ``worker.table_fit`` picks one by simulation (or a level table when none
+keeps the object still).
 """
 
 from __future__ import annotations

@@ -89,6 +89,28 @@ def test_a_tilted_recorded_start_rests_as_recorded_on_a_table_laid_under_it(max_
         assert angle.min() > 3.5  # fallen flat onto the level table
 
 
+@pytest.mark.parametrize(("lean_deg", "tilted"), [(18.0, True), (35.0, False)])
+def test_an_object_recorded_leaning_gets_a_table_under_it_up_to_the_limit(lean_deg: float, tilted: bool) -> None:
+    """A box recorded 18 degrees up (leaning on something the scene does not hold) rests as recorded with the
+    default config; past the limit (35 > 25 degrees) the table stays level and the box falls flat."""
+    seq = _box_sequence(frames=10, tilt_deg=lean_deg, z=0.045)
+    refs = retarget_sequence(seq)
+    scene = build_scene(seq, refs)
+    data = scene.make_data()
+    targets = {r.side: HandTargets.from_reference(r) for r in refs}
+    state, _ = initial_state(scene, data, targets)
+    controls = substep_controls(scene, targets)
+    rec = rollout(scene, data, state, controls.ctrl, controls.mocap_pos, controls.mocap_quat)
+    ref_quat = seq.object_pose_world()[0, 3:]
+    angle = np.degrees(2 * np.arccos(np.clip(np.abs(rec.object_pose[:, 3:] @ ref_quat), 0, 1)))
+    if tilted:
+        assert scene.table.tilt_deg == pytest.approx(lean_deg, abs=1e-6)
+        assert angle.max() < 0.05  # friction holds it on the 18 degree table
+    else:
+        assert scene.table.tilt_deg == 0.0
+        assert angle[-1] > 30.0  # fallen flat
+
+
 def test_a_lying_cylinder_gets_a_level_table_rather_than_a_tilted_strip_it_would_roll_off() -> None:
     """Recorded lying on its side, rolled 3 degrees about its axis: the hull strip under its centre is a
     candidate table, but the (smooth) cylinder rolls off it in simulation, so the fit keeps a level table."""
