@@ -24,6 +24,13 @@ class SimConfig:
     contact_solref: tuple[float, float] = (0.003, 1.0)
     weld_solimp: tuple[float, float, float] = (0.8, 0.95, 0.01)
     weld_solref: tuple[float, float] = (0.01, 1.0)
+    #: Seconds the wrist's mocap target runs ahead of the wrist track it is driven along. The weld pulls the palm
+    #: towards a mocap body whose velocity MuJoCo takes as zero, so the palm trails a moving target by a fixed
+    #: time: twice the weld time constant (a critically damped spring's ramp lag, 20 ms) less the one timestep
+    #: by which each substep's target already leads (``worker.simulation``). Without the lead a hand swept at a
+    #: DexYCB lift's 0.9 m/s trails by 14 mm (9.5 mm at 290 deg/s), which the grasp carries into the object;
+    #: with 16 ms, 0.4 mm (0.35 mm) (tests/integration/test_scene_physics.py). 0 drives the mocap along the track.
+    wrist_lead_s: float = 0.016
     #: Finger position servos (N·m/rad, N·m·s/rad). With implicitfast the kv term is integrated implicitly, so
     #: the light finger segments stay stable; the servo behaves like a first-order lag of kv/kp = 60 ms.
     finger_kp: float = 50.0
@@ -54,6 +61,10 @@ class SimConfig:
     #: marker recorded 19 degrees up on one end falls flat on a level table before the hand arrives); the table
     #: friction holds the object up to atan(0.8) = 39 degrees.
     table_max_tilt_deg: float = 25.0
+
+    def wrist_lead_frames(self, substeps_per_frame: int) -> float:
+        """``wrist_lead_s`` in video frames of ``substeps_per_frame`` physics steps."""
+        return self.wrist_lead_s / (substeps_per_frame * self.timestep)
 
     def substeps_per_frame(self, fps: float) -> int:
         """Physics steps per video frame (8 at 30 fps with the 1/240 s timestep)."""

@@ -9,7 +9,8 @@ ever placed at frame 0 (``initial_state``); afterwards it moves only through con
 
 Controls (``substep_controls``): hinge targets and wrist positions are interpolated linearly between frames,
 wrist rotations by slerp; substep s of frame f uses the fraction (s + 1) / substeps_per_frame towards frame
-f + 1, so the last substep of a frame reaches the next frame's targets exactly.
+f + 1, so the last substep of a frame reaches the next frame's targets exactly. The wrist's mocap track is the
+wrist track sampled ``SimConfig.wrist_lead_s`` ahead (``lead_track``), so the welded palm follows the track.
 """
 
 from __future__ import annotations
@@ -96,6 +97,21 @@ def slerp(q0: FloatArray, q1: FloatArray, t: FloatArray) -> FloatArray:
     return np.asarray(out / np.linalg.norm(out, axis=-1, keepdims=True))
 
 
+def lead_track(pos: FloatArray, quat: FloatArray, lead_frames: float) -> tuple[FloatArray, FloatArray]:
+    """The per-frame wrist track (F,3) / (F,4) sampled ``lead_frames`` ahead, linearly / by slerp, holding
+    the last frame: the mocap track under which a welded palm that trails its target by that time follows
+    the track itself (``SimConfig.wrist_lead_s``). A lead of 0 returns the track unchanged (bit for bit)."""
+    if lead_frames < 0:
+        raise ValueError(f"lead_frames must be >= 0, got {lead_frames}")
+    if lead_frames == 0 or len(pos) < 2:
+        return pos.copy(), quat.copy()
+    times = np.minimum(np.arange(len(pos)) + lead_frames, len(pos) - 1)
+    i0 = np.minimum(np.floor(times).astype(np.int64), len(pos) - 2)
+    u = times - i0
+    led_pos = (1 - u)[:, None] * pos[i0] + u[:, None] * pos[i0 + 1]
+    return led_pos, slerp(quat[i0], quat[i0 + 1], u)
+
+
 def substep_controls(scene: Scene, targets: Mapping[Any, HandTargets]) -> Controls:
     """Per-substep controls taking the hands from frame 0 to frame F-1 of ``targets`` ((F-1)·spf steps)."""
     model = scene.model
@@ -114,12 +130,14 @@ def substep_controls(scene: Scene, targets: Mapping[Any, HandTargets]) -> Contro
     mocap_pos = np.zeros((steps, model.nmocap, 3))
     mocap_quat = np.zeros((steps, model.nmocap, 4))
     mocap_quat[..., 0] = 1.0
+    lead = scene.config.wrist_lead_frames(spf)
     for side, h in scene.hands.items():
         t = targets[side]
         q = (1 - alpha)[:, None] * t.q[f] + alpha[:, None] * t.q[f + 1]
         ctrl[:, h.actuator_ids] = np.clip(q, JOINT_LOWER, JOINT_UPPER)
-        mocap_pos[:, h.mocap_id] = (1 - alpha)[:, None] * t.wrist_pos[f] + alpha[:, None] * t.wrist_pos[f + 1]
-        mocap_quat[:, h.mocap_id] = slerp(t.wrist_quat[f], t.wrist_quat[f + 1], alpha)
+        wrist_pos, wrist_quat = lead_track(t.wrist_pos, t.wrist_quat, lead)
+        mocap_pos[:, h.mocap_id] = (1 - alpha)[:, None] * wrist_pos[f] + alpha[:, None] * wrist_pos[f + 1]
+        mocap_quat[:, h.mocap_id] = slerp(wrist_quat[f], wrist_quat[f + 1], alpha)
     return Controls(ctrl=ctrl, mocap_pos=mocap_pos, mocap_quat=mocap_quat)
 
 

@@ -114,6 +114,7 @@ def prepare(seq: Sequence, options: JobOptions, config: Any = None, rotation_piv
     """``rotation_pivot``: ``ROTATION_PIVOT`` when None (``verify`` passes the one a result was made with)."""
     from worker.retarget import retarget_sequence
     from worker.scene import SimConfig, build_scene
+    from worker.simulation import lead_track
 
     config = config or SimConfig()
     references = retarget_sequence(seq)
@@ -133,21 +134,25 @@ def prepare(seq: Sequence, options: JobOptions, config: Any = None, rotation_piv
     for r in references:
         mask, local = contact_targets(r.keypoints, r.valid, pose[:, :3], pose[:, 3:], surface, FINGERTIP_INDICES)
         hands[r.side] = HandTargets(r.keypoints, r.valid, FINGERTIP_INDICES, mask, local)
-    spaces: dict[str, HandControlSpace] = {
-        r.side: HandControlSpace(
+    # The mocap runs ahead of the wrist track by the weld's lag (``SimConfig.wrist_lead_s``), as in the raw
+    # replay (``worker.simulation.substep_controls``); the pivot moves with it so the hand turns about its centre.
+    lead = config.wrist_lead_frames(scene.substeps_per_frame)
+    spaces: dict[str, HandControlSpace] = {}
+    for r in references:
+        wrist_pos, wrist_quat = lead_track(r.wrist_pos, r.wrist_quat, lead)
+        pivot = pivot_track(pivot_kind, r.keypoints, hands[r.side].joint_weights)
+        spaces[r.side] = HandControlSpace(
             side=r.side,
             q_ref=r.q,
-            wrist_pos=r.wrist_pos,
-            wrist_quat=r.wrist_quat,
+            wrist_pos=wrist_pos,
+            wrist_quat=wrist_quat,
             q_limits=np.asarray(JOINT_LIMITS, dtype=np.float64),
             basis=bases[r.side],
             interval=interval,
             substeps=scene.substeps_per_frame,
             free_translation=options.free_wrist_translation,
-            pivot=pivot_track(pivot_kind, r.keypoints, hands[r.side].joint_weights),
+            pivot=None if pivot is None else lead_track(pivot, r.wrist_quat, lead)[0],
         )
-        for r in references
-    }
     return Prepared(seq, options, interval, references, scene, layout, spaces, obj, hands, provenance, pivot_kind)
 
 
