@@ -35,6 +35,10 @@ class SimConfig:
     #: the light finger segments stay stable; the servo behaves like a first-order lag of kv/kp = 60 ms.
     finger_kp: float = 50.0
     finger_kv: float = 3.0
+    #: Seconds the hinge servo targets run ahead of the reference hinge track: the servos trail a moving target
+    #: by kv/kp = 60 ms (less the timestep by which each substep's target leads), so without it a closing grasp
+    #: reaches the object late. 0 drives the servos along the reference itself.
+    finger_lead_s: float = 0.056
     #: Hinge armature (kg·m²) and passive damping. The armature matters: with light segments alone (1e-4) the
     #: contact solver resolves penetration by throwing the fingers back instead of building grip force, and raw
     #: replay of DexYCB lifts nothing (0/16); 3e-3 lifts 4/16 with the same hand tracking and steps faster.
@@ -61,6 +65,10 @@ class SimConfig:
     #: marker recorded 19 degrees up on one end falls flat on a level table before the hand arrives); the table
     #: friction holds the object up to atan(0.8) = 39 degrees.
     table_max_tilt_deg: float = 25.0
+
+    def finger_lead_frames(self, substeps_per_frame: int) -> float:
+        """``finger_lead_s`` in video frames of ``substeps_per_frame`` physics steps."""
+        return self.finger_lead_s / (substeps_per_frame * self.timestep)
 
     def wrist_lead_frames(self, substeps_per_frame: int) -> float:
         """``wrist_lead_s`` in video frames of ``substeps_per_frame`` physics steps."""

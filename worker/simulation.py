@@ -101,15 +101,31 @@ def lead_track(pos: FloatArray, quat: FloatArray, lead_frames: float) -> tuple[F
     """The per-frame wrist track (F,3) / (F,4) sampled ``lead_frames`` ahead, linearly / by slerp, holding
     the last frame: the mocap track under which a welded palm that trails its target by that time follows
     the track itself (``SimConfig.wrist_lead_s``). A lead of 0 returns the track unchanged (bit for bit)."""
+    i0, u = _lead_samples(len(pos), lead_frames)
+    if u is None:
+        return pos.copy(), quat.copy()
+    return lead_values(pos, lead_frames), slerp(quat[i0], quat[i0 + 1], u)
+
+
+def lead_values(values: FloatArray, lead_frames: float) -> FloatArray:
+    """A per-frame track (F, ...) sampled ``lead_frames`` ahead, linearly, holding the last frame (the hinge
+    targets' lead, ``SimConfig.finger_lead_s``). A lead of 0 returns the track unchanged (bit for bit)."""
+    i0, u = _lead_samples(len(values), lead_frames)
+    if u is None:
+        return values.copy()
+    w = u.reshape((-1,) + (1,) * (values.ndim - 1))
+    return np.asarray((1 - w) * values[i0] + w * values[i0 + 1])
+
+
+def _lead_samples(n: int, lead_frames: float) -> tuple[np.ndarray, FloatArray | None]:
+    """Left sample index and fraction of every frame moved ``lead_frames`` ahead (None: nothing to move)."""
     if lead_frames < 0:
         raise ValueError(f"lead_frames must be >= 0, got {lead_frames}")
-    if lead_frames == 0 or len(pos) < 2:
-        return pos.copy(), quat.copy()
-    times = np.minimum(np.arange(len(pos)) + lead_frames, len(pos) - 1)
-    i0 = np.minimum(np.floor(times).astype(np.int64), len(pos) - 2)
-    u = times - i0
-    led_pos = (1 - u)[:, None] * pos[i0] + u[:, None] * pos[i0 + 1]
-    return led_pos, slerp(quat[i0], quat[i0 + 1], u)
+    if lead_frames == 0 or n < 2:
+        return np.arange(n), None
+    times = np.minimum(np.arange(n) + lead_frames, n - 1)
+    i0 = np.minimum(np.floor(times).astype(np.int64), n - 2)
+    return i0, times - i0
 
 
 def substep_controls(scene: Scene, targets: Mapping[Any, HandTargets]) -> Controls:
@@ -131,9 +147,11 @@ def substep_controls(scene: Scene, targets: Mapping[Any, HandTargets]) -> Contro
     mocap_quat = np.zeros((steps, model.nmocap, 4))
     mocap_quat[..., 0] = 1.0
     lead = scene.config.wrist_lead_frames(spf)
+    finger_lead = scene.config.finger_lead_frames(spf)
     for side, h in scene.hands.items():
         t = targets[side]
-        q = (1 - alpha)[:, None] * t.q[f] + alpha[:, None] * t.q[f + 1]
+        hinge = lead_values(t.q, finger_lead)
+        q = (1 - alpha)[:, None] * hinge[f] + alpha[:, None] * hinge[f + 1]
         ctrl[:, h.actuator_ids] = np.clip(q, JOINT_LOWER, JOINT_UPPER)
         wrist_pos, wrist_quat = lead_track(t.wrist_pos, t.wrist_quat, lead)
         mocap_pos[:, h.mocap_id] = (1 - alpha)[:, None] * wrist_pos[f] + alpha[:, None] * wrist_pos[f + 1]

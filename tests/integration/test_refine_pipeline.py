@@ -202,24 +202,29 @@ def test_verify_re_simulates_with_the_rotation_pivot_the_result_was_made_with(
         prepare(seq, JobOptions(), rotation_pivot="elbow")
 
 
-def test_verify_re_simulates_with_the_wrist_lead_the_result_was_made_with(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Results made before the wrist lead existed drove the mocap along the wrist track itself (lead 0) and
-    record no ``wrist_lead_s``: they still verify, and claiming the default lead for them fails."""
+def test_verify_re_simulates_with_the_leads_the_result_was_made_with(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Results made before the wrist and finger leads existed drove the mocap and the servos along the
+    reference itself (leads 0) and record neither: they still verify, and claiming a lead for them fails."""
     import worker.refine.run as run_module
+    from worker.example import short_example_sequence
     from worker.scene import SimConfig
 
-    seq = push_sequence(frames=16)
-    monkeypatch.setattr(run_module, "prepare", lambda s, o: prepare(s, o, SimConfig(wrist_lead_s=0.0)))
+    seq = short_example_sequence()  # a grasp and lift: the wrist moves and the fingers close
+    unled = SimConfig(wrist_lead_s=0.0, finger_lead_s=0.0)
+    monkeypatch.setattr(run_module, "prepare", lambda s, o: prepare(s, o, unled))
     old = refine_sequence(seq, JobOptions(popsize=4, max_generations=1, restarts=0), threads=1)
     monkeypatch.undo()
     sim = old.summary["config"]["sim"]
-    assert sim["wrist_lead_s"] == 0.0
+    assert sim["wrist_lead_s"] == 0.0 and sim["finger_lead_s"] == 0.0
+    leads = ("wrist_lead_s", "finger_lead_s")
     unrecorded = {**old.summary, "config": {**old.summary["config"], "sim": {k: v for k, v in sim.items()
-                                                                            if k != "wrist_lead_s"}}}
+                                                                            if k not in leads}}}
     assert verify_result(RefineOutcome(old.arrays, unrecorded).to_npz_bytes())["max_pos_diff_m"] == 0.0
-    as_if_led = {**old.summary, "config": {**old.summary["config"], "sim": {**sim, "wrist_lead_s": 0.016}}}
-    with pytest.raises(ResultMismatchError):
-        verify_result(RefineOutcome(old.arrays, as_if_led).to_npz_bytes())
+    for lead in leads:
+        claimed = {**old.summary, "config": {**old.summary["config"], "sim": {**sim, lead: 0.016}}}
+        with pytest.raises(ResultMismatchError):
+            verify_result(RefineOutcome(old.arrays, claimed).to_npz_bytes())
     new = refine_sequence(seq, JobOptions(popsize=4, max_generations=1, restarts=0), threads=1)
     assert new.summary["config"]["sim"]["wrist_lead_s"] == SimConfig().wrist_lead_s > 0
+    assert new.summary["config"]["sim"]["finger_lead_s"] == SimConfig().finger_lead_s > 0
     assert verify_result(new.to_npz_bytes())["max_pos_diff_m"] == 0.0

@@ -114,7 +114,7 @@ def prepare(seq: Sequence, options: JobOptions, config: Any = None, rotation_piv
     """``rotation_pivot``: ``ROTATION_PIVOT`` when None (``verify`` passes the one a result was made with)."""
     from worker.retarget import retarget_sequence
     from worker.scene import SimConfig, build_scene
-    from worker.simulation import lead_track
+    from worker.simulation import lead_track, lead_values
 
     config = config or SimConfig()
     references = retarget_sequence(seq)
@@ -143,7 +143,7 @@ def prepare(seq: Sequence, options: JobOptions, config: Any = None, rotation_piv
         pivot = pivot_track(pivot_kind, r.keypoints, hands[r.side].joint_weights)
         spaces[r.side] = HandControlSpace(
             side=r.side,
-            q_ref=r.q,
+            q_ref=lead_values(r.q, config.finger_lead_frames(scene.substeps_per_frame)),
             wrist_pos=wrist_pos,
             wrist_quat=wrist_quat,
             q_limits=np.asarray(JOINT_LIMITS, dtype=np.float64),

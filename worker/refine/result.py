@@ -167,6 +167,7 @@ def verify_result(blob: bytes, sequence: Sequence | None = None) -> dict[str, An
     # Results made before the pivot was recorded turned the hand about the wrist; before the wrist lead was
     # recorded, the mocap followed the wrist track itself.
     sim.setdefault("wrist_lead_s", 0.0)
+    sim.setdefault("finger_lead_s", 0.0)
     prep = prepare(sequence, options, SimConfig(**sim), rotation_pivot=summary["config"].get("rotation_pivot", "wrist"))
     keyframes = {}
     for side, space in prep.spaces.items():
