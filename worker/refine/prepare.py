@@ -25,8 +25,10 @@ from worker.refine.problem import SimLayout
 from worker.refine.spline import FloatArray, default_keyframe_interval
 
 #: Defaults chosen for the speed budget (2 shared cores, <= 60 s for 72 frames at 30 fps); see bench/refine.py.
+#: 10 generations rather than 6: on dev40 E_t 0.58 -> 0.50 cm and E_r 2.78 -> 2.63 deg for a median of 30 s
+#: instead of 21 s per sequence (bench/results/refine_dev.md).
 DEFAULT_POPSIZE = 10
-DEFAULT_MAX_GENERATIONS = 6
+DEFAULT_MAX_GENERATIONS = 10
 #: What the wrist rotation offset turns the hand about (``controls``): "hand", the centroid of the reference
 #: keypoints weighted as the ``hand_joints`` loss weighs them (fingertips x2; the point about which a small
 #: rotation moves the keypoints least, and near the centre of a grasp); "wrist", DESIGN §1.3 as written (a held
