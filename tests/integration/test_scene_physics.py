@@ -8,10 +8,10 @@ import pytest
 
 from common.sequence import HandTrack, ObjectSpec, Sequence
 from worker.hand_model import JOINT_LOWER, JOINT_UPPER, default_geometry, forward_keypoints
-from worker.retarget import retarget_sequence
-from worker.scene import SimConfig, build_scene
+from worker.retarget import HandReference, retarget_sequence
+from worker.scene import Scene, SimConfig, build_scene
 from worker.sim_config import HAND_BIT, OBJECT_BIT, TABLE_BIT
-from worker.simulation import HandTargets, initial_state, lead_track, rollout, substep_controls
+from worker.simulation import HandTargets, RolloutRecord, initial_state, lead_track, rollout, substep_controls
 from worker.table_fit import fit_table
 
 
@@ -37,6 +37,17 @@ def _box_sequence(
         hands=hands,
         world_from_source=np.eye(4),
     ).validate()
+
+
+def _replay(seq: Sequence, config: SimConfig | None = None) -> tuple[list[HandReference], Scene, RolloutRecord]:
+    """Retarget ``seq``, build its scene and replay the reference from the frame-0 state."""
+    refs = retarget_sequence(seq)
+    scene = build_scene(seq, refs, config)
+    data = scene.make_data()
+    targets = {r.side: HandTargets.from_reference(r) for r in refs}
+    state, _ = initial_state(scene, data, targets)
+    controls = substep_controls(scene, targets)
+    return refs, scene, rollout(scene, data, state, controls.ctrl, controls.mocap_pos, controls.mocap_quat)
 
 
 def test_box_on_table_normal_forces_sum_to_weight() -> None:
@@ -71,13 +82,7 @@ def test_a_tilted_recorded_start_rests_as_recorded_on_a_table_laid_under_it(max_
     """A box recorded 4 degrees tilted and 3 mm afloat (vision error): with the support plane it stays exactly
     where it was recorded, held by friction; with a level table (limit 0) it falls flat."""
     seq = _box_sequence(frames=10, tilt_deg=4.0, z=0.036)
-    refs = retarget_sequence(seq)
-    scene = build_scene(seq, refs, SimConfig(table_max_tilt_deg=max_tilt))
-    data = scene.make_data()
-    targets = {r.side: HandTargets.from_reference(r) for r in refs}
-    state, _ = initial_state(scene, data, targets)
-    controls = substep_controls(scene, targets)
-    rec = rollout(scene, data, state, controls.ctrl, controls.mocap_pos, controls.mocap_quat)
+    _, scene, rec = _replay(seq, SimConfig(table_max_tilt_deg=max_tilt))
     ref_quat = seq.object_pose_world()[0, 3:]
     angle = np.degrees(2 * np.arccos(np.clip(np.abs(rec.object_pose[:, 3:] @ ref_quat), 0, 1)))
     drift = np.linalg.norm(rec.object_pose[:, :3] - seq.object_pose_world()[0, :3], axis=1)
@@ -94,13 +99,7 @@ def test_an_object_recorded_leaning_gets_a_table_under_it_up_to_the_limit(lean_d
     """A box recorded 18 degrees up (leaning on something the scene does not hold) rests as recorded with the
     default config; past the limit (35 > 25 degrees) the table stays level and the box falls flat."""
     seq = _box_sequence(frames=10, tilt_deg=lean_deg, z=0.045)
-    refs = retarget_sequence(seq)
-    scene = build_scene(seq, refs)
-    data = scene.make_data()
-    targets = {r.side: HandTargets.from_reference(r) for r in refs}
-    state, _ = initial_state(scene, data, targets)
-    controls = substep_controls(scene, targets)
-    rec = rollout(scene, data, state, controls.ctrl, controls.mocap_pos, controls.mocap_quat)
+    _, scene, rec = _replay(seq)
     ref_quat = seq.object_pose_world()[0, 3:]
     angle = np.degrees(2 * np.arccos(np.clip(np.abs(rec.object_pose[:, 3:] @ ref_quat), 0, 1)))
     if tilted:
@@ -143,13 +142,7 @@ def test_the_wrist_lead_makes_the_welded_palm_follow_a_fast_wrist_track(
     q = np.tile(np.linspace(0, 0.3, 45), (frames, 1))
     kp = forward_keypoints(default_geometry("right"), pos, quat, q)  # type: ignore[arg-type]
     seq.hands = [HandTrack(side="right", valid=np.ones(frames, dtype=bool), keypoints=kp)]  # type: ignore[arg-type]
-    refs = retarget_sequence(seq.validate())
-    scene = build_scene(seq, refs, SimConfig(wrist_lead_s=lead_s))
-    data = scene.make_data()
-    targets = {r.side: HandTargets.from_reference(r) for r in refs}
-    state, _ = initial_state(scene, data, targets)
-    controls = substep_controls(scene, targets)
-    rec = rollout(scene, data, state, controls.ctrl, controls.mocap_pos, controls.mocap_quat)
+    refs, _, rec = _replay(seq.validate(), SimConfig(wrist_lead_s=lead_s))
     # Keypoint error once the palm has reached its steady lag (frames 5..14; the last frame holds still).
     err = np.linalg.norm(rec.keypoints["right"][5:15] - refs[0].keypoints[5:15], axis=2).mean(axis=1)
     if lead_s == 0.0:
@@ -169,13 +162,7 @@ def test_the_finger_lead_makes_the_servoed_fingers_follow_a_closing_hand(lead_s:
     quat = np.tile([1.0, 0.0, 0.0, 0.0], (frames, 1))
     kp = forward_keypoints(default_geometry("right"), pos, quat, np.outer(0.9 * t, np.ones(45)))  # type: ignore[arg-type]
     seq.hands = [HandTrack(side="right", valid=np.ones(frames, dtype=bool), keypoints=kp)]  # type: ignore[arg-type]
-    refs = retarget_sequence(seq.validate())
-    scene = build_scene(seq, refs, SimConfig(finger_lead_s=lead_s))
-    data = scene.make_data()
-    targets = {r.side: HandTargets.from_reference(r) for r in refs}
-    state, _ = initial_state(scene, data, targets)
-    controls = substep_controls(scene, targets)
-    rec = rollout(scene, data, state, controls.ctrl, controls.mocap_pos, controls.mocap_quat)
+    refs, _, rec = _replay(seq.validate(), SimConfig(finger_lead_s=lead_s))
     err = np.linalg.norm(rec.keypoints["right"][6:18] - refs[0].keypoints[6:18], axis=2).mean()
     if lead_s == 0.0:
         assert err > 0.004
