@@ -66,13 +66,10 @@ class SimConfig:
     #: friction holds the object up to atan(0.8) = 39 degrees.
     table_max_tilt_deg: float = 25.0
 
-    def finger_lead_frames(self, substeps_per_frame: int) -> float:
-        """``finger_lead_s`` in video frames of ``substeps_per_frame`` physics steps."""
-        return self.finger_lead_s / (substeps_per_frame * self.timestep)
-
-    def wrist_lead_frames(self, substeps_per_frame: int) -> float:
-        """``wrist_lead_s`` in video frames of ``substeps_per_frame`` physics steps."""
-        return self.wrist_lead_s / (substeps_per_frame * self.timestep)
+    def lead_frames(self, substeps_per_frame: int) -> tuple[float, float]:
+        """(``wrist_lead_s``, ``finger_lead_s``) in video frames of ``substeps_per_frame`` physics steps."""
+        frame_s = substeps_per_frame * self.timestep
+        return self.wrist_lead_s / frame_s, self.finger_lead_s / frame_s
 
     def substeps_per_frame(self, fps: float) -> int:
         """Physics steps per video frame (8 at 30 fps with the 1/240 s timestep)."""

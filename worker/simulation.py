@@ -9,8 +9,9 @@ ever placed at frame 0 (``initial_state``); afterwards it moves only through con
 
 Controls (``substep_controls``): hinge targets and wrist positions are interpolated linearly between frames,
 wrist rotations by slerp; substep s of frame f uses the fraction (s + 1) / substeps_per_frame towards frame
-f + 1, so the last substep of a frame reaches the next frame's targets exactly. The wrist's mocap track is the
-wrist track sampled ``SimConfig.wrist_lead_s`` ahead (``lead_track``), so the welded palm follows the track.
+f + 1, so the last substep of a frame reaches the next frame's targets exactly. The wrist's mocap track and the
+hinge targets are their reference tracks sampled ``SimConfig.wrist_lead_s`` / ``finger_lead_s`` ahead
+(``lead_track``, ``lead_values``), so the welded palm and the servoed fingers follow the reference.
 """
 
 from __future__ import annotations
@@ -146,8 +147,7 @@ def substep_controls(scene: Scene, targets: Mapping[Any, HandTargets]) -> Contro
     mocap_pos = np.zeros((steps, model.nmocap, 3))
     mocap_quat = np.zeros((steps, model.nmocap, 4))
     mocap_quat[..., 0] = 1.0
-    lead = scene.config.wrist_lead_frames(spf)
-    finger_lead = scene.config.finger_lead_frames(spf)
+    lead, finger_lead = scene.config.lead_frames(spf)
     for side, h in scene.hands.items():
         t = targets[side]
         hinge = lead_values(t.q, finger_lead)

@@ -253,12 +253,11 @@ def test_substep_controls_interpolate_to_the_next_frame() -> None:
     # With the default leads the mocap and the hinge targets run ahead along their tracks.
     led_scene = build_scene(seq, refs)
     led = substep_controls(led_scene, targets)
-    lead = led_scene.config.wrist_lead_frames(spf)
+    lead, finger = led_scene.config.lead_frames(spf)
     wrist = targets["right"].wrist_pos
     assert 0 < lead < 1
     np.testing.assert_allclose(led.mocap_pos[2 * spf - 1, h.mocap_id], wrist[2] + lead * (wrist[3] - wrist[2]))
     np.testing.assert_allclose(led.mocap_pos[-1, h.mocap_id], wrist[3])  # held at the last frame
-    finger = led_scene.config.finger_lead_frames(spf)
     hinge = targets["right"].q
     assert 1 < finger < 2
     expected = np.clip(hinge[2] + (finger - 1) * (hinge[3] - hinge[2]), JOINT_LOWER, JOINT_UPPER)

@@ -136,16 +136,17 @@ def prepare(seq: Sequence, options: JobOptions, config: Any = None, rotation_piv
     for r in references:
         mask, local = contact_targets(r.keypoints, r.valid, pose[:, :3], pose[:, 3:], surface, FINGERTIP_INDICES)
         hands[r.side] = HandTargets(r.keypoints, r.valid, FINGERTIP_INDICES, mask, local)
-    # The mocap runs ahead of the wrist track by the weld's lag (``SimConfig.wrist_lead_s``), as in the raw
-    # replay (``worker.simulation.substep_controls``); the pivot moves with it so the hand turns about its centre.
-    lead = config.wrist_lead_frames(scene.substeps_per_frame)
+    # The mocap and the servo targets run ahead of their tracks by the weld's and the servos' lags
+    # (``SimConfig.wrist_lead_s`` / ``finger_lead_s``), as in the raw replay (``worker.simulation.substep_controls``);
+    # the pivot moves with the wrist so the hand turns about its centre.
+    lead, finger_lead = config.lead_frames(scene.substeps_per_frame)
     spaces: dict[str, HandControlSpace] = {}
     for r in references:
         wrist_pos, wrist_quat = lead_track(r.wrist_pos, r.wrist_quat, lead)
         pivot = pivot_track(pivot_kind, r.keypoints, hands[r.side].joint_weights)
         spaces[r.side] = HandControlSpace(
             side=r.side,
-            q_ref=lead_values(r.q, config.finger_lead_frames(scene.substeps_per_frame)),
+            q_ref=lead_values(r.q, finger_lead),
             wrist_pos=wrist_pos,
             wrist_quat=wrist_quat,
             q_limits=np.asarray(JOINT_LIMITS, dtype=np.float64),
@@ -153,7 +154,7 @@ def prepare(seq: Sequence, options: JobOptions, config: Any = None, rotation_piv
             interval=interval,
             substeps=scene.substeps_per_frame,
             free_translation=options.free_wrist_translation,
-            pivot=None if pivot is None else lead_track(pivot, r.wrist_quat, lead)[0],
+            pivot=None if pivot is None else lead_values(pivot, lead),
         )
     return Prepared(seq, options, interval, references, scene, layout, spaces, obj, hands, provenance, pivot_kind)
 
