@@ -47,6 +47,13 @@ def mesh_inertia(vertices: FloatArray, faces: np.ndarray, mass: float) -> tuple[
     return np.asarray(mesh.center_mass, dtype=np.float64), np.asarray(mesh.moment_inertia, dtype=np.float64)
 
 
+def centre_of_mass(obj: ObjectSpec) -> FloatArray:
+    """Where the simulated body's mass centre is, in the object frame (a primitive's is its origin)."""
+    if obj.mesh_vertices is None or obj.mesh_faces is None:
+        return np.zeros(3)
+    return mesh_inertia(obj.mesh_vertices, obj.mesh_faces, obj.mass_kg)[0]
+
+
 def object_mjcf(obj: ObjectSpec, config: SimConfig, pos: FloatArray, quat: FloatArray) -> ObjectMjcf:
     """Assets and body XML of the object placed at ``pos`` (3,) / ``quat`` (4,) wxyz."""
     friction = obj.friction if obj.friction is not None else config.object_friction

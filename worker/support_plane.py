@@ -51,7 +51,9 @@ class SupportPlane:
         return cls(point=np.array([0.0, 0.0, height]), normal=np.array([0.0, 0.0, 1.0]), tilt_deg=0.0)
 
 
-def support_candidates(vertices_world: FloatArray, max_tilt_deg: float, limit: int = 6) -> list[SupportPlane]:
+def support_candidates(
+    vertices_world: FloatArray, max_tilt_deg: float, limit: int = 6, centre_of_mass: FloatArray | None = None
+) -> list[SupportPlane]:
     """Faces of ``vertices_world`` (N, 3) the object could rest on as recorded, most nearly level first.
 
     Candidates are the faces of the convex hull (exactly coplanar triangles merged) whose outward normal is
@@ -59,6 +61,10 @@ def support_candidates(vertices_world: FloatArray, max_tilt_deg: float, limit: i
     the face (a box's bottom, not the tiny facets of its rounded edges, which it would tip off). Whether the
     body then really stays put (a lying cylinder balanced on one narrow strip of its polygonal side does not)
     is for ``worker.table_fit`` to find out by simulation.
+
+    ``centre_of_mass`` (world, 3) is where the simulated body's mass is: for a non-convex object (banana, clamp,
+    pitcher) the solid mesh's centre lies 1-2 cm from its hull's, enough to pick a face the body tips off. Without
+    it, the hull's volume centroid (right for a convex object) stands in.
     """
     from scipy.spatial import ConvexHull
 
@@ -66,7 +72,7 @@ def support_candidates(vertices_world: FloatArray, max_tilt_deg: float, limit: i
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 4:
         raise ValueError(f"vertices_world must be (N>=4, 3), got {pts.shape}")
     hull = ConvexHull(pts)
-    com = _hull_centroid(pts, hull.simplices)
+    com = _hull_centroid(pts, hull.simplices) if centre_of_mass is None else np.asarray(centre_of_mass, float)
     normals, offsets = hull.equations[:, :3], hull.equations[:, 3]
     tilts = np.degrees(np.arccos(np.clip(-normals[:, 2], -1.0, 1.0)))
     out: list[SupportPlane] = []

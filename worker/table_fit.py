@@ -17,7 +17,7 @@ import numpy as np
 from common.sequence import Sequence
 from worker.hand_mjcf import fmt
 from worker.hand_model import FloatArray, quat_to_matrix
-from worker.object_model import OBJECT_JOINT, object_mjcf
+from worker.object_model import OBJECT_JOINT, centre_of_mass, object_mjcf
 from worker.sim_config import OBJECT_BIT, TABLE_BIT, SimConfig
 from worker.support_plane import SupportPlane, support_candidates
 
@@ -63,7 +63,8 @@ def fit_table(seq: Sequence, config: SimConfig) -> tuple[FloatArray, SupportPlan
     level = (level_start_pose(recorded, verts, config), SupportPlane.level())
     if config.table_max_tilt_deg <= 0:
         return level
-    tilted = support_candidates(verts, config.table_max_tilt_deg, limit=MAX_CANDIDATES)
+    com = quat_to_matrix(recorded[3:]) @ centre_of_mass(seq.object) + recorded[:3]
+    tilted = support_candidates(verts, config.table_max_tilt_deg, limit=MAX_CANDIDATES, centre_of_mass=com)
     if not tilted:
         return level
     candidates = [level] + [(recorded, plane) for plane in tilted]
