@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -58,6 +60,59 @@ def test_lying_cylinder_offers_the_strip_under_its_centre() -> None:
     verts[:, 2] += 0.01
     (plane,) = support_candidates(verts, max_tilt_deg=10.0)  # only one strip holds the centre
     assert plane.tilt_deg < 360 / 48 / 2 + 1e-6
+
+
+def test_the_face_must_hold_the_given_centre_of_mass() -> None:
+    """A non-convex body's mass centre is not its hull's: a face under the hull centroid that the real centre
+    overhangs is no support (the body would tip off it), and the real centre decides."""
+    verts = _posed(_box_vertices((0.05, 0.03, 0.02)), (np.radians(4.0), 0.0, 0.0), (0.1, 0.2, 0.025))
+    centre = verts.mean(axis=0)
+    (plane,) = support_candidates(verts, max_tilt_deg=10.0, centre_of_mass=centre + np.array([0.04, 0.0, 0.0]))
+    assert plane.tilt_deg == pytest.approx(4.0, abs=0.05)
+    assert support_candidates(verts, max_tilt_deg=10.0, centre_of_mass=centre + np.array([0.06, 0.0, 0.0])) == []
+
+
+def _l_prism() -> Any:
+    """A watertight L-shaped prism (10 x 10 cm arms 1 cm thick, 4 cm deep): a simple non-convex solid."""
+    import trimesh
+
+    outline = np.array([[0, 0], [10, 0], [10, 1], [1, 1], [1, 10], [0, 10]], dtype=float) / 100  # (x, z)
+    n = len(outline)
+    verts = np.array([[x, y, z] for y in (-0.02, 0.02) for x, z in outline])
+    cap = [[0, i, i + 1] for i in range(1, n - 1)]  # a fan from the outer corner (vertex 0) covers the L
+    faces = cap + [[n + a, n + c, n + b] for a, b, c in cap]
+    for i in range(n):
+        j = (i + 1) % n
+        faces += [[i, n + i, j], [j, n + i, n + j]]
+    mesh = trimesh.Trimesh(vertices=verts, faces=faces, process=True)
+    mesh.fix_normals()
+    assert mesh.is_watertight
+    return mesh
+
+
+def test_centre_of_mass_is_the_simulated_body_s() -> None:
+    """The centre the table fit checks is the one MuJoCo gives the body: for an L-shaped solid, 1 cm from the
+    centroid of its hull."""
+    import mujoco
+
+    from common.sequence import ObjectSpec
+    from worker.object_model import centre_of_mass, object_mjcf
+    from worker.scene import SimConfig
+    from worker.support_plane import _hull_centroid
+
+    ell = _l_prism()
+    obj = ObjectSpec(name="ell", mass_kg=0.2, mesh_vertices=np.asarray(ell.vertices), mesh_faces=np.asarray(ell.faces))
+    mjcf = object_mjcf(obj, SimConfig(), np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]))
+    model = mujoco.MjModel.from_xml_string(
+        f"<mujoco><asset>{mjcf.assets}</asset><worldbody>{mjcf.body}</worldbody></mujoco>")
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    com = centre_of_mass(obj)
+    np.testing.assert_allclose(data.xipos[-1], com, atol=1e-9)
+    from scipy.spatial import ConvexHull
+
+    hull = ConvexHull(ell.vertices)
+    assert np.linalg.norm(_hull_centroid(np.asarray(ell.vertices), hull.simplices) - com) > 0.01
 
 
 def test_plane_quaternion_maps_z_to_the_normal() -> None:
