@@ -38,7 +38,7 @@ class JobOptions(BaseModel):
     restarts: int = Field(
         default=2, ge=0, le=5,
         description="Refine again with another seed when the result fails the success criterion (every frame "
-        "within 3 cm / 30 deg) or its mean object error stays above 1 cm / 4 deg; the best attempt is kept",
+        "within 3 cm / 30 deg); the best attempt is kept",
     )  # fmt: skip
     priority: int = Field(default=0, ge=-100, le=100, description="Higher runs first (queue only)")
 

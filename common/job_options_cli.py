@@ -47,8 +47,8 @@ def add_job_option_arguments(parser: argparse.ArgumentParser, queue: bool = Fals
     g.add_argument("--free-wrist-translation", action="store_true", help="also optimise a wrist translation offset")
     g.add_argument(
         "--restarts", type=int, default=2,
-        help="refine again with another seed when the result fails (every frame within 3 cm / 30 deg) or its mean "
-        "object error stays above 1 cm / 4 deg, up to N times, keeping the best (default 2; 0 disables)",
+        help="refine again with another seed when the result fails (every frame within 3 cm / 30 deg), up to N "
+        "times, keeping the best (default 2; 0 disables)",
     )  # fmt: skip
     if queue:
         g.add_argument("--priority", type=int, default=0, help="queue priority, -100..100 (higher runs first)")

@@ -33,14 +33,6 @@ __all__ = ["ParallelEvaluator", "RefineOutcome", "RefineProgress", "ReplayRecord
 #: success and lowered E_t elsewhere, for 28% more simulated steps; see bench/results/refine_dev.md).
 LOOKAHEAD = 2
 
-#: A successful attempt whose mean object error is still above these is refined again too (while
-#: ``options.restarts`` allows): well outside the 0.6 cm / 2.5 deg the refinement aims at on average, i.e. a
-#: sequence that holds the object but lets it turn or sag in the grasp, where another random stream may find a
-#: firmer grasp (the best attempt is kept, so a retry never makes the result worse by the ranking below). Most
-#: sequences are within both after their first attempt and pay nothing.
-RETRY_ABOVE_E_T_CM = 1.0
-RETRY_ABOVE_E_R_DEG = 4.0
-
 #: Skip a window when no hand touches the object and its loss per frame is below this (see windowed).
 SKIP_LOSS_PER_FRAME = 0.3
 #: Windows whose best loss per frame stays above this get a second, larger CMA-ES run (``windowed``). 2.5 per
@@ -136,9 +128,8 @@ def refine_sequence(
     """Refine one sequence; see the module docstring. ``should_stop`` is polled once per CMA-ES generation
     (``JobCancelledError`` when it answers True). ``evaluator`` lets a long-lived worker reuse its pool.
 
-    When the refined replay fails the success criterion, or succeeds with a mean object error above
-    ``RETRY_ABOVE_E_T_CM`` / ``RETRY_ABOVE_E_R_DEG``, and ``options.restarts`` allows, the whole window loop runs
-    again from zero offsets with another seed (``attempt_seed``): the greedy sliding window cannot undo a
+    When the refined replay fails the success criterion and ``options.restarts`` allows, the whole window loop
+    runs again from zero offsets with another seed (``attempt_seed``): the greedy sliding window cannot undo a
     committed keyframe, and a grasp lost in one window is often kept by another random stream. The best attempt
     (success first, then the lower mean object error) is the result; every attempt is listed in the summary.
     """
@@ -183,7 +174,7 @@ def refine_sequence(
                              "evaluations": int(sum(w.evaluations for w in logs))})
             if best is None or rank(m) > rank(best.metrics):
                 best = this
-            if good_enough(m):
+            if m["success"]:
                 break
         assert best is not None
         keyframes, logs, final, settings, m_ref = best.keyframes, best.logs, best.final, best.settings, best.metrics
@@ -237,11 +228,6 @@ def _with_attempt(progress: Callable[[RefineProgress], None], attempt: int) -> C
         progress(replace(p, attempt=attempt))
 
     return report
-
-
-def good_enough(m: dict[str, Any]) -> bool:
-    """Whether an attempt's metrics end the restarts: success and the mean object error within the retry bars."""
-    return bool(m["success"]) and m["E_t"] <= RETRY_ABOVE_E_T_CM and m["E_r"] <= RETRY_ABOVE_E_R_DEG
 
 
 def skipped_windows(logs: list[WindowLog]) -> int:
