@@ -63,7 +63,7 @@ def support_candidates(
     is for ``worker.table_fit`` to find out by simulation.
 
     ``centre_of_mass`` (world, 3) is where the simulated body's mass is: for a non-convex object (banana, clamp,
-    pitcher) the solid mesh's centre lies 1-2 cm from its hull's, enough to pick a face the body tips off. Without
+    pitcher) the solid mesh's centre lies 7-24 mm from its hull's, enough to pick a face the body tips off. Without
     it, the hull's volume centroid (right for a convex object) stands in.
     """
     from scipy.spatial import ConvexHull
