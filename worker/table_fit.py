@@ -59,11 +59,12 @@ def level_start_pose(recorded: FloatArray, vertices_world: FloatArray, config: S
 def fit_table(seq: Sequence, config: SimConfig) -> tuple[FloatArray, SupportPlane]:
     """Frame-0 world pose of the object and the table plane under it (see the module docstring)."""
     recorded = seq.object_pose_world()[0].copy()
-    verts = seq.object.surface_vertices() @ quat_to_matrix(recorded[3:]).T + recorded[:3]
+    rot = quat_to_matrix(recorded[3:])
+    verts = seq.object.surface_vertices() @ rot.T + recorded[:3]
     level = (level_start_pose(recorded, verts, config), SupportPlane.level())
     if config.table_max_tilt_deg <= 0:
         return level
-    com = quat_to_matrix(recorded[3:]) @ centre_of_mass(seq.object) + recorded[:3]
+    com = rot @ centre_of_mass(seq.object) + recorded[:3]
     tilted = support_candidates(verts, config.table_max_tilt_deg, limit=MAX_CANDIDATES, centre_of_mass=com)
     if not tilted:
         return level

@@ -94,6 +94,7 @@ def test_centre_of_mass_is_the_simulated_body_s() -> None:
     """The centre the table fit checks is the one MuJoCo gives the body: for an L-shaped solid, 1 cm from the
     centroid of its hull."""
     import mujoco
+    from scipy.spatial import ConvexHull
 
     from common.sequence import ObjectSpec
     from worker.object_model import centre_of_mass, object_mjcf
@@ -109,8 +110,6 @@ def test_centre_of_mass_is_the_simulated_body_s() -> None:
     mujoco.mj_forward(model, data)
     com = centre_of_mass(obj)
     np.testing.assert_allclose(data.xipos[-1], com, atol=1e-9)
-    from scipy.spatial import ConvexHull
-
     hull = ConvexHull(ell.vertices)
     assert np.linalg.norm(_hull_centroid(np.asarray(ell.vertices), hull.simplices) - com) > 0.01
 
