@@ -33,7 +33,7 @@ def register(subparsers: Any) -> None:
     r = subparsers.add_parser(
         "replay",
         help="raw replay: drive the hand along the retargeted reference (no optimisation) and report metrics",
-        description="Retarget the hand, simulate the object from its frame-0 pose, write trajectory + contacts.",
+        description="Retarget the hand, simulate the object from its rest pose, write trajectory + contacts.",
     )
     src = r.add_mutually_exclusive_group(required=True)
     src.add_argument("sequence", type=Path, nargs="?", help="sequence file")

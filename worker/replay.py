@@ -1,11 +1,11 @@
 """Raw replay (DESIGN §1.8): drive the hand along the retargeted reference with no optimisation.
 
-``raw_replay(seq)`` retargets every hand, builds the scene, simulates the object from its frame-0 pose and
-returns trajectories, contacts, metrics and timings; ``replay_result_bytes`` writes it in the
-``common.result_format`` layout (summary: ``metrics.raw``, config, versions, timings, IK residual, hand model),
-plus ``S_mano_*`` parameters of the driven pose for hands whose reference came from MANO. The timings are all
-wall clock (``*_s``, ``steps_per_second``): the file stores them in ``timings_json``; the deterministic step
-count is ``simulated_steps``.
+``raw_replay(seq)`` retargets every hand, builds the scene, simulates the object from its rest pose
+(``worker.rest_pose``) and returns trajectories, contacts, metrics and timings; ``replay_result_bytes`` writes
+it in the ``common.result_format`` layout (summary: ``metrics.raw``, config, versions, timings, IK residual,
+hand model), plus ``S_mano_*`` parameters of the driven pose for hands whose reference came from MANO. The
+timings are all wall clock (``*_s``, ``steps_per_second``): the file stores them in ``timings_json``; the
+deterministic step count is ``simulated_steps``.
 """
 
 from __future__ import annotations

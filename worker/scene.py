@@ -9,8 +9,8 @@ so callers never look names up in loops:
 * object: ``object_body_id``, ``object_qpos_adr`` (7 values from there: pos, quat wxyz), ``object_dof_adr``
   (6: linear world, angular *body* frame — MuJoCo's free-joint convention), ``object_geom_ids``,
   ``object_sensor_adr`` (13 values from there: framepos 3, framequat 4, framelinvel 3, frameangvel 3, world);
-* ``substeps_per_frame``; ``object_init_pose`` (7,) the frame-0 pose used and ``table`` the plane under it
-  (``worker.table_fit``).
+* ``substeps_per_frame``; ``object_init_pose`` (7,) the frame-0 pose used (the recorded frame 0 or the rest
+  pose, ``worker.rest_pose``) and ``table`` the plane under it (``worker.table_fit``).
 
 Collisions: hand geoms collide with object geoms only, object geoms with hand and table (contype/conaffinity
 bits in ``sim_config``). Sensors make ``mujoco.rollout`` recordings self-sufficient.
@@ -35,6 +35,7 @@ from worker.hand_mjcf import (
 )
 from worker.hand_model import HINGE_NAMES, FloatArray
 from worker.object_model import OBJECT_BODY, OBJECT_JOINT, object_mjcf
+from worker.rest_pose import rest_pose
 from worker.retarget import HandReference
 from worker.sim_config import SimConfig
 from worker.support_plane import SupportPlane
@@ -149,7 +150,9 @@ def build_scene(seq: Sequence, references: list[HandReference], config: SimConfi
     config = config or SimConfig()
     if not references:
         raise ValueError("references must hold at least one HandReference")
-    pose0, table = fit_table(seq, config)
+    keypoints = [r.keypoints for r in references]
+    start = rest_pose(seq.object_pose_world(), seq.object.surface_vertices(), keypoints, config.rest_approach_m)
+    pose0, table = fit_table(seq, config, start)
     xml, collision, ngeom = scene_xml(seq, references, config, (pose0, table))
     model = mujoco.MjModel.from_xml_string(xml)
     hands: dict[str, HandHandles] = {}

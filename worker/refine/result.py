@@ -165,8 +165,9 @@ def verify_result(blob: bytes, sequence: Sequence | None = None) -> dict[str, An
 
     sim: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in summary["config"]["sim"].items()}
     # Results made before the pivot was recorded turned the hand about the wrist; before the wrist lead was
-    # recorded, the mocap followed the wrist track itself.
+    # recorded, the mocap followed the wrist track itself; before the rest pose, the object started from frame 0.
     sim.setdefault("wrist_lead_s", 0.0)
+    sim.setdefault("rest_approach_m", 0.0)
     sim.setdefault("finger_lead_s", 0.0)
     prep = prepare(sequence, options, SimConfig(**sim), rotation_pivot=summary["config"].get("rotation_pivot", "wrist"))
     keyframes = {}
