@@ -6,8 +6,9 @@ millimetre, and for a body symmetric about an axis (a marker, a can) the turn ab
 and can drift several degrees while the hand is still 10 cm away. The simulated object cannot follow any of that
 (it must move only through contact), so its start pose is what its error over the whole approach is measured
 against. Frame 0 alone is one noisy sample of the rest pose; the mean over every frame before a hand keypoint
-first comes within ``approach_m`` of the object's surface is a better estimate of it, and it is the pose that
-minimises the (squared) error over those frames.
+first comes within ``approach_m`` of the object's surface (and before its recorded pose leaves frame 0's by
+more than noise, ``moved_frame``) is a better estimate of it, and it is the pose that minimises the (squared)
+error over those frames.
 """
 
 from __future__ import annotations
@@ -18,6 +19,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from worker.hand_model import FloatArray, quat_to_matrix
+
+#: Beyond these from frame 0 the recorded object has moved, not jittered: vision noise of a resting DexYCB object
+#: stays within 3 mm, and its turn about a symmetry axis within 8 degrees, before a hand comes near.
+MAX_SHIFT_M = 0.005
+MAX_TURN_DEG = 10.0
 
 
 def approach_frame(
@@ -58,8 +64,19 @@ def rest_pose(
     it at frame 0 or ``approach_m`` <= 0."""
     if approach_m <= 0:
         return np.asarray(object_pose[0], dtype=np.float64).copy()
-    first = approach_frame(object_pose, surface_points, hand_keypoints, approach_m)
+    first = min(approach_frame(object_pose, surface_points, hand_keypoints, approach_m), moved_frame(object_pose))
     return mean_pose(object_pose[: max(first, 1)])
+
+
+def moved_frame(object_pose: FloatArray, max_shift_m: float = MAX_SHIFT_M, max_turn_deg: float = MAX_TURN_DEG) -> int:
+    """First frame whose recorded pose is more than ``max_shift_m`` or ``max_turn_deg`` from frame 0 (T if none):
+    past that the object is moving, whatever the hand track says (a hand tracked a few centimetres off reaches
+    the object in the recording after the object has started to move)."""
+    shift = np.linalg.norm(object_pose[:, :3] - object_pose[0, :3], axis=1)
+    quats = object_pose[:, 3:] / np.linalg.norm(object_pose[:, 3:], axis=1, keepdims=True)
+    turn = np.degrees(2 * np.arccos(np.clip(np.abs(quats @ quats[0]), 0.0, 1.0)))
+    moved = np.nonzero((shift > max_shift_m) | (turn > max_turn_deg))[0]
+    return int(moved[0]) if moved.size else object_pose.shape[0]
 
 
 def _to_object_frame(object_pose: FloatArray, points: FloatArray) -> FloatArray:

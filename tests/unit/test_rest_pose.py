@@ -6,7 +6,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from worker.refine.losses import quat_geodesic
-from worker.rest_pose import approach_frame, mean_pose, rest_pose
+from worker.rest_pose import approach_frame, mean_pose, moved_frame, rest_pose
 
 # A 2 x 2 x 2 cm cube's corners and face centres: the object surface.
 SURFACE = np.array([[x, y, z] for x in (-0.01, 0.01) for y in (-0.01, 0.01) for z in (-0.01, 0.01)]
@@ -70,3 +70,19 @@ def test_the_rest_pose_is_the_mean_before_the_approach_only() -> None:
     # A hand already at the object at frame 0, or the averaging switched off: frame 0 as recorded.
     np.testing.assert_array_equal(rest_pose(poses, SURFACE, [hand[29:30].repeat(t, 0)], 0.025), poses[0])
     np.testing.assert_array_equal(rest_pose(poses, SURFACE, [hand], 0.0), poses[0])
+
+
+def test_the_rest_phase_ends_where_the_recorded_object_moves_even_before_the_hand_is_near() -> None:
+    """A hand tracked 5 cm off: the object is pushed (moves 1 cm per frame from frame 10) while the recorded hand
+    is still far. The mean must not take in the moving frames."""
+    t = 30
+    poses = _track(np.zeros(t))
+    poses[10:, 0] += 0.01 * np.arange(1, t - 9)
+    assert moved_frame(poses) == 10
+    hand = _hand_closing_in(t, arrive=25, target=np.array([0.3, 0.1, 0.02]))
+    rest = rest_pose(poses, SURFACE, [hand], 0.025)
+    np.testing.assert_allclose(rest, poses[0], atol=1e-12)
+    # Jitter within the noise bounds does not end it.
+    jitter = _track(np.tile([3.0, -3.0], t // 2))
+    jitter[:, 0] += np.tile([0.002, -0.002], t // 2)
+    assert moved_frame(jitter) == t
