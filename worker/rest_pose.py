@@ -19,6 +19,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from worker.hand_model import FloatArray, quat_to_matrix
+from worker.metrics import rotation_error_deg
 
 #: Beyond these from frame 0 the recorded object has moved, not jittered: vision noise of a resting DexYCB object
 #: stays within 3 mm, and its turn about a symmetry axis within 8 degrees, before a hand comes near.
@@ -73,8 +74,7 @@ def moved_frame(object_pose: FloatArray, max_shift_m: float = MAX_SHIFT_M, max_t
     past that the object is moving, whatever the hand track says (a hand tracked a few centimetres off reaches
     the object in the recording after the object has started to move)."""
     shift = np.linalg.norm(object_pose[:, :3] - object_pose[0, :3], axis=1)
-    quats = object_pose[:, 3:] / np.linalg.norm(object_pose[:, 3:], axis=1, keepdims=True)
-    turn = np.degrees(2 * np.arccos(np.clip(np.abs(quats @ quats[0]), 0.0, 1.0)))
+    turn = rotation_error_deg(object_pose[:, 3:], object_pose[:1, 3:])
     moved = np.nonzero((shift > max_shift_m) | (turn > max_turn_deg))[0]
     return int(moved[0]) if moved.size else object_pose.shape[0]
 

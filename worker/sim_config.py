@@ -66,8 +66,8 @@ class SimConfig:
     #: friction holds the object up to atan(0.8) = 39 degrees.
     table_max_tilt_deg: float = 25.0
     #: The object starts from the mean of its recorded poses over the frames before any hand keypoint comes
-    #: within this distance of its surface (``worker.rest_pose``: the recording jitters and drifts while the
-    #: object rests); 0 starts it from the recorded frame 0.
+    #: within this distance of its surface and before the recorded object moves (``worker.rest_pose``: the
+    #: recording jitters and drifts while the object rests); 0 starts it from the recorded frame 0.
     rest_approach_m: float = 0.02
 
     def lead_frames(self, substeps_per_frame: int) -> tuple[float, float]:

@@ -71,7 +71,8 @@ def fit_table(
     frame0 = seq.object_pose_world()[0].copy()
     target = frame0 if rest_pose is None else np.asarray(rest_pose, dtype=np.float64).copy()
     starts = [frame0] if np.array_equal(target, frame0) else [frame0, target]
-    candidates = [c for start in starts for c in _start_candidates(seq, config, start)]
+    surface = seq.object.surface_vertices()  # primitives are tessellated on each call
+    candidates = [c for start in starts for c in _start_candidates(seq, config, surface, start)]
     if len(candidates) == 1:
         return candidates[0]
     scores = _drift_scores(seq, config, target, candidates)
@@ -79,10 +80,13 @@ def fit_table(
     return candidates[best]
 
 
-def _start_candidates(seq: Sequence, config: SimConfig, start: FloatArray) -> list[tuple[FloatArray, SupportPlane]]:
-    """The level table under ``start`` (snapped onto it) and the tilted hull faces that hold it as it is."""
+def _start_candidates(
+    seq: Sequence, config: SimConfig, surface: FloatArray, start: FloatArray
+) -> list[tuple[FloatArray, SupportPlane]]:
+    """The level table under ``start`` (snapped onto it) and the tilted hull faces that hold it as it is;
+    ``surface``: the object's surface vertices (object frame)."""
     rot = quat_to_matrix(start[3:])
-    verts = seq.object.surface_vertices() @ rot.T + start[:3]
+    verts = surface @ rot.T + start[:3]
     level = (level_start_pose(start, verts, config), SupportPlane.level())
     if config.table_max_tilt_deg <= 0:
         return [level]
