@@ -75,6 +75,20 @@ def test_expired_lease_is_requeued_and_old_token_cannot_write(queue: JobQueue, o
     assert queue.get(owner, job_id).state == "SUCCEEDED"
 
 
+def test_heartbeat_renews_a_lease_that_ran_out_but_was_not_requeued_yet(queue: JobQueue, owner: str) -> None:
+    # Until the reaper requeues it the token still holds the job and nobody else can claim it, so a worker that
+    # was late (a long GC pause, a slow database) keeps its job instead of doing the work twice.
+    job_id = submit_tiny(queue, owner)
+    claimed = queue.claim("w-slow", lease_seconds=5, now=utcnow() - timedelta(seconds=10))
+    assert claimed is not None
+    assert queue.heartbeat(job_id, claimed.lease_token) is False
+    assert queue.requeue_expired(now=utcnow()) == 0
+    assert queue.get(owner, job_id).state == "RUNNING" and queue.claim("w-other") is None
+    blob, summary = fake_result()
+    queue.complete(job_id, claimed.lease_token, blob, summary)
+    assert queue.get(owner, job_id).attempt == 1
+
+
 def test_retry_exhaustion_fails_with_error_history_then_manual_retry(queue: JobQueue, owner: str) -> None:
     job_id = submit_tiny(queue, owner)
     now = utcnow()
