@@ -1,6 +1,13 @@
 # One image for every hoi-refine role: API (`hoi-refine serve`), Ray head (`hoi-refine ray-head`) and
 # workers (`hoi-refine worker --ray-address ... --ray-node`). docker-compose.yml picks the role per service.
-FROM python:3.11-slim
+#
+# The base only needs Python 3.11 with `python` and `pip` on PATH. Without Docker Hub, build a local one from
+# Debian's packages and use it:
+#   docker/build_base_image.sh    # -> hoi-refine-base:bookworm (debootstrap, this machine's CA bundle)
+#   docker build --network host --build-arg BASE_IMAGE=hoi-refine-base:bookworm -t hoi-refine:latest .
+# The image is lean on purpose: no torch (the `mano` extra is optional and not installed here).
+ARG BASE_IMAGE=python:3.11-slim
+FROM ${BASE_IMAGE}
 
 ENV PYTHONDONTWRITEBYTECODE=1 \
     PYTHONUNBUFFERED=1 \

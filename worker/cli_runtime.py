@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import shlex
 import threading
 from typing import Any
 
@@ -40,11 +41,31 @@ def _add_pool_arguments(p: argparse.ArgumentParser, default_workers: int) -> Non
         help="with --ray-address: first start a Ray node on this machine that joins the cluster, and place this "
         "command's actors on it (one container = one node; used by docker-compose.yml)",
     )
+    _add_ray_start_args(p, "with --ray-node: ")
     p.add_argument(
         "--health-file",
         default=None,
         help="touch this file every second while the worker pool is healthy (container health checks)",
     )
+
+
+def _add_ray_start_args(p: argparse.ArgumentParser, prefix: str) -> None:
+    p.add_argument(
+        "--ray-start-args",
+        metavar="'ARGS'",
+        type=_ray_start_args,
+        default=(),
+        help=prefix + "extra options for `ray start`, as one shell-quoted string (write it as "
+        "--ray-start-args='--node-ip-address 127.0.0.1 ...'); e.g. to pin the node's ports when several Ray "
+        "nodes share one network namespace (containers on the host network)",
+    )
+
+
+def _ray_start_args(text: str) -> tuple[str, ...]:
+    try:
+        return tuple(shlex.split(text))
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"--ray-start-args: {exc}") from exc
 
 
 def register(subparsers: Any) -> None:
@@ -82,6 +103,7 @@ def register(subparsers: Any) -> None:
     )
     h.add_argument("--port", type=int, default=6379, help="GCS port (default 6379)")
     h.add_argument("--num-cpus", type=int, default=0, help="CPUs the head offers to actors (default 0)")
+    _add_ray_start_args(h, "")
     h.set_defaults(func=_cmd_ray_head)
 
 
@@ -96,6 +118,7 @@ def _pool_config(args: argparse.Namespace) -> Any:
         log_to_driver=not args.quiet_actors,
         join_as_node=args.ray_node,
         health_file=args.health_file,
+        node_start_args=args.ray_start_args,
     )
 
 
@@ -135,6 +158,6 @@ def _cmd_ray_head(args: argparse.Namespace) -> int:
     from worker.runtime.pool import ray_executable
 
     cmd = [ray_executable(), "start", "--head", "--block", "--port", str(args.port), "--num-cpus", str(args.num_cpus)]
-    cmd += ["--include-dashboard", "false", "--disable-usage-stats"]
+    cmd += ["--include-dashboard", "false", "--disable-usage-stats", *args.ray_start_args]
     # Replace this process: the container's stop signal then reaches `ray start --block` directly.
     os.execv(cmd[0], cmd)
