@@ -68,12 +68,12 @@ def check_ports_free(ports: tuple[int, ...] = TEST_PORTS) -> None:
                 raise StackError(f"127.0.0.1:{port} is in use; docker-compose.test.yml needs it (another stack?)")
 
 
-def build_base_image(tag: str) -> float | None:
+def build_base_image(tag: str, force: bool = False) -> float | None:
     """``docker/build_base_image.sh`` (idempotent); seconds it took, or None when the image already existed."""
-    if run(["docker", "image", "ls", "-q", tag], timeout=30).strip():
+    if not force and run(["docker", "image", "ls", "-q", tag], timeout=30).strip():
         return None
     t0 = time.monotonic()
-    run([str(ROOT / "docker" / "build_base_image.sh"), tag], timeout=1800)
+    run([str(ROOT / "docker" / "build_base_image.sh"), *(["--force"] if force else []), tag], timeout=1800)
     return time.monotonic() - t0
 
 

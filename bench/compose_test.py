@@ -75,6 +75,10 @@ class Figures:
     image_mb: float = 0.0
     stack_up_s: float = 0.0
     stack_ready_s: float = 0.0
+    #: `ray start` attempts of the worker containers that timed out and were retried (a loaded machine).
+    node_start_retries: int = 0
+    #: Worker id -> the compose service (container) whose log announced it.
+    worker_service: dict[str, str] = field(default_factory=dict)
     jobs: list[dict[str, Any]] = field(default_factory=list)
     victim_job: str = ""
     victim_progress: dict[str, Any] = field(default_factory=dict)
@@ -105,11 +109,12 @@ def _wait(client: ApiClient, ids: list[str], pred: Any, timeout: float, what: st
 
 
 def _victim(jobs: list[dict[str, Any]], victim_ids: set[str], queue: JobQueue) -> dict[str, Any] | None:
-    """A job the victim container is refining right now (it has reported CMA-ES evaluations)."""
+    """A job the victim container is refining right now, one CMA-ES generation or more into it."""
     for job in jobs:
         p = job.get("progress") or {}
-        # The API does not show which worker holds a job; the queue row does.
-        if job["state"] == "RUNNING" and p.get("evaluations") and queue.get(None, job["id"]).worker_id in victim_ids:
+        if job["state"] != "RUNNING" or (p.get("evaluations") or 0) < (SHORT.popsize or 1):
+            continue
+        if queue.get(None, job["id"]).worker_id in victim_ids:  # the API does not say who holds a job; the row does
             return job
     return None
 
@@ -120,6 +125,8 @@ def scenario(stack: Stack, db_url: str, n_jobs: int, timeout: float, fig: Figure
     fig.stack_up_s = time.monotonic() - t0
     worker_ids = stack.wait_for_workers(WORKERS, per_service=1, timeout=300)
     fig.stack_ready_s = time.monotonic() - t0
+    fig.worker_service = {wid: svc for svc, ids in worker_ids.items() for wid in ids}
+    fig.node_start_retries = sum(stack.logs(w).count("could not join Ray cluster") for w in WORKERS)
     print(f"stack up in {fig.stack_up_s:.1f} s, worker actors running after {fig.stack_ready_s:.1f} s", flush=True)
 
     key = stack.exec("api", "hoi-refine", "keys", "create", "compose-test").strip().splitlines()[-1]
@@ -191,45 +198,53 @@ def _check(fig: Figures, client: ApiClient, queue: JobQueue, done: list[dict[str
 
 def report(fig: Figures, args: argparse.Namespace) -> str:
     when = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
-    base = (f"{fig.base_build_s:.0f} s (debootstrap + import)" if fig.base_build_s is not None
-            else "existed (not rebuilt)")  # fmt: skip
+    flags = f"--jobs {args.jobs} --lease-seconds {args.lease_seconds:g}"
+    flags += " --no-cache" * fig.no_cache + " --rebuild-base" * args.rebuild_base
+    base = "existed (not rebuilt)" if fig.base_build_s is None else f"{fig.base_build_s:.0f} s (debootstrap + import)"
+    build = "`docker build --network host`" + (", --no-cache" if fig.no_cache else ", cached layers")
+    retried = ""
+    if fig.node_start_retries:
+        retried = f" (incl. {fig.node_start_retries} `ray start` retried after Ray's 30 s node registration timeout)"
+    killed = ""
+    if fig.victim_job:
+        p = fig.victim_progress
+        killed = (
+            f" `docker kill` hit {VICTIM} while it ran job `{fig.victim_job}` (window {p.get('window')}/"
+            f"{p.get('windows')}, {p.get('evaluations')} evaluations in)."
+        )
     lines = [
         "# Containers: build, start, kill a worker mid-job (`make compose-test`)",
         "",
-        f"Last run: {when}, `bench/compose_test.py --jobs {args.jobs} --lease-seconds {args.lease_seconds}"
-        f"{' --no-cache' if fig.no_cache else ''}`. Machine: {os.cpu_count()} shared cores, loaded (other sessions "
-        f"running), {platform.machine()}; Docker engine {fig.engine}, {fig.compose}.",
+        f"Last run: {when}, `bench/compose_test.py {flags}`. Machine: {os.cpu_count()} shared cores, loaded "
+        f"(other sessions running), {platform.machine()}; Docker engine {fig.engine}, {fig.compose}.",
         "",
         "| step | figure |",
         "|---|---|",
         f"| base image `{fig.base_image}` | {base} |",
-        f"| project image build (`docker build --network host`{', --no-cache' if fig.no_cache else ', cached layers'})"
-        f" | {fig.image_build_s:.0f} s, {fig.image_mb:.0f} MB |",
+        f"| project image build ({build}) | {fig.image_build_s:.0f} s, {fig.image_mb:.0f} MB |",
         f"| stack start (`up -d` until every service it waits on is healthy) | {fig.stack_up_s:.1f} s |",
-        f"| stack ready (both worker containers' actors running) | {fig.stack_ready_s:.1f} s |",
+        f"| stack ready (both worker containers' actors running) | {fig.stack_ready_s:.1f} s{retried} |",
         f"| {args.jobs} jobs from submission to all finished, one worker killed | {fig.all_done_s:.1f} s |",
         f"| tear-down (`down -v`) | {fig.down_s:.1f} s |",
         "",
-        f"Kill test: **{'PASSED' if not fig.error else 'FAILED'}**."
-        + (
-            f" `docker kill` hit {VICTIM} while it ran job `{fig.victim_job}` "
-            f"(window {fig.victim_progress.get('window')}/{fig.victim_progress.get('windows')}, "
-            f"{fig.victim_progress.get('evaluations')} evaluations in)."
-            if fig.victim_job
-            else ""
-        ),
+        f"Kill test: **{'FAILED' if fig.error else 'PASSED'}**.{killed}",
         "",
         *[f"* {c}" for c in fig.checks],
         *([f"* error: `{fig.error}`"] if fig.error else []),
         "",
         "| job | state | attempt | finished by |",
         "|---|---|---|---|",
-        *[f"| `{j['id']}` | {j['state']} | {j['attempt']} | `{j['worker']}` |" for j in fig.jobs],
+        *[
+            f"| `{j['id']}` | {j['state']} | {j['attempt']} | {fig.worker_service.get(j['worker'], '?')} "
+            f"(`{j['worker']}`) |"
+            for j in fig.jobs
+        ],
         "",
-        "Stack: docker-compose.yml + docker-compose.test.yml, every container on the host network (traffic on "
-        "127.0.0.1 only): API on 18000, Ray GCS on 6380 (Redis holds 6379), the host's PostgreSQL in a database "
-        "created for the run and dropped after; 1 worker actor x 1 thread per worker container; "
-        f"`HOI_REFINE_LEASE_SECONDS={args.lease_seconds}` so the killed job's lease runs out quickly. Jobs: the "
+        "Stack: docker-compose.yml + docker-compose.test.yml, every container on the host network, all traffic on "
+        "loopback: API on 127.0.0.1:18000, Ray on 127.0.0.2 with its GCS on 6380 (Redis holds 6379), the host's "
+        "PostgreSQL at 127.0.0.1:5432 in a database created for the run and dropped after; 1 worker actor x 1 "
+        "thread per worker container; "
+        f"`HOI_REFINE_LEASE_SECONDS={args.lease_seconds:g}` so the killed job's lease runs out quickly. Jobs: the "
         f"24-frame built-in example, seeds 0..{args.jobs - 1}, `max_generations=3, popsize=8`.",
         "",
     ]
@@ -243,6 +258,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="BASE_IMAGE of the Dockerfile; hoi-refine-base:* is built locally when missing "
                     "(default hoi-refine-base:bookworm)")  # fmt: skip
     ap.add_argument("--no-cache", action="store_true", help="build the project image from scratch")
+    ap.add_argument("--rebuild-base", action="store_true", help="rebuild the local base image even if it exists")
     ap.add_argument("--lease-seconds", type=float, default=8.0, help="worker lease (default 8 s)")
     ap.add_argument("--timeout", type=float, default=900.0, help="seconds for the jobs to end (default 900)")
     ap.add_argument("--postgres-url", default=os.environ.get("HOI_REFINE_TEST_POSTGRES_URL", DEFAULT_PG),
@@ -256,7 +272,7 @@ def main(argv: list[str] | None = None) -> int:
     fig.engine = check_engine()
     check_ports_free()
     if args.base_image.startswith("hoi-refine-base:"):
-        fig.base_build_s = build_base_image(args.base_image)
+        fig.base_build_s = build_base_image(args.base_image, force=args.rebuild_base)
     print(f"building {args.base_image} -> hoi-refine:latest ...", flush=True)
     fig.image_build_s = build_image(args.base_image, args.no_cache)
     fig.image_mb = image_size_mb()
