@@ -56,8 +56,9 @@ def _add_ray_start_args(p: argparse.ArgumentParser, prefix: str) -> None:
         type=_ray_start_args,
         default=(),
         help=prefix + "extra options for `ray start`, as one shell-quoted string (write it as "
-        "--ray-start-args='--node-ip-address 127.0.0.1 ...'); e.g. to pin the node's ports when several Ray "
-        "nodes share one network namespace (containers on the host network)",
+        "--ray-start-args='--node-ip-address 127.0.0.2 --node-manager-port 16500 ...'); e.g. to pin the node's "
+        "ports when several Ray nodes share one network namespace (containers on the host network, as in "
+        "docker-compose.test.yml)",
     )
 
 
@@ -65,7 +66,7 @@ def _ray_start_args(text: str) -> tuple[str, ...]:
     try:
         return tuple(shlex.split(text))
     except ValueError as exc:
-        raise argparse.ArgumentTypeError(f"--ray-start-args: {exc}") from exc
+        raise argparse.ArgumentTypeError(f"not a shell-quoted string ({exc})") from exc
 
 
 def register(subparsers: Any) -> None:
