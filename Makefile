@@ -31,7 +31,7 @@ bench-replay: $(STAMP)
 	$(BIN)/python bench/replay.py
 
 pose-basis: $(STAMP)
-	$(BIN)/python -m worker.pose_basis_build
+	$(BIN)/python -m worker.hand.pose_basis_build
 
 clean:
 	rm -rf $(VENV) var .pytest_cache .mypy_cache .ruff_cache

@@ -118,7 +118,7 @@ def _check_mano(seq: Any, console: Any) -> None:
     """MANO-only hands cannot run without the model files: say so, then raise the error that names
     ``HOI_REFINE_MANO_DIR`` (``common.cli.main`` prints it and exits 2). No torch is imported."""
     from common.errors import ManoModelMissingError
-    from worker.mano import mano_available, require_mano_models
+    from worker.hand.mano import mano_available, require_mano_models
 
     try:
         require_mano_models(seq)
@@ -148,7 +148,7 @@ def metrics_table(title: str, columns: dict[str, dict[str, Any]]) -> Any:
 def _run_replay(seq: Any, out: Path | None) -> Any:
     from rich.console import Console
 
-    from worker.replay import raw_replay, replay_result_bytes
+    from worker.simulation.replay import raw_replay, replay_result_bytes
 
     console = Console()
     with console.status(f"raw replay of {seq.name} ({seq.num_frames} frames)..."):
@@ -173,7 +173,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from common.settings import get_settings
 
     if args.example:
-        from worker.example import example_sequence
+        from worker.example.sequences import example_sequence
 
         seq = example_sequence()
     else:
@@ -204,7 +204,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         return run_service_demo(out_dir=args.out_dir, port=_free_port())
     from rich.console import Console
 
-    from worker.example import example_sequence
+    from worker.example.sequences import example_sequence
 
     console = Console()
     console.print(

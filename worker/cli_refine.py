@@ -140,7 +140,7 @@ def format_metrics_table(summary: dict[str, Any]) -> str:
 
 def run_demo(threads: int = 2, short: bool = False) -> int:
     """Refine the built-in example and print raw vs refined (``make demo``)."""
-    from worker.example import example_sequence, short_example_sequence
+    from worker.example.sequences import example_sequence, short_example_sequence
     from worker.refine.run import refine_sequence
 
     seq = short_example_sequence() if short else example_sequence()

@@ -70,7 +70,7 @@ def test_up_two_workers_crash_cancel_and_stop(db_url: str, tmp_path: Path) -> No
 
 
 def _scenario(db_url: str, tmp_path: Path, log: Path) -> None:
-    from worker.example import short_example_sequence
+    from worker.example.sequences import short_example_sequence
     from worker.refine.run import refine_sequence
 
     env = {

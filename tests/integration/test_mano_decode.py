@@ -11,11 +11,10 @@ from scipy.spatial.transform import Rotation
 
 from common.sequence import HandTrack, ManoParams, ObjectSpec, Sequence
 from common.settings import get_settings
-from worker.hand_model import forward_keypoints
-from worker.mano import build_test_mano_model, ensure_keypoints, load_mano_pickle
-from worker.mano.decode import MANO21_ORDER, decode_mano
-from worker.mano.hand_geometry import mano_hand_geometry
-from worker.mano.pose import (
+from worker.hand.mano import build_test_mano_model, ensure_keypoints, load_mano_pickle
+from worker.hand.mano.decode import MANO21_ORDER, decode_mano
+from worker.hand.mano.hand_geometry import mano_hand_geometry
+from worker.hand.mano.pose import (
     hand_pose_to_mano,
     mano_hand_pose,
     mano_pca_basis,
@@ -23,7 +22,8 @@ from worker.mano.pose import (
     mano_result_arrays,
     refined_mano_params,
 )
-from worker.mano.synthetic_model import MANO_PARENTS
+from worker.hand.mano.synthetic_model import MANO_PARENTS
+from worker.hand.model import forward_keypoints
 
 pytest.importorskip("torch")
 pytest.importorskip("smplx")

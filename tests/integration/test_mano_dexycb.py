@@ -13,8 +13,8 @@ from common.errors import ManoModelMissingError
 from common.sequence import HandTrack, ManoParams, ObjectSpec, Sequence
 from common.sequence_io import load_sequence, save_sequence
 from common.settings import get_settings
-from worker.mano import build_test_mano_model, ensure_keypoints
-from worker.mano.decode import decode_mano
+from worker.hand.mano import build_test_mano_model, ensure_keypoints
+from worker.hand.mano.decode import decode_mano
 
 T = 5
 

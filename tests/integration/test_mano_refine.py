@@ -1,5 +1,5 @@
 """Refinement of a MANO hand (issue #6): MANO's PCA replaces the built-in pose basis, and the result carries
-refined MANO parameters (their exactness is tested on ``worker.mano.pose`` directly)."""
+refined MANO parameters (their exactness is tested on ``worker.hand.mano.pose`` directly)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import pytest
 from common.job_options import JobOptions
 from common.result_format import read_summary
 from tests.integration.test_mano_scene import _use_mano_dir, mano_dir, mano_grasp_sequence  # noqa: F401
-from worker.mano.pose import mano_pca_basis
+from worker.hand.mano.pose import mano_pca_basis
 
 
 @pytest.mark.slow

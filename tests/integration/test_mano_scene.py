@@ -17,9 +17,9 @@ from common.result_format import read_contacts, read_summary
 from common.sequence import HandTrack, ManoParams, ObjectSpec, Sequence
 from common.sequence_io import save_sequence
 from common.settings import get_settings
-from worker.mano import build_test_mano_model, ensure_keypoints
-from worker.retarget import retarget_sequence
-from worker.scene import Scene, build_scene
+from worker.hand.mano import build_test_mano_model, ensure_keypoints
+from worker.hand.retarget import retarget_sequence
+from worker.simulation.scene import Scene, build_scene
 
 T = 8
 
@@ -115,10 +115,10 @@ def _part_world_vertices(scene: Scene, data: mujoco.MjData, part: str) -> np.nda
 def test_scene_hand_is_the_mano_mesh(mano_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Every hand body carries its MANO part hull; posed by the reference, the hulls lie on the MANO mesh that
     smplx poses from the same parameters (up to pose correctives and blend skinning near the joints)."""
-    from worker.hand_mjcf import hand_mjcf
-    from worker.hand_model import BODY_PARTS, default_geometry
-    from worker.mano.decode import decode_mano, load_mano_model
-    from worker.mano.synthetic_model import MANO_FINGER_START
+    from worker.hand.mano.decode import decode_mano, load_mano_model
+    from worker.hand.mano.synthetic_model import MANO_FINGER_START
+    from worker.hand.mjcf import hand_mjcf
+    from worker.hand.model import BODY_PARTS, default_geometry
 
     _use_mano_dir(monkeypatch, mano_dir)
     seq = mano_grasp_sequence()
@@ -154,8 +154,8 @@ def test_scene_hand_is_the_mano_mesh(mano_dir: Path, monkeypatch: pytest.MonkeyP
 
 
 def test_part_meshes_are_checked() -> None:
-    from worker.hand_mjcf import hand_asset_xml
-    from worker.hand_model import default_geometry
+    from worker.hand.mjcf import hand_asset_xml
+    from worker.hand.model import default_geometry
 
     geo = default_geometry("left")
     assert hand_asset_xml(geo) == ""
@@ -172,8 +172,8 @@ def test_raw_replay_result_carries_mano_params(mano_dir: Path, monkeypatch: pyte
     """A MANO hand's replay result holds ``right_mano_*`` parameters that decode to the input hand (the driven
     reference is exact); a keypoint hand's result holds none."""
     from common.result_format import read_arrays
-    from worker.mano.decode import decode_mano
-    from worker.replay import raw_replay, replay_result_bytes
+    from worker.hand.mano.decode import decode_mano
+    from worker.simulation.replay import raw_replay, replay_result_bytes
 
     _use_mano_dir(monkeypatch, mano_dir)
     seq = mano_grasp_sequence(5)

@@ -147,7 +147,7 @@ def test_sixty_fps_uses_keyframes_every_ten_frames_and_cli_round_trip(
 
 def test_two_hands_get_independent_keyframes_in_one_simulation() -> None:
     from common.sequence import HandTrack
-    from worker.hand_model import default_geometry, forward_keypoints
+    from worker.hand.model import default_geometry, forward_keypoints
 
     seq = push_sequence(frames=16)
     # A left hand resting 30 cm to the side (it never touches the box) joins the right hand's push.
@@ -206,8 +206,8 @@ def test_verify_re_simulates_with_the_leads_the_result_was_made_with(monkeypatch
     """Results made before the wrist and finger leads existed drove the mocap and the servos along the
     reference itself (leads 0) and record neither: they still verify, and claiming a lead for them fails."""
     import worker.refine.run as run_module
-    from worker.example import short_example_sequence
-    from worker.scene import SimConfig
+    from worker.example.sequences import short_example_sequence
+    from worker.simulation.scene import SimConfig
 
     seq = short_example_sequence()  # a grasp and lift: the wrist moves and the fingers close
     unled = SimConfig(wrist_lead_s=0.0, finger_lead_s=0.0)

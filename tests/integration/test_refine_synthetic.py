@@ -7,7 +7,7 @@ import numpy as np
 
 from common.job_options import JobOptions
 from common.sequence import HandTrack, ObjectSpec, Sequence
-from worker.hand_model import default_geometry, forward_keypoints
+from worker.hand.model import default_geometry, forward_keypoints
 
 # Palm facing +x (wrist-frame z), fingers up (wrist-frame x = world z): columns are the wrist axes in world.
 _PALM_FORWARD = np.array([[0.0, 0.0, 1.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0]])

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from worker import convex_cache
+from worker.simulation import convex_cache
 
 
 def _ring() -> trimesh.Trimesh:

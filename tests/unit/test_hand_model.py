@@ -6,8 +6,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from worker.hand_mjcf import hand_mjcf
-from worker.hand_model import (
+from worker.hand.mjcf import hand_mjcf
+from worker.hand.model import (
     HINGE_NAMES,
     JOINT_LOWER,
     JOINT_UPPER,

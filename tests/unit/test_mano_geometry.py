@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from worker.hand_model import forward_keypoints, wrist_frames
-from worker.mano import build_test_mano_model
-from worker.mano.hand_geometry import hinges_to_rotations, mano_hand_geometry, rotations_to_hinges
-from worker.mano.synthetic_model import skeleton
+from worker.hand.mano import build_test_mano_model
+from worker.hand.mano.hand_geometry import hinges_to_rotations, mano_hand_geometry, rotations_to_hinges
+from worker.hand.mano.synthetic_model import skeleton
+from worker.hand.model import forward_keypoints, wrist_frames
 
 
 @pytest.fixture(scope="module")

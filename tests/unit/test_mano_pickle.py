@@ -12,8 +12,8 @@ import pytest
 from common.errors import ConfigurationError, ManoModelMissingError
 from common.sequence import HandTrack, ManoParams, ObjectSpec, Sequence
 from common.settings import get_settings
-from worker.mano import build_test_mano_model, ensure_keypoints, load_mano_pickle, mano_model_path
-from worker.mano.synthetic_model import MANO_PARENTS, skeleton
+from worker.hand.mano import build_test_mano_model, ensure_keypoints, load_mano_pickle, mano_model_path
+from worker.hand.mano.synthetic_model import MANO_PARENTS, skeleton
 
 
 def test_reads_chumpy_pickle_without_chumpy(tmp_path: Path) -> None:

@@ -1,4 +1,4 @@
-"""The object's start pose averaged over the frames before a hand comes near (worker.rest_pose)."""
+"""The object's start pose averaged over the frames before a hand comes near (worker.simulation.rest_pose)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from worker.refine.losses import quat_geodesic
-from worker.rest_pose import approach_frame, mean_pose, moved_frame, rest_pose
+from worker.simulation.rest_pose import approach_frame, mean_pose, moved_frame, rest_pose
 
 # A 2 x 2 x 2 cm cube's corners and face centres: the object surface.
 SURFACE = np.array([[x, y, z] for x in (-0.01, 0.01) for y in (-0.01, 0.01) for z in (-0.01, 0.01)]

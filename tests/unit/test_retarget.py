@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from worker.hand_model import (
+from worker.hand.model import (
     HINGE_NAMES,
     JOINT_LOWER,
     JOINT_UPPER,
@@ -15,7 +15,7 @@ from worker.hand_model import (
     default_geometry,
     forward_keypoints,
 )
-from worker.retarget import kabsch, retarget_keypoints
+from worker.hand.retarget import kabsch, retarget_keypoints
 
 FLEX = np.array([name.endswith("_flex") for name in HINGE_NAMES])
 
@@ -62,7 +62,7 @@ def test_kabsch_recovers_rotation() -> None:
     rng = np.random.default_rng(0)
     pts = rng.normal(size=(6, 3))
     quat = rng.normal(size=(5, 4))
-    from worker.hand_model import quat_to_matrix
+    from worker.hand.model import quat_to_matrix
 
     rot = quat_to_matrix(quat)
     t = rng.normal(size=(5, 3))

@@ -42,8 +42,8 @@ class Prepared:
     seq: Sequence
     options: JobOptions
     interval: int
-    references: list[Any]  # worker.retarget.HandReference
-    scene: Any  # worker.scene.Scene
+    references: list[Any]  # worker.hand.retarget.HandReference
+    scene: Any  # worker.simulation.scene.Scene
     layout: SimLayout
     spaces: dict[str, HandControlSpace]
     obj_targets: ObjectTargets
@@ -64,7 +64,7 @@ def mano_pose_basis(seq: Sequence, reference: Any, like: PoseBasis10) -> PoseBas
     """MANO's own hand PCA (DESIGN §1.3: "MANO's own PCA when MANO is used"), as hinge changes per unit
     coefficient. Each component is scaled so one unit moves the hinges by as much (RMS) as one unit of the
     built-in basis's component of the same rank, which keeps CMA-ES's step size and bounds meaningful."""
-    from worker.mano.pose import mano_pca_basis
+    from worker.hand.mano.pose import mano_pca_basis
 
     hand = seq.hand(reference.side)
     assert hand is not None and hand.mano is not None
@@ -76,11 +76,11 @@ def mano_pose_basis(seq: Sequence, reference: Any, like: PoseBasis10) -> PoseBas
 
 
 def pose_basis(references: list[Any], seq: Sequence | None = None) -> tuple[dict[str, PoseBasis10], str]:
-    """The packaged pose basis (``worker.pose_basis``, one PCA over the built-in hand's hinges, used for both
+    """The packaged pose basis (``worker.hand.pose_basis``, one PCA over the built-in hand's hinges, used for both
     sides since the left hand mirrors the right with the same hinge conventions); without the packaged file,
     a PCA of this sequence's own reference hinge angles (a documented fallback named in the provenance)."""
     from common.errors import ConfigurationError
-    from worker.pose_basis import load_pose_basis
+    from worker.hand.pose_basis import load_pose_basis
 
     try:
         packaged = load_pose_basis()
@@ -98,7 +98,7 @@ def pose_basis(references: list[Any], seq: Sequence | None = None) -> tuple[dict
                 bases[r.side] = mano_pose_basis(seq, r, basis)
         if mano_sides:
             source += f"; MANO PCA basis for {', '.join(mano_sides)}"
-        return bases, f"worker.pose_basis (packaged): {source}"
+        return bases, f"worker.hand.pose_basis (packaged): {source}"
     out = {}
     for r in references:
         q = r.q[r.valid] if r.valid.sum() >= 2 else r.q
@@ -114,9 +114,9 @@ def pose_basis(references: list[Any], seq: Sequence | None = None) -> tuple[dict
 
 def prepare(seq: Sequence, options: JobOptions, config: Any = None, rotation_pivot: str | None = None) -> Prepared:
     """``rotation_pivot``: ``ROTATION_PIVOT`` when None (``verify`` passes the one a result was made with)."""
-    from worker.retarget import retarget_sequence
-    from worker.scene import SimConfig, build_scene
-    from worker.simulation import lead_track, lead_values
+    from worker.hand.retarget import retarget_sequence
+    from worker.simulation.scene import SimConfig, build_scene
+    from worker.simulation.stepping import lead_track, lead_values
 
     config = config or SimConfig()
     references = retarget_sequence(seq)
@@ -124,7 +124,7 @@ def prepare(seq: Sequence, options: JobOptions, config: Any = None, rotation_piv
     layout = SimLayout.from_scene(scene)
     interval = options.keyframe_interval or default_keyframe_interval(seq.fps)
     bases, provenance = pose_basis(references, seq)
-    from worker.hand_model import JOINT_LIMITS
+    from worker.hand.model import JOINT_LIMITS
 
     pivot_kind = rotation_pivot or ROTATION_PIVOT
     if pivot_kind not in PIVOTS:
@@ -137,7 +137,7 @@ def prepare(seq: Sequence, options: JobOptions, config: Any = None, rotation_piv
         mask, local = contact_targets(r.keypoints, r.valid, pose[:, :3], pose[:, 3:], surface, FINGERTIP_INDICES)
         hands[r.side] = HandTargets(r.keypoints, r.valid, FINGERTIP_INDICES, mask, local)
     # The mocap and the servo targets run ahead of their tracks by the weld's and the servos' lags
-    # (``SimConfig.wrist_lead_s`` / ``finger_lead_s``), as in the raw replay (``worker.simulation.substep_controls``);
+    # (``SimConfig.wrist_lead_s`` / ``finger_lead_s``), as in the raw replay (``stepping.substep_controls``);
     # the pivot moves with the wrist so the hand turns about its centre.
     lead, finger_lead = config.lead_frames(scene.substeps_per_frame)
     spaces: dict[str, HandControlSpace] = {}
@@ -178,9 +178,9 @@ def _surface_samples(seq: Sequence) -> FloatArray:
 
 
 def initial_state(prep: Prepared, evaluator: ParallelEvaluator) -> tuple[SimState, int]:
-    """The settled frame-0 state (``worker.simulation.initial_state``) with its solver warmstart."""
-    from worker.simulation import HandTargets as SimTargets
-    from worker.simulation import initial_state as sim_initial_state
+    """The settled frame-0 state (``worker.simulation.stepping.initial_state``) with its solver warmstart."""
+    from worker.simulation.stepping import HandTargets as SimTargets
+    from worker.simulation.stepping import initial_state as sim_initial_state
 
     data = evaluator.step_data
     targets = {r.side: SimTargets.from_reference(r) for r in prep.references}

@@ -1,7 +1,7 @@
 """The simulation-backed window problem: controls -> rollouts -> recorded frames -> losses.
 
 ``SimLayout`` names what the refinement drives and reads in a compiled model (found by the MJCF naming
-conventions of ``worker.hand_mjcf``: actuators ``{side}_{hinge}``, mocap body ``{side}_mocap``, keypoint
+conventions of ``worker.hand.mjcf``: actuators ``{side}_{hinge}``, mocap body ``{side}_mocap``, keypoint
 ``framepos`` sensors ``{side}_kp{j}``), so tests can use tiny inline MJCF models with the same names.
 ``SimWindowProblem`` implements ``windowed.WindowProblem`` on a ``ParallelEvaluator``.
 """
@@ -67,7 +67,7 @@ class SimLayout:
 
     @staticmethod
     def from_scene(scene: Any) -> SimLayout:
-        """From a ``worker.scene.Scene``."""
+        """From a ``worker.simulation.scene.Scene``."""
         hands = {
             side: HandHandles(
                 side=side,
@@ -217,7 +217,7 @@ class SimWindowProblem:
         """
         s0, s1 = f0 * self.substeps, f1 * self.substeps + (1 if extra_step else 0)
         n = s1 - s0
-        # Substep k drives towards the sample at its end, (k + 1) / S (as ``worker.simulation`` does), and
+        # Substep k drives towards the sample at its end, (k + 1) / S (as ``worker.simulation.stepping`` does), and
         # substeps past the last frame hold it.
         idx = np.minimum(np.arange(s0, s1) + 1, self.spaces[self.sides[0]].last_sample)
         m = self.layout.model

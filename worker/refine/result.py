@@ -42,7 +42,7 @@ def versions() -> dict[str, str]:
     """The raw replay's package versions plus the optimiser's."""
     import cma
 
-    from worker.replay import versions as replay_versions
+    from worker.simulation.replay import versions as replay_versions
 
     return {**replay_versions(), "cma": str(cma.__version__).split()[0]}
 
@@ -75,7 +75,7 @@ def build_arrays(
         arrays[f"{s}_valid"] = ref.valid
         if getattr(ref, "from_mano", False):
             # The refined hand as MANO parameters (issue #6): exact because the scene used the MANO geometry.
-            from worker.mano.pose import mano_result_arrays
+            from worker.hand.mano.pose import mano_result_arrays
 
             hand = prep.seq.hand(s)
             assert hand is not None
@@ -161,7 +161,7 @@ def verify_result(blob: bytes, sequence: Sequence | None = None) -> dict[str, An
             raise UnsupportedFormatError("the result embeds no sequence; pass --sequence")
         sequence = sequence_from_npz_bytes(arrays["sequence_npz"].tobytes())
     options = JobOptions.model_validate(summary["options"])
-    from worker.scene import SimConfig
+    from worker.simulation.scene import SimConfig
 
     sim: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in summary["config"]["sim"].items()}
     # Results made before the pivot was recorded turned the hand about the wrist; before the wrist lead was

@@ -67,7 +67,7 @@ class RefineOutcome:
 def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyframes: dict[str, FloatArray],
            record_contacts: bool = True) -> ReplayRecord:
     """Simulate frame 0 -> F-1 with the given keyframes, recording every frame (and contacts)."""
-    from worker.contacts import ContactRecorder
+    from worker.simulation.contacts import ContactRecorder
 
     layout = prep.layout
     s = layout.substeps
@@ -84,7 +84,7 @@ def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyfra
                 recorder.add(d, i // s)
 
     evaluator.step_python(start, control[0], hook)
-    from worker.contacts import empty_contact_columns
+    from worker.simulation.contacts import empty_contact_columns
 
     pos, quat, vel = layout.object_from_sensors(sensors)
     return ReplayRecord(
@@ -133,7 +133,7 @@ def refine_sequence(
     committed keyframe, and a grasp lost in one window is often kept by another random stream. The best attempt
     (success first, then the lower mean object error) is the result; every attempt is listed in the summary.
     """
-    from worker.metrics import compute_metrics, scalar_metrics
+    from worker.simulation.metrics import compute_metrics, scalar_metrics
 
     t0 = time.perf_counter()
     prep = prepare(seq, options)

@@ -12,9 +12,9 @@ import mujoco
 import numpy as np
 
 from common.sequence import HandTrack, ObjectSpec, Sequence
-from worker.grasp_synthesis import BoxGrasp, _box_sdf, _capsule_samples
-from worker.hand_mjcf import matrix_to_quat
-from worker.hand_model import JOINT_LOWER, JOINT_UPPER, FloatArray, HandGeometry, forward_keypoints
+from worker.example.grasp_synthesis import BoxGrasp, _box_sdf, _capsule_samples
+from worker.hand.mjcf import matrix_to_quat
+from worker.hand.model import JOINT_LOWER, JOINT_UPPER, FloatArray, HandGeometry, forward_keypoints
 
 
 def _candidates(
@@ -56,9 +56,9 @@ def select_thumb(
     seed: int = 1,
 ) -> FloatArray:
     """Hinges ``q`` (45,) with the thumb replaced by the sampled pose that best holds the box while lifting."""
-    from worker.retarget import HandReference
-    from worker.scene import build_scene
-    from worker.simulation import HandTargets, pose_hands
+    from worker.hand.retarget import HandReference
+    from worker.simulation.scene import build_scene
+    from worker.simulation.stepping import HandTargets, pose_hands
 
     cands = _candidates(geometry, grasp, q, half, n, seed)[:top]
     if len(cands) == 0:

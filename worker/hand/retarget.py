@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from common.errors import SequenceValidationError
 from common.sequence import HandTrack, Sequence, Side
-from worker.hand_model import (
+from worker.hand.model import (
     FINGER_BASE_KEYPOINT,
     JOINT_LOWER,
     JOINT_UPPER,
@@ -48,7 +48,7 @@ class HandReference:
     order, ``keypoints`` (T,21,3) the target keypoints (observed where valid, the fitted hand's where
     interpolated), ``valid`` (T,), ``residual_mm`` (T,) mean keypoint distance of the fit (NaN where invalid).
     ``from_mano``: the hand is the subject's MANO hand posed from MANO parameters (results then also carry
-    ``S_mano_*`` parameters, ``worker.mano.pose.mano_result_arrays``).
+    ``S_mano_*`` parameters, ``worker.hand.mano.pose.mano_result_arrays``).
     """
 
     side: Side
@@ -204,17 +204,17 @@ def retarget_sequence(seq: Sequence) -> list[HandReference]:
     worker get their references from.
 
     A hand with MANO parameters, when ``HOI_REFINE_MANO_DIR`` holds its model file, becomes a reference on its
-    own MANO hand (``worker.mano.pose.mano_reference``: exact hinges, per-part hulls; DESIGN §1.1-1.2);
+    own MANO hand (``worker.hand.mano.pose.mano_reference``: exact hinges, per-part hulls; DESIGN §1.1-1.2);
     otherwise its keypoints are retargeted by IK. A MANO-only hand without the model file raises
     ``ManoModelMissingError`` naming the setting.
     """
     refs = []
     for hand in seq.hands:
         if hand.mano is not None:
-            from worker.mano import mano_available, mano_model_path
+            from worker.hand.mano import mano_available, mano_model_path
 
             if mano_available([hand.side]):
-                from worker.mano.pose import mano_reference  # imports this module: kept lazy
+                from worker.hand.mano.pose import mano_reference  # imports this module: kept lazy
 
                 refs.append(mano_reference(seq, hand))
                 continue

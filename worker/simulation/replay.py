@@ -1,7 +1,7 @@
 """Raw replay (DESIGN §1.8): drive the hand along the retargeted reference with no optimisation.
 
 ``raw_replay(seq)`` retargets every hand, builds the scene, simulates the object from its rest pose
-(``worker.rest_pose``) and returns trajectories, contacts, metrics and timings; ``replay_result_bytes`` writes
+(``rest_pose``) and returns trajectories, contacts, metrics and timings; ``replay_result_bytes`` writes
 it in the ``common.result_format`` layout (summary: ``metrics.raw``, config, versions, timings, IK residual,
 hand model), plus ``S_mano_*`` parameters of the driven pose for hands whose reference came from MANO. The
 timings are all wall clock (``*_s``, ``steps_per_second``): the file stores them in ``timings_json``; the
@@ -20,10 +20,10 @@ import numpy as np
 
 from common.result_format import write_result_npz
 from common.sequence import Sequence
-from worker.metrics import compute_metrics, scalar_metrics
-from worker.retarget import HandReference, retarget_sequence
-from worker.scene import Scene, SimConfig, build_scene
-from worker.simulation import (
+from worker.hand.retarget import HandReference, retarget_sequence
+from worker.simulation.metrics import compute_metrics, scalar_metrics
+from worker.simulation.scene import Scene, SimConfig, build_scene
+from worker.simulation.stepping import (
     Controls,
     HandTargets,
     RolloutRecord,
@@ -95,7 +95,7 @@ def raw_replay(seq: Sequence, config: SimConfig | None = None, record_contacts: 
     steps = settle_steps + record.steps
     mano_arrays: dict[str, np.ndarray] = {}
     if any(r.from_mano for r in references):  # the driven pose as MANO parameters (DESIGN §1.7)
-        from worker.mano.pose import reference_mano_arrays
+        from worker.hand.mano.pose import reference_mano_arrays
 
         mano_arrays = reference_mano_arrays(seq, references)
     timings = {

@@ -16,7 +16,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from worker.hand_model import (
+from worker.hand.model import (
     JOINT_LOWER,
     JOINT_UPPER,
     FloatArray,
@@ -156,8 +156,8 @@ def _grasp_key(hand_length: float, half: tuple[float, float, float], mass: float
 
 def finalize_grasp(geometry: HandGeometry, grasp: BoxGrasp, half: FloatArray, mass: float) -> BoxGrasp:
     """Stop each finger 4 mm inside the box (``close_to_contact``), then choose the thumb by simulated holding
-    (``worker.grasp_hold``); the open hand is a quarter of the final hinge angles."""
-    from worker.grasp_hold import select_thumb
+    (``worker.example.grasp_hold``); the open hand is a quarter of the final hinge angles."""
+    from worker.example.grasp_hold import select_thumb
 
     q = close_to_contact(geometry, grasp, half, penetration=0.004)
     q = select_thumb(geometry, grasp, q, np.asarray(half), mass)
@@ -169,7 +169,7 @@ def finalize_grasp(geometry: HandGeometry, grasp: BoxGrasp, half: FloatArray, ma
 def write_grasp_file(
     hand_length: float, half: tuple[float, float, float], mass: float, path: Path = GRASP_FILE
 ) -> BoxGrasp:
-    """Solve, finalise and store the example grasp (``python -m worker.grasp_synthesis`` regenerates the file)."""
+    """Solve, finalise and store the example grasp (``python -m worker.example.grasp_synthesis`` rewrites it)."""
     geometry = default_geometry("right", hand_length)
     grasp = finalize_grasp(geometry, synthesize_box_grasp(geometry, np.array(half)), np.array(half), mass)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -205,8 +205,8 @@ def cached_box_grasp(hand_length: float, half: tuple[float, float, float], mass:
 
 
 if __name__ == "__main__":
-    from worker.example import BOX_HALF, MASS_KG
-    from worker.hand_model import TEMPLATE_HAND_LENGTH
+    from worker.example.sequences import BOX_HALF, MASS_KG
+    from worker.hand.model import TEMPLATE_HAND_LENGTH
 
     solved = write_grasp_file(TEMPLATE_HAND_LENGTH, BOX_HALF, MASS_KG)
     print(f"wrote {GRASP_FILE} (residual {solved.cost:.4f})")

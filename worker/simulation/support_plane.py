@@ -10,7 +10,7 @@ and the grasp then carries that offset through the whole lift.
 of the frame-0 object within ``max_tilt_deg`` of level that hold its centre of mass. Gravity stays -z; only the
 table's plane would move, by the size of the annotation error (a few degrees, a few millimetres) or, for an object
 recorded leaning on another that is not simulated, by its lean; friction holds it without sliding (tan 25 deg =
-0.47, below the table friction of 0.8). ``worker.table_fit`` picks one by simulation (or a level table when none
+0.47, below the table friction of 0.8). ``table_fit`` picks one by simulation (or a level table when none
 keeps the object still).
 """
 
@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from worker.hand_model import FloatArray
+from worker.hand.model import FloatArray
 
 
 @dataclass(frozen=True)
@@ -60,7 +60,7 @@ def support_candidates(
     within ``max_tilt_deg`` of straight down and that hold the centre of mass: the vertical through it meets
     the face (a box's bottom, not the tiny facets of its rounded edges, which it would tip off). Whether the
     body then really stays put (a lying cylinder balanced on one narrow strip of its polygonal side does not)
-    is for ``worker.table_fit`` to find out by simulation.
+    is for ``worker.simulation.table_fit`` to find out by simulation.
 
     ``centre_of_mass`` (world, 3) is where the simulated body's mass is: for a non-convex object (banana, clamp,
     pitcher) the solid mesh's centre lies 7-24 mm from its hull's, enough to pick a face the body tips off. Without

@@ -18,8 +18,8 @@ from collections.abc import Sequence as Seq
 import numpy as np
 from scipy.spatial import cKDTree
 
-from worker.hand_model import FloatArray, quat_to_matrix
-from worker.metrics import rotation_error_deg
+from worker.hand.model import FloatArray, quat_to_matrix
+from worker.simulation.metrics import rotation_error_deg
 
 #: Beyond these from frame 0 the recorded object has moved, not jittered: vision noise of a resting DexYCB object
 #: stays within 3 mm, and its turn about a symmetry axis within 8 degrees, before a hand comes near.

@@ -16,7 +16,7 @@ import numpy as np
 from common.result_format import CONTACT_KEYS
 
 if TYPE_CHECKING:
-    from worker.scene import Scene
+    from worker.simulation.scene import Scene
 
 
 class ContactRecorder:

@@ -1,7 +1,7 @@
 """The MANO hand as the built-in articulated hand: rest geometry, per-part convex hulls, hinge conversion.
 
 ``mano_hand_geometry`` shapes the MANO template with the subject's betas (zero pose) and describes it in
-the built-in hand's terms (``worker.hand_model``): the wrist frame from the palm keypoints, finger bases,
+the built-in hand's terms (``worker.hand.model``): the wrist frame from the palm keypoints, finger bases,
 bone lengths, and for every finger segment a *segment frame* S (x along the bone, z palmar, the built-in
 convention). MANO's per-joint rotations R_k are relative to the parent and written in template coordinates;
 the built-in hand composes 3 hinges per joint in its segment frames. With S_{f,-1} := S_{f,0} and
@@ -25,14 +25,14 @@ from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
 from common.sequence import FloatArray, IntArray, Side
-from worker.hand_model import (
+from worker.hand.mano.decode import MANO21_ORDER, ManoModel, load_mano_model
+from worker.hand.mano.synthetic_model import MANO_FINGER_START
+from worker.hand.model import (
     FINGER_BASE_KEYPOINT,
     TEMPLATE_HAND_LENGTH,
     HandGeometry,
     wrist_frames,
 )
-from worker.mano.decode import MANO21_ORDER, ManoModel, load_mano_model
-from worker.mano.synthetic_model import MANO_FINGER_START
 
 #: Thumb palmar hint in the wrist frame (right hand), the built-in template's value.
 _THUMB_PALMAR = np.array([0.0, 0.70, 0.70])

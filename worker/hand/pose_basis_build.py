@@ -1,4 +1,4 @@
-"""Build ``worker/data/pose_basis.npz`` from the DexYCB development data (``make pose-basis``).
+"""Build ``worker/hand/data/pose_basis.npz`` from the DexYCB development data (``make pose-basis``).
 
 Runs the retargeting IK over the dev sequences in ``../shared/data/dexycb/dev`` (or ``--data``), takes every
 ``--stride``-th valid frame, mirrors nothing (left and right hands share the hinge convention, see
@@ -16,12 +16,12 @@ from pathlib import Path
 
 import numpy as np
 
-from worker.pose_basis import POSE_BASIS_FILE, fit_pose_basis, save_pose_basis
+from worker.hand.pose_basis import POSE_BASIS_FILE, fit_pose_basis, save_pose_basis
 
 
 def _hinges(args: tuple[str, int]) -> np.ndarray:
     from common.dexycb import load_dexycb_npz
-    from worker.retarget import retarget_hand
+    from worker.hand.retarget import retarget_hand
 
     path, stride = args
     seq = load_dexycb_npz(path)
@@ -73,10 +73,10 @@ def main(argv: list[str] | None = None) -> int:
         "subjects": sorted({f.name.split("__")[0] for f in files}),
         "frames": int(q.shape[0]),
         "frame_stride": args.stride,
-        "method": "worker.retarget IK (built-in hand), PCA of the 45 hinge angles",
+        "method": "worker.hand.retarget IK (built-in hand), PCA of the 45 hinge angles",
         "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "git_commit": _git_commit(),
-        "command": "python -m worker.pose_basis_build " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "command": "python -m worker.hand.pose_basis_build " + " ".join(argv if argv is not None else sys.argv[1:]),
     }
     basis = fit_pose_basis(q, args.components, provenance)
     save_pose_basis(args.out, basis)

@@ -12,10 +12,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.sequence import ObjectSpec
-from worker.convex_cache import convex_parts
-from worker.hand_mjcf import fmt
-from worker.hand_model import FloatArray
-from worker.sim_config import HAND_BIT, OBJECT_BIT, TABLE_BIT, SimConfig
+from worker.hand.mjcf import fmt
+from worker.hand.model import FloatArray
+from worker.simulation.config import HAND_BIT, OBJECT_BIT, TABLE_BIT, SimConfig
+from worker.simulation.convex_cache import convex_parts
 
 OBJECT_BODY = "object"
 OBJECT_JOINT = "object_root"

@@ -2,7 +2,7 @@
 
 * ``mano_hand_pose``: MANO parameters -> wrist position/rotation + hinge angles (source frame), exact
   (``hand_geometry`` module doc); ``mano_reference`` wraps it as a world-frame ``HandReference``, the
-  MANO-input counterpart of ``worker.retarget.retarget_hand`` (no IK needed).
+  MANO-input counterpart of ``worker.hand.retarget.retarget_hand`` (no IK needed).
 * ``hand_pose_to_mano``: the way back, for the refined result's MANO parameters (DESIGN §1.7);
   ``mano_result_arrays`` / ``reference_mano_arrays`` give the result file's ``S_mano_*`` arrays.
 * ``mano_pca_basis``: MANO's hand PCA for the control parameterisation (DESIGN §1.3). MANO's components
@@ -20,9 +20,14 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from common.errors import SequenceValidationError
 from common.sequence import FloatArray, HandTrack, ManoParams, Sequence, Side
-from worker.mano.decode import full_hand_pose, load_mano_model, local_rotations
-from worker.mano.hand_geometry import ManoHandGeometry, hinges_to_rotations, mano_hand_geometry, rotations_to_hinges
-from worker.retarget import HandReference
+from worker.hand.mano.decode import full_hand_pose, load_mano_model, local_rotations
+from worker.hand.mano.hand_geometry import (
+    ManoHandGeometry,
+    hinges_to_rotations,
+    mano_hand_geometry,
+    rotations_to_hinges,
+)
+from worker.hand.retarget import HandReference
 
 
 def mano_hand_pose(params: ManoParams, mgeo: ManoHandGeometry, mano_dir: Path | str | None = None
@@ -133,7 +138,7 @@ def mano_reference(seq: Sequence, hand: HandTrack, mano_dir: Path | str | None =
             quat[i] = -quat[i]
     if quat[0, 0] < 0:
         quat = -quat
-    from worker.hand_model import forward_keypoints
+    from worker.hand.model import forward_keypoints
 
     fitted = forward_keypoints(mgeo.geometry, pos, quat, q)
     # Targets as in ``retarget_keypoints``: observed keypoints where the hand has them (valid frames), else

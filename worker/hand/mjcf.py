@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from worker.hand_model import (
+from worker.hand.model import (
     AXIS_VECTORS,
     FINGER_BASE_KEYPOINT,
     FINGERS,
@@ -23,7 +23,7 @@ from worker.hand_model import (
     FloatArray,
     HandGeometry,
 )
-from worker.sim_config import HAND_BIT, OBJECT_BIT, SimConfig
+from worker.simulation.config import HAND_BIT, OBJECT_BIT, SimConfig
 
 
 def fmt(values: FloatArray | list[float] | tuple[float, ...]) -> str:

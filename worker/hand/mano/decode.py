@@ -21,7 +21,7 @@ from scipy.spatial.transform import Rotation
 
 from common.errors import ConfigurationError, SequenceValidationError
 from common.sequence import FloatArray, ManoParams, Side
-from worker.mano.pickle_io import load_mano_pickle, mano_model_path
+from worker.hand.mano.pickle_io import load_mano_pickle, mano_model_path
 
 #: Fingertip vertices of the real MANO mesh (thumb, index, middle, ring, pinky), as in manopth / DexYCB.
 MANO_TIP_VERTEX_IDS: tuple[int, ...] = (745, 317, 444, 556, 673)

@@ -23,10 +23,10 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from worker.contacts import ContactRecorder
-from worker.hand_model import JOINT_LOWER, JOINT_UPPER, FloatArray, quat_to_matrix
-from worker.retarget import HandReference
-from worker.scene import Scene
+from worker.hand.model import JOINT_LOWER, JOINT_UPPER, FloatArray, quat_to_matrix
+from worker.hand.retarget import HandReference
+from worker.simulation.contacts import ContactRecorder
+from worker.simulation.scene import Scene
 
 PHYSICS_SPEC = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
 STATE_SPEC = PHYSICS_SPEC | int(mujoco.mjtState.mjSTATE_WARMSTART)

@@ -1,9 +1,9 @@
 """The packaged pose basis (DESIGN §1.3): a PCA over the built-in hand's 45 hinge angles.
 
-``load_pose_basis()`` reads ``worker/data/pose_basis.npz`` — ``mean`` (45,), ``components`` (n,45) orthonormal
+``load_pose_basis()`` reads ``worker/hand/data/pose_basis.npz`` — ``mean`` (45,), ``components`` (n,45) orthonormal
 rows ordered by variance, ``stddev`` (n,) per component (radians), ``explained_variance_ratio`` (n,) — and its
 provenance (data, frames, date, git commit). Regenerate it with ``make pose-basis``
-(``python -m worker.pose_basis_build``). Controls use ``q = q_ref + components[:k].T @ (stddev[:k] * z)``.
+(``python -m worker.hand.pose_basis_build``). Controls use ``q = q_ref + components[:k].T @ (stddev[:k] * z)``.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from common.errors import ConfigurationError
-from worker.hand_model import FloatArray
+from worker.hand.model import FloatArray
 
 POSE_BASIS_FILE = Path(__file__).parent / "data" / "pose_basis.npz"
 

@@ -10,7 +10,7 @@ so callers never look names up in loops:
   (6: linear world, angular *body* frame — MuJoCo's free-joint convention), ``object_geom_ids``,
   ``object_sensor_adr`` (13 values from there: framepos 3, framequat 4, framelinvel 3, frameangvel 3, world);
 * ``substeps_per_frame``; ``object_init_pose`` (7,) the frame-0 pose used (the recorded frame 0 or the rest
-  pose, ``worker.rest_pose``) and ``table`` the plane under it (``worker.table_fit``).
+  pose, ``worker.simulation.rest_pose``) and ``table`` the plane under it (``worker.simulation.table_fit``).
 
 Collisions: hand geoms collide with object geoms only, object geoms with hand and table (contype/conaffinity
 bits in ``sim_config``). Sensors make ``mujoco.rollout`` recordings self-sufficient.
@@ -25,7 +25,7 @@ import numpy as np
 import numpy.typing as npt
 
 from common.sequence import Sequence
-from worker.hand_mjcf import (
+from worker.hand.mjcf import (
     hand_actuator_xml,
     hand_asset_xml,
     hand_body_names,
@@ -33,13 +33,13 @@ from worker.hand_mjcf import (
     hand_sensor_xml,
     hand_worldbody_xml,
 )
-from worker.hand_model import HINGE_NAMES, FloatArray
-from worker.object_model import OBJECT_BODY, OBJECT_JOINT, object_mjcf
-from worker.rest_pose import rest_pose
-from worker.retarget import HandReference
-from worker.sim_config import SimConfig
-from worker.support_plane import SupportPlane
-from worker.table_fit import fit_table, option_xml, table_geom_xml
+from worker.hand.model import HINGE_NAMES, FloatArray
+from worker.hand.retarget import HandReference
+from worker.simulation.config import SimConfig
+from worker.simulation.object_model import OBJECT_BODY, OBJECT_JOINT, object_mjcf
+from worker.simulation.rest_pose import rest_pose
+from worker.simulation.support_plane import SupportPlane
+from worker.simulation.table_fit import fit_table, option_xml, table_geom_xml
 
 IntArray = npt.NDArray[np.int64]
 

@@ -2,7 +2,7 @@
 
 A right hand (the built-in template hand) comes down over a 0.2 kg box (5.6 x 5.6 x 9 cm) standing on the
 table, closes the index, middle and ring fingers on one face and the thumb on the opposite face (a grasp solved
-once by ``worker.grasp_synthesis`` and shipped in ``worker/data/example_grasp.npz``; each finger stops 4 mm
+once by ``grasp_synthesis`` and shipped in ``worker/example/data/example_grasp.npz``; each finger stops 4 mm
 inside the surface so the position servos press), lifts the box 20 cm and holds it. The clean trajectory is
 kinematically consistent: the object rests until the hand has closed, then moves rigidly with the wrist. The
 *observed* keypoints then get vision-like errors — a hovering middle finger and pinky, index and ring fingers
@@ -20,9 +20,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.sequence import HandTrack, ObjectSpec, Sequence
-from worker.grasp_synthesis import cached_box_grasp
-from worker.hand_mjcf import matrix_to_quat
-from worker.hand_model import (
+from worker.example.grasp_synthesis import cached_box_grasp
+from worker.hand.mjcf import matrix_to_quat
+from worker.hand.model import (
     FINGERS,
     JOINT_LOWER,
     JOINT_UPPER,
@@ -117,7 +117,7 @@ def synthetic_grasp_and_lift(timeline: Timeline | None = None, seed: int = 0, er
         object_pose=obj_pose,
         hands=[hand],
         world_from_source=np.eye(4),
-        meta={"source": "worker.example", "seed": str(seed), "errors": str(errors)},
+        meta={"source": "worker.example.sequences", "seed": str(seed), "errors": str(errors)},
     )
     return seq.validate()
 

@@ -1,4 +1,4 @@
-"""Simulation settings (DESIGN §1.4, the paper's values as defaults); re-exported by ``worker.scene``."""
+"""Simulation settings (DESIGN §1.4, the paper's values as defaults); re-exported by ``worker.simulation.scene``."""
 
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ class SimConfig:
     #: Seconds the wrist's mocap target runs ahead of the wrist track it is driven along. The weld pulls the palm
     #: towards a mocap body whose velocity MuJoCo takes as zero, so the palm trails a moving target by a fixed
     #: time: twice the weld time constant (a critically damped spring's ramp lag, 20 ms) less the one timestep
-    #: by which each substep's target already leads (``worker.simulation``). Without the lead a hand swept at a
+    #: by which each substep's target already leads (``worker.simulation.stepping``). Without the lead a hand swept at a
     #: DexYCB lift's 0.9 m/s trails by 14 mm (9.5 mm at 290 deg/s), which the grasp carries into the object;
     #: with 16 ms, 0.4 mm (0.35 mm) (tests/integration/test_scene_physics.py). 0 drives the mocap along the track.
     wrist_lead_s: float = 0.016
@@ -59,14 +59,14 @@ class SimConfig:
     settle_seconds: float = 0.1
     #: A frame-0 object whose lowest point is within this distance of the table is placed exactly on it.
     snap_to_table_m: float = 0.015
-    #: The table is laid under the frame-0 object as recorded (``worker.support_plane``) when the face it rests
+    #: The table is laid under the frame-0 object as recorded (``support_plane``) when the face it rests
     #: on is within this many degrees of level; 0 keeps a level table at z = 0 (and the snap above). 25, not the
     #: few degrees of annotation error: objects in DexYCB scenes also lean on others that are not simulated (a
     #: marker recorded 19 degrees up on one end falls flat on a level table before the hand arrives); the table
     #: friction holds the object up to atan(0.8) = 39 degrees.
     table_max_tilt_deg: float = 25.0
     #: The object starts from the mean of its recorded poses over the frames before any hand keypoint comes
-    #: within this distance of its surface and before the recorded object moves (``worker.rest_pose``: the
+    #: within this distance of its surface and before the recorded object moves (``worker.simulation.rest_pose``: the
     #: recording jitters and drifts while the object rests); 0 starts it from the recorded frame 0.
     rest_approach_m: float = 0.02
 

@@ -1,9 +1,9 @@
 """The table under the frame-0 object, chosen by simulation (DESIGN §1.4: the object starts at rest).
 
 The recorded frame-0 pose is a vision estimate a few degrees and millimetres off any pose the object could rest
-in on a level table (see ``worker.support_plane``). Candidates: the level table at z = 0 (the object snapped onto
+in on a level table (see ``support_plane``). Candidates: the level table at z = 0 (the object snapped onto
 it) and the hull faces of the recorded object that could carry it as recorded, each for two start poses: frame 0
-and the mean over the approach (``worker.rest_pose``). Each is tried in a model of the object and the table alone
+and the mean over the approach (``rest_pose``). Each is tried in a model of the object and the table alone
 for ``FIT_SECONDS``; the one that leaves the object closest to that mean wins (score: degrees + millimetres), so
 a lying cylinder balanced on one narrow strip of its side, which rolls away, loses to the level table, and a box
 recorded 4 degrees tilted rests exactly as recorded on a table tilted under it. The fit is deterministic and
@@ -16,11 +16,11 @@ import mujoco
 import numpy as np
 
 from common.sequence import Sequence
-from worker.hand_mjcf import fmt
-from worker.hand_model import FloatArray, quat_to_matrix
-from worker.object_model import OBJECT_JOINT, centre_of_mass, object_mjcf
-from worker.sim_config import OBJECT_BIT, TABLE_BIT, SimConfig
-from worker.support_plane import SupportPlane, support_candidates
+from worker.hand.mjcf import fmt
+from worker.hand.model import FloatArray, quat_to_matrix
+from worker.simulation.config import OBJECT_BIT, TABLE_BIT, SimConfig
+from worker.simulation.object_model import OBJECT_JOINT, centre_of_mass, object_mjcf
+from worker.simulation.support_plane import SupportPlane, support_candidates
 
 #: Seconds each candidate table is simulated with the object alone.
 FIT_SECONDS = 0.5
@@ -63,7 +63,7 @@ def fit_table(
     """Frame-0 world pose of the object and the table plane under it (see the module docstring).
 
     ``rest_pose`` (7,): the object's pose at rest estimated over the frames before a hand comes near
-    (``worker.rest_pose``). The object then starts from it or from the recorded frame 0, on whichever table
+    (``rest_pose``). The object then starts from it or from the recorded frame 0, on whichever table
     leaves it closest to that estimate: a mean over noisy frames is not always a pose the object can rest in
     exactly (a banana averaged over a 3 degree drift rocks 2.5 degrees off it), frame 0 may be. None: frame 0,
     scored against itself.

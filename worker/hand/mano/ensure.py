@@ -12,7 +12,7 @@ import dataclasses
 from pathlib import Path
 
 from common.sequence import Sequence
-from worker.mano.pickle_io import mano_model_path
+from worker.hand.mano.pickle_io import mano_model_path
 
 
 def require_mano_models(seq: Sequence, mano_dir: Path | str | None = None) -> list[int]:
@@ -30,7 +30,7 @@ def ensure_keypoints(seq: Sequence, mano_dir: Path | str | None = None) -> Seque
     todo = require_mano_models(seq, mano_dir)  # fails on a missing file before importing torch
     if not todo:
         return seq
-    from worker.mano.decode import decode_mano
+    from worker.hand.mano.decode import decode_mano
 
     hands = list(seq.hands)
     for i in todo:
