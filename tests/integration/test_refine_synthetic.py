@@ -48,7 +48,7 @@ def recovery_case(frames: int = 30, yaw_deg: float = 0.0, offset_x: float = -0.0
     """The object track the unperturbed hand produces in simulation, attached to the perturbed hand."""
     from worker.refine.evaluator import ParallelEvaluator
     from worker.refine.prepare import initial_state, prepare
-    from worker.refine.run import replay
+    from worker.refine.replay import replay
 
     truth = push_sequence(frames)
     prep = prepare(truth, JobOptions())

@@ -10,14 +10,14 @@ Frames without a valid hand are interpolated (wrist: slerp; hinges: linear; cons
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation, Slerp
 
 from common.errors import SequenceValidationError
 from common.sequence import HandTrack, Sequence, Side
+from worker.hand.mano import mano_available, mano_model_path
+from worker.hand.mano.pose import mano_reference
 from worker.hand.model import (
     FINGER_BASE_KEYPOINT,
     JOINT_LOWER,
@@ -30,6 +30,7 @@ from worker.hand.model import (
     fit_hand_geometry,
     forward_keypoints,
 )
+from worker.hand.reference import HandReference
 
 #: LM damping (m²) and the pull of secondary hinges towards neutral (m²/rad² — a 1 cm error outweighs
 #: ~0.7 rad of secondary angle); iterations per frame and convergence threshold (rad).
@@ -38,39 +39,6 @@ IK_SECONDARY_WEIGHT = 2e-4
 IK_MAX_ITERATIONS = 30
 IK_TOLERANCE = 1e-7
 _FIRST_FRAME_ITERATIONS = 100
-
-
-@dataclass
-class HandReference:
-    """The retargeted reference of one hand (world frame, T frames).
-
-    ``wrist_pos`` (T,3), ``wrist_quat`` (T,4) wxyz (sign-continuous), ``q`` (T,45) hinge angles in HINGE_NAMES
-    order, ``keypoints`` (T,21,3) the target keypoints (observed where valid, the fitted hand's where
-    interpolated), ``valid`` (T,), ``residual_mm`` (T,) mean keypoint distance of the fit (NaN where invalid).
-    ``from_mano``: the hand is the subject's MANO hand posed from MANO parameters (results then also carry
-    ``S_mano_*`` parameters, ``worker.hand.mano.pose.mano_result_arrays``).
-    """
-
-    side: Side
-    geometry: HandGeometry
-    wrist_pos: FloatArray
-    wrist_quat: FloatArray
-    q: FloatArray
-    keypoints: FloatArray
-    valid: npt.NDArray[np.bool_]
-    residual_mm: FloatArray
-    from_mano: bool = False
-
-    @property
-    def num_frames(self) -> int:
-        return int(self.q.shape[0])
-
-    def mean_residual_mm(self) -> float:
-        return float(np.nanmean(self.residual_mm)) if self.valid.any() else float("nan")
-
-    def fitted_keypoints(self) -> FloatArray:
-        """(T,21,3) keypoints of the built-in hand at the reference pose."""
-        return forward_keypoints(self.geometry, self.wrist_pos, self.wrist_quat, self.q)
 
 
 def kabsch(template: FloatArray, observed: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -211,11 +179,7 @@ def retarget_sequence(seq: Sequence) -> list[HandReference]:
     refs = []
     for hand in seq.hands:
         if hand.mano is not None:
-            from worker.hand.mano import mano_available, mano_model_path
-
             if mano_available([hand.side]):
-                from worker.hand.mano.pose import mano_reference  # imports this module: kept lazy
-
                 refs.append(mano_reference(seq, hand))
                 continue
             if hand.keypoints is None:

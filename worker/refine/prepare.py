@@ -10,8 +10,13 @@ from typing import Any
 
 import numpy as np
 
+from common.errors import ConfigurationError
 from common.job_options import JobOptions
 from common.sequence import FINGERTIP_INDICES, Sequence
+from worker.hand.mano.pose import mano_pca_basis
+from worker.hand.model import JOINT_LIMITS
+from worker.hand.pose_basis import load_pose_basis
+from worker.hand.retarget import retarget_sequence
 from worker.refine.controls import HandControlSpace, PoseBasis10
 from worker.refine.evaluator import ParallelEvaluator, SimState
 from worker.refine.losses import (
@@ -23,6 +28,10 @@ from worker.refine.losses import (
 )
 from worker.refine.problem import SimLayout
 from worker.refine.spline import FloatArray, default_keyframe_interval
+from worker.simulation.scene import SimConfig, build_scene
+from worker.simulation.stepping import HandTargets as SimTargets
+from worker.simulation.stepping import initial_state as sim_initial_state
+from worker.simulation.stepping import lead_track, lead_values
 
 #: Defaults chosen for the speed budget (2 shared cores, <= 60 s for 72 frames at 30 fps); see bench/refine.py.
 #: 10 generations rather than 6: on dev40 E_t 0.58 -> 0.50 cm and E_r 2.78 -> 2.63 deg for a median of 30 s
@@ -64,8 +73,6 @@ def mano_pose_basis(seq: Sequence, reference: Any, like: PoseBasis10) -> PoseBas
     """MANO's own hand PCA (DESIGN §1.3: "MANO's own PCA when MANO is used"), as hinge changes per unit
     coefficient. Each component is scaled so one unit moves the hinges by as much (RMS) as one unit of the
     built-in basis's component of the same rank, which keeps CMA-ES's step size and bounds meaningful."""
-    from worker.hand.mano.pose import mano_pca_basis
-
     hand = seq.hand(reference.side)
     assert hand is not None and hand.mano is not None
     mano = mano_pca_basis(None, reference.side, betas=hand.mano.betas, n_components=10)
@@ -79,9 +86,6 @@ def pose_basis(references: list[Any], seq: Sequence | None = None) -> tuple[dict
     """The packaged pose basis (``worker.hand.pose_basis``, one PCA over the built-in hand's hinges, used for both
     sides since the left hand mirrors the right with the same hinge conventions); without the packaged file,
     a PCA of this sequence's own reference hinge angles (a documented fallback named in the provenance)."""
-    from common.errors import ConfigurationError
-    from worker.hand.pose_basis import load_pose_basis
-
     try:
         packaged = load_pose_basis()
     except ConfigurationError:
@@ -114,18 +118,12 @@ def pose_basis(references: list[Any], seq: Sequence | None = None) -> tuple[dict
 
 def prepare(seq: Sequence, options: JobOptions, config: Any = None, rotation_pivot: str | None = None) -> Prepared:
     """``rotation_pivot``: ``ROTATION_PIVOT`` when None (``verify`` passes the one a result was made with)."""
-    from worker.hand.retarget import retarget_sequence
-    from worker.simulation.scene import SimConfig, build_scene
-    from worker.simulation.stepping import lead_track, lead_values
-
     config = config or SimConfig()
     references = retarget_sequence(seq)
     scene = build_scene(seq, references, config)
     layout = SimLayout.from_scene(scene)
     interval = options.keyframe_interval or default_keyframe_interval(seq.fps)
     bases, provenance = pose_basis(references, seq)
-    from worker.hand.model import JOINT_LIMITS
-
     pivot_kind = rotation_pivot or ROTATION_PIVOT
     if pivot_kind not in PIVOTS:
         raise ValueError(f"rotation_pivot must be one of {', '.join(PIVOTS)}, got {pivot_kind!r}")
@@ -179,9 +177,6 @@ def _surface_samples(seq: Sequence) -> FloatArray:
 
 def initial_state(prep: Prepared, evaluator: ParallelEvaluator) -> tuple[SimState, int]:
     """The settled frame-0 state (``worker.simulation.stepping.initial_state``) with its solver warmstart."""
-    from worker.simulation.stepping import HandTargets as SimTargets
-    from worker.simulation.stepping import initial_state as sim_initial_state
-
     data = evaluator.step_data
     targets = {r.side: SimTargets.from_reference(r) for r in prep.references}
     physics, steps = sim_initial_state(prep.scene, data, targets)

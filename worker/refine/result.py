@@ -16,8 +16,9 @@ deterministic counters; the wall-clock figures are stored in the ``timings_json`
 from __future__ import annotations
 
 from dataclasses import asdict
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
+import cma
 import numpy as np
 
 from common.errors import ResultMismatchError, UnsupportedFormatError
@@ -25,12 +26,14 @@ from common.job_options import JobOptions
 from common.result_format import read_arrays, read_summary
 from common.sequence import Sequence
 from common.sequence_io import sequence_from_npz_bytes, sequence_to_npz_bytes
+from worker.hand.mano.pose import mano_result_arrays
+from worker.refine.evaluator import ParallelEvaluator
+from worker.refine.prepare import Prepared, initial_state, prepare
+from worker.refine.replay import ReplayRecord, replay
 from worker.refine.spline import FloatArray
 from worker.refine.windowed import CmaSettings, WindowLog
-
-if TYPE_CHECKING:
-    from worker.refine.prepare import Prepared
-    from worker.refine.run import ReplayRecord
+from worker.simulation.config import SimConfig
+from worker.simulation.replay import versions as replay_versions
 
 RESULT_KIND = "refine"
 #: verify tolerance on object positions (m): a re-simulation on the same build reproduces bit for bit; the
@@ -40,10 +43,6 @@ VERIFY_TOLERANCE_M = 1e-6
 
 def versions() -> dict[str, str]:
     """The raw replay's package versions plus the optimiser's."""
-    import cma
-
-    from worker.simulation.replay import versions as replay_versions
-
     return {**replay_versions(), "cma": str(cma.__version__).split()[0]}
 
 
@@ -75,8 +74,6 @@ def build_arrays(
         arrays[f"{s}_valid"] = ref.valid
         if getattr(ref, "from_mano", False):
             # The refined hand as MANO parameters (issue #6): exact because the scene used the MANO geometry.
-            from worker.hand.mano.pose import mano_result_arrays
-
             hand = prep.seq.hand(s)
             assert hand is not None
             arrays.update(mano_result_arrays(prep.seq, hand, p, r, q))
@@ -148,10 +145,6 @@ def verify_result(blob: bytes, sequence: Sequence | None = None) -> dict[str, An
 
     Raises ``ResultMismatchError`` when the object trajectory (or the stored per-frame controls) differ.
     """
-    from worker.refine.evaluator import ParallelEvaluator
-    from worker.refine.prepare import initial_state, prepare
-    from worker.refine.run import replay
-
     summary = read_summary(blob)
     if summary.get("kind") != RESULT_KIND:
         raise UnsupportedFormatError(f"not a refinement result (kind {summary.get('kind')!r})")
@@ -161,8 +154,6 @@ def verify_result(blob: bytes, sequence: Sequence | None = None) -> dict[str, An
             raise UnsupportedFormatError("the result embeds no sequence; pass --sequence")
         sequence = sequence_from_npz_bytes(arrays["sequence_npz"].tobytes())
     options = JobOptions.model_validate(summary["options"])
-    from worker.simulation.scene import SimConfig
-
     sim: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in summary["config"]["sim"].items()}
     # Results made before the pivot was recorded turned the hand about the wrist; before the wrist lead was
     # recorded, the mocap followed the wrist track itself; before the rest pose, the object started from frame 0.

@@ -10,6 +10,7 @@ deterministic step count is ``simulated_steps``.
 
 from __future__ import annotations
 
+import importlib.metadata as md
 import platform
 import time
 from dataclasses import dataclass, field
@@ -20,7 +21,9 @@ import numpy as np
 
 from common.result_format import write_result_npz
 from common.sequence import Sequence
-from worker.hand.retarget import HandReference, retarget_sequence
+from worker.hand.mano.pose import reference_mano_arrays
+from worker.hand.reference import HandReference
+from worker.hand.retarget import retarget_sequence
 from worker.simulation.metrics import compute_metrics, scalar_metrics
 from worker.simulation.scene import Scene, SimConfig, build_scene
 from worker.simulation.stepping import (
@@ -58,8 +61,6 @@ class ReplayResult:
 
 
 def versions() -> dict[str, str]:
-    import importlib.metadata as md
-
     out = {"python": platform.python_version(), "mujoco": mujoco.__version__, "numpy": np.__version__}
     try:
         out["hoi-refine"] = md.version("hoi-refine")
@@ -95,8 +96,6 @@ def raw_replay(seq: Sequence, config: SimConfig | None = None, record_contacts: 
     steps = settle_steps + record.steps
     mano_arrays: dict[str, np.ndarray] = {}
     if any(r.from_mano for r in references):  # the driven pose as MANO parameters (DESIGN §1.7)
-        from worker.hand.mano.pose import reference_mano_arrays
-
         mano_arrays = reference_mano_arrays(seq, references)
     timings = {
         "retarget_s": t1 - t0,

@@ -34,7 +34,7 @@ from worker.hand.mjcf import (
     hand_worldbody_xml,
 )
 from worker.hand.model import HINGE_NAMES, FloatArray
-from worker.hand.retarget import HandReference
+from worker.hand.reference import HandReference
 from worker.simulation.config import SimConfig
 from worker.simulation.object_model import OBJECT_BODY, OBJECT_JOINT, object_mjcf
 from worker.simulation.rest_pose import rest_pose

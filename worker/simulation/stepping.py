@@ -24,7 +24,7 @@ import mujoco
 import numpy as np
 
 from worker.hand.model import JOINT_LOWER, JOINT_UPPER, FloatArray, quat_to_matrix
-from worker.hand.retarget import HandReference
+from worker.hand.reference import HandReference
 from worker.simulation.contacts import ContactRecorder
 from worker.simulation.scene import Scene
 

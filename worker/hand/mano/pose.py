@@ -27,7 +27,7 @@ from worker.hand.mano.hand_geometry import (
     mano_hand_geometry,
     rotations_to_hinges,
 )
-from worker.hand.retarget import HandReference
+from worker.hand.reference import HandReference
 
 
 def mano_hand_pose(params: ManoParams, mgeo: ManoHandGeometry, mano_dir: Path | str | None = None
