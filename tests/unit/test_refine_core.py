@@ -7,7 +7,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from worker.refine.controls import HandControlSpace, PoseBasis10, quat_exp, quat_mul, quat_rotate
+from common.geometry import quat_exp, quat_mul, quat_rotate
+from worker.refine.controls import HandControlSpace, PoseBasis10
 from worker.refine.evaluator import ParallelEvaluator, SimState
 from worker.refine.losses import HandTargets, ObjectTargets, finite_difference_velocity, resolve_weights
 from worker.refine.problem import SimLayout, SimWindowProblem

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from worker.refine.losses import quat_geodesic
+from common.geometry import quat_geodesic
 from worker.simulation.rest_pose import approach_frame, mean_pose, moved_frame, rest_pose
 
 # A 2 x 2 x 2 cm cube's corners and face centres: the object surface.

@@ -62,7 +62,7 @@ def test_kabsch_recovers_rotation() -> None:
     rng = np.random.default_rng(0)
     pts = rng.normal(size=(6, 3))
     quat = rng.normal(size=(5, 4))
-    from worker.hand.model import quat_to_matrix
+    from common.geometry import quat_to_matrix
 
     rot = quat_to_matrix(quat)
     t = rng.normal(size=(5, 3))

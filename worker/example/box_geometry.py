@@ -11,7 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from worker.hand.model import FloatArray, HandGeometry, finger_kinematics
+from common.geometry import FloatArray
+from worker.hand.model import HandGeometry, finger_kinematics
 
 #: Half-extents of the example box (5.6 x 5.6 x 9 cm) and its mass (kg).
 BOX_HALF: tuple[float, float, float] = (0.028, 0.028, 0.045)

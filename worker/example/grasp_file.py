@@ -10,10 +10,11 @@ from pathlib import Path
 
 import numpy as np
 
+from common.geometry import FloatArray
 from worker.example.box_geometry import BOX_HALF, MASS_KG, BoxGrasp
 from worker.example.grasp_hold import select_thumb
 from worker.example.grasp_synthesis import close_to_contact, synthesize_box_grasp
-from worker.hand.model import JOINT_LOWER, JOINT_UPPER, TEMPLATE_HAND_LENGTH, FloatArray, HandGeometry, default_geometry
+from worker.hand.model import JOINT_LOWER, JOINT_UPPER, TEMPLATE_HAND_LENGTH, HandGeometry, default_geometry
 
 #: The solved example grasp shipped with the package (solving takes ~40 s on 2 shared cores).
 GRASP_FILE = Path(__file__).parent / "data" / "example_grasp.npz"

@@ -11,10 +11,10 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
+from common.geometry import FloatArray, matrix_to_quat
 from common.sequence import HandTrack, ObjectSpec, Sequence
 from worker.example.box_geometry import BoxGrasp, box_sdf, capsule_samples
-from worker.hand.mjcf import matrix_to_quat
-from worker.hand.model import JOINT_LOWER, JOINT_UPPER, FloatArray, HandGeometry, forward_keypoints
+from worker.hand.model import JOINT_LOWER, JOINT_UPPER, HandGeometry, forward_keypoints
 from worker.hand.reference import HandReference
 from worker.simulation.scene import build_scene
 from worker.simulation.stepping import HandTargets, pose_hands

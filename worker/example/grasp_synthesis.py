@@ -12,13 +12,9 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from common.geometry import FloatArray
 from worker.example.box_geometry import BoxGrasp, box_sdf, capsule_samples
-from worker.hand.model import (
-    JOINT_LOWER,
-    JOINT_UPPER,
-    FloatArray,
-    HandGeometry,
-)
+from worker.hand.model import JOINT_LOWER, JOINT_UPPER, HandGeometry
 
 #: Natural half-closed hand (the regulariser's target and the solver's start).
 _NATURAL = np.zeros(45)

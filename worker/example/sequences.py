@@ -19,16 +19,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.geometry import FloatArray, matrix_to_quat
 from common.sequence import HandTrack, ObjectSpec, Sequence
 from worker.example.box_geometry import BOX_HALF, MASS_KG
 from worker.example.grasp_file import cached_box_grasp
-from worker.hand.mjcf import matrix_to_quat
 from worker.hand.model import (
     FINGERS,
     JOINT_LOWER,
     JOINT_UPPER,
     TEMPLATE_HAND_LENGTH,
-    FloatArray,
     default_geometry,
     forward_keypoints,
 )

@@ -11,8 +11,9 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from common.geometry import FloatArray
 from common.sequence import Side
-from worker.hand.model import FloatArray, HandGeometry, forward_keypoints
+from worker.hand.model import HandGeometry, forward_keypoints
 
 
 @dataclass

@@ -15,6 +15,7 @@ import numpy.typing as npt
 from scipy.spatial.transform import Rotation, Slerp
 
 from common.errors import SequenceValidationError
+from common.geometry import FloatArray
 from common.sequence import HandTrack, Sequence, Side
 from worker.hand.mano import mano_available, mano_model_path
 from worker.hand.mano.pose import mano_reference
@@ -24,7 +25,6 @@ from worker.hand.model import (
     JOINT_UPPER,
     PALM_KEYPOINTS,
     PRIMARY_HINGES,
-    FloatArray,
     HandGeometry,
     finger_kinematics,
     fit_hand_geometry,

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from common.errors import ConfigurationError
+from common.geometry import FloatArray
 from common.job_options import JobOptions
 from common.sequence import FINGERTIP_INDICES, Sequence
 from worker.hand.mano.pose import mano_pca_basis
@@ -27,7 +28,7 @@ from worker.refine.losses import (
     finite_difference_velocity,
 )
 from worker.refine.problem import SimLayout
-from worker.refine.spline import FloatArray, default_keyframe_interval
+from worker.refine.spline import default_keyframe_interval
 from worker.simulation.scene import SimConfig, build_scene
 from worker.simulation.stepping import HandTargets as SimTargets
 from worker.simulation.stepping import initial_state as sim_initial_state

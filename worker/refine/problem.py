@@ -13,14 +13,12 @@ from typing import Any
 
 import mujoco
 import numpy as np
-import numpy.typing as npt
 
-from worker.refine.controls import HandControlSpace, quat_mul
+from common.geometry import FloatArray, IntArray, quat_conj, quat_mul, quat_sandwich
+from worker.refine.controls import HandControlSpace
 from worker.refine.evaluator import ParallelEvaluator, SimState
-from worker.refine.losses import HandTargets, ObjectTargets, WindowRecord, quat_conj, rotate, window_losses
-from worker.refine.spline import FloatArray, keyframe_window
-
-IntArray = npt.NDArray[np.int64]
+from worker.refine.losses import HandTargets, ObjectTargets, WindowRecord, window_losses
+from worker.refine.spline import keyframe_window
 
 
 @dataclass
@@ -60,7 +58,7 @@ class SimLayout:
             b = self.object_body_id
             ipos, iquat = m.body_ipos[b], m.body_iquat[b]
             quat = quat_mul(quat, quat_conj(np.broadcast_to(iquat, quat.shape)))  # R_body = R_inertial R_i^T
-            offset = rotate(quat, np.broadcast_to(ipos, pos.shape))  # COM - body origin, world
+            offset = quat_sandwich(quat, np.broadcast_to(ipos, pos.shape))  # COM - body origin, world
             pos = pos - offset
             lin = lin - np.cross(ang, offset)  # v_origin = v_com + w x (origin - com)
         return pos, quat, np.concatenate([lin, ang], axis=-1)

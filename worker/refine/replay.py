@@ -12,11 +12,11 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
+from common.geometry import FloatArray
 from worker.refine.evaluator import ParallelEvaluator, SimState
 from worker.refine.losses import resolve_weights
 from worker.refine.prepare import Prepared
 from worker.refine.problem import SimWindowProblem
-from worker.refine.spline import FloatArray
 from worker.simulation.contacts import ContactRecorder, empty_contact_columns
 
 #: Keyframe intervals simulated past the optimised keyframe: 1 is the (k1..k4) window of DESIGN §1.6; 2 lets

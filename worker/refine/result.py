@@ -22,6 +22,7 @@ import cma
 import numpy as np
 
 from common.errors import ResultMismatchError, UnsupportedFormatError
+from common.geometry import FloatArray
 from common.job_options import JobOptions
 from common.result_format import read_arrays, read_summary
 from common.sequence import Sequence
@@ -30,7 +31,6 @@ from worker.hand.mano.pose import mano_result_arrays
 from worker.refine.evaluator import ParallelEvaluator
 from worker.refine.prepare import Prepared, initial_state, prepare
 from worker.refine.replay import ReplayRecord, replay
-from worker.refine.spline import FloatArray
 from worker.refine.windowed import CmaSettings, WindowLog
 from worker.simulation.config import SimConfig
 from worker.simulation.replay import versions as replay_versions

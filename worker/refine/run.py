@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from common.geometry import FloatArray
 from common.job_options import JobOptions
 from common.result_format import write_result_npz
 from common.sequence import Sequence
@@ -25,7 +26,6 @@ from worker.refine.losses import ROT_SCALE, resolve_weights
 from worker.refine.prepare import DEFAULT_MAX_GENERATIONS, DEFAULT_POPSIZE, initial_state, prepare
 from worker.refine.replay import ReplayRecord, replay, window_problem
 from worker.refine.result import build_arrays, build_summary
-from worker.refine.spline import FloatArray
 from worker.refine.windowed import CmaSettings, RefineProgress, WindowLog, optimise_windows
 from worker.simulation.metrics import compute_metrics, scalar_metrics
 

@@ -20,9 +20,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from common.geometry import FloatArray
 from common.settings import get_settings
-
-FloatArray = npt.NDArray[np.float64]
 
 #: Quick CoACD settings (seconds, not minutes, on 300-800-vertex meshes), at most 16 parts.
 COACD_PARAMS: dict[str, Any] = {

@@ -11,9 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.geometry import FloatArray
 from common.sequence import ObjectSpec
 from worker.hand.mjcf import fmt
-from worker.hand.model import FloatArray
 from worker.simulation.config import HAND_BIT, OBJECT_BIT, TABLE_BIT, SimConfig
 from worker.simulation.convex_cache import convex_parts
 

@@ -22,8 +22,8 @@ from dataclasses import dataclass, field
 
 import mujoco
 import numpy as np
-import numpy.typing as npt
 
+from common.geometry import FloatArray, IntArray
 from common.sequence import Sequence
 from worker.hand.mjcf import (
     hand_actuator_xml,
@@ -33,15 +33,13 @@ from worker.hand.mjcf import (
     hand_sensor_xml,
     hand_worldbody_xml,
 )
-from worker.hand.model import HINGE_NAMES, FloatArray
+from worker.hand.model import HINGE_NAMES
 from worker.hand.reference import HandReference
 from worker.simulation.config import SimConfig
 from worker.simulation.object_model import OBJECT_BODY, OBJECT_JOINT, object_mjcf
 from worker.simulation.rest_pose import rest_pose
 from worker.simulation.support_plane import SupportPlane
 from worker.simulation.table_fit import fit_table, option_xml, table_geom_xml
-
-IntArray = npt.NDArray[np.int64]
 
 __all__ = ["HandHandles", "Scene", "SimConfig", "build_scene"]
 

@@ -15,9 +15,9 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
+from common.geometry import FloatArray, quat_to_matrix
 from common.sequence import Sequence
 from worker.hand.mjcf import fmt
-from worker.hand.model import FloatArray, quat_to_matrix
 from worker.simulation.config import OBJECT_BIT, TABLE_BIT, SimConfig
 from worker.simulation.object_model import OBJECT_JOINT, centre_of_mass, object_mjcf
 from worker.simulation.support_plane import SupportPlane, support_candidates

@@ -19,7 +19,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from common.errors import SequenceValidationError
-from common.sequence import FloatArray, HandTrack, ManoParams, Sequence, Side
+from common.geometry import FloatArray
+from common.sequence import HandTrack, ManoParams, Sequence, Side
 from worker.hand.mano.decode import full_hand_pose, load_mano_model, local_rotations
 from worker.hand.mano.hand_geometry import (
     ManoHandGeometry,
