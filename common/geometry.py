@@ -98,35 +98,17 @@ def slerp_frames(quats: FloatArray, times: FloatArray) -> FloatArray:
     times = np.clip(times, 0, t_max)
     i0 = np.minimum(np.floor(times).astype(np.int64), max(t_max - 1, 0))
     i1 = np.minimum(i0 + 1, t_max)
-    u = (times - i0)[:, None]
-    q0, q1 = quats[i0], quats[i1]
-    dot = np.sum(q0 * q1, axis=1, keepdims=True)
-    q1 = np.where(dot < 0, -q1, q1)
-    dot = np.abs(dot).clip(max=1.0)
-    theta = np.arccos(dot)
-    sin_t = np.sin(theta)
-    near = sin_t < 1e-6
-    w0 = np.where(near, 1 - u, np.sin((1 - u) * theta) / np.where(near, 1.0, sin_t))
-    w1 = np.where(near, u, np.sin(u * theta) / np.where(near, 1.0, sin_t))
-    out = w0 * q0 + w1 * q1
-    return out / np.linalg.norm(out, axis=1, keepdims=True)
+    return slerp(quats[i0], quats[i1], times - i0)
 
 
-def quat_sandwich(q: FloatArray, v: FloatArray) -> FloatArray:
-    """Rotate vectors v (..., 3) by wxyz quaternions q (..., 4) as q v q*."""
-    qv = np.concatenate([np.zeros((*v.shape[:-1], 1)), v], axis=-1)
-    return quat_mul(quat_mul(q, qv), quat_conj(q))[..., 1:]
-
-
-def quat_geodesic(q1: FloatArray, q2: FloatArray) -> FloatArray:
-    """Rotation angle (rad) between wxyz quaternions, broadcasting."""
-    dot = np.abs(np.sum(q1 * q2, axis=-1)) / (np.linalg.norm(q1, axis=-1) * np.linalg.norm(q2, axis=-1))
-    return 2.0 * np.arccos(np.clip(dot, -1.0, 1.0))
-
-
-def rotation_error_deg(quat_a: FloatArray, quat_b: FloatArray) -> FloatArray:
-    """Geodesic angle (deg) between wxyz quaternions (...,4): 2·acos|<a, b>|."""
+def rotation_angle(quat_a: FloatArray, quat_b: FloatArray) -> FloatArray:
+    """Geodesic angle (rad) between wxyz quaternions (...,4): 2·acos|<a, b>| of the normalised quaternions."""
     a = quat_a / np.linalg.norm(quat_a, axis=-1, keepdims=True)
     b = quat_b / np.linalg.norm(quat_b, axis=-1, keepdims=True)
     dot = np.clip(np.abs(np.sum(a * b, axis=-1)), 0.0, 1.0)
-    return np.asarray(np.degrees(2.0 * np.arccos(dot)))
+    return np.asarray(2.0 * np.arccos(dot))
+
+
+def rotation_error_deg(quat_a: FloatArray, quat_b: FloatArray) -> FloatArray:
+    """Geodesic angle (deg) between wxyz quaternions (...,4)."""
+    return np.asarray(np.degrees(rotation_angle(quat_a, quat_b)))

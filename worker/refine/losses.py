@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from common.geometry import FloatArray, quat_conj, quat_geodesic, quat_mul, quat_sandwich
+from common.geometry import FloatArray, quat_conj, quat_mul, quat_rotate, rotation_angle
 from common.job_options import LOSS_NAMES
 
 BoolArray = npt.NDArray[np.bool_]
@@ -137,7 +137,7 @@ def contact_targets(
 ) -> tuple[BoolArray, FloatArray]:
     """Fingertips within ``threshold`` of the object surface in the reference, and their object-local points."""
     tips = keypoints[:, list(fingertips)]  # (T, n, 3)
-    local = quat_sandwich(quat_conj(obj_quat)[:, None], tips - obj_pos[:, None])
+    local = quat_rotate(quat_conj(obj_quat)[:, None], tips - obj_pos[:, None])
     dist = surface_distance(local.reshape(-1, 3)).reshape(local.shape[:2])
     mask = (dist <= threshold) & valid[:, None]
     return mask, local
@@ -171,7 +171,7 @@ class WindowRecord:
 
 def object_terms(rec: WindowRecord, ref: ObjectTargets) -> dict[str, FloatArray]:
     f = rec.frames
-    geo = quat_geodesic(rec.obj_quat, ref.quat[f][None])
+    geo = rotation_angle(rec.obj_quat, ref.quat[f][None])
     dpos = np.linalg.norm(rec.obj_pos - ref.pos[f][None], axis=-1)
     pose = POSE_ETA * geo / ROT_SCALE + (1 - POSE_ETA) * dpos / POS_SCALE
     dv = rec.obj_vel - ref.vel[f][None]
@@ -195,7 +195,7 @@ def hand_terms(rec: WindowRecord, side: str, ref: HandTargets) -> dict[str, Floa
     mask = ref.contact_mask[f]  # (F, n)
     if mask.any():
         tips = kp[:, :, list(ref.fingertips)]
-        local = quat_sandwich(quat_conj(rec.obj_quat)[:, :, None], tips - rec.obj_pos[:, :, None])
+        local = quat_rotate(quat_conj(rec.obj_quat)[:, :, None], tips - rec.obj_pos[:, :, None])
         d = np.linalg.norm(local - ref.contact_local[f][None], axis=-1) / POS_SCALE  # (C, F, n)
         per_frame = (d * mask).sum(axis=2) / np.maximum(mask.sum(axis=1), 1)
         contact = per_frame.sum(axis=1)

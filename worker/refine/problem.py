@@ -14,7 +14,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from common.geometry import FloatArray, IntArray, quat_conj, quat_mul, quat_sandwich
+from common.geometry import FloatArray, IntArray, quat_conj, quat_mul, quat_rotate
 from worker.refine.controls import HandControlSpace
 from worker.refine.evaluator import ParallelEvaluator, SimState
 from worker.refine.losses import HandTargets, ObjectTargets, WindowRecord, window_losses
@@ -58,7 +58,7 @@ class SimLayout:
             b = self.object_body_id
             ipos, iquat = m.body_ipos[b], m.body_iquat[b]
             quat = quat_mul(quat, quat_conj(np.broadcast_to(iquat, quat.shape)))  # R_body = R_inertial R_i^T
-            offset = quat_sandwich(quat, np.broadcast_to(ipos, pos.shape))  # COM - body origin, world
+            offset = quat_rotate(quat, np.broadcast_to(ipos, pos.shape))  # COM - body origin, world
             pos = pos - offset
             lin = lin - np.cross(ang, offset)  # v_origin = v_com + w x (origin - com)
         return pos, quat, np.concatenate([lin, ang], axis=-1)
