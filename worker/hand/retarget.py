@@ -10,6 +10,8 @@ Frames without a valid hand are interpolated (wrist: slerp; hinges: linear; cons
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation, Slerp
@@ -167,11 +169,11 @@ def retarget_keypoints(
     )
 
 
-def retarget_sequence(seq: Sequence) -> list[HandReference]:
+def retarget_sequence(seq: Sequence, *, mano_dir: Path | None = None) -> list[HandReference]:
     """Retarget every hand of a sequence, in ``seq.hands`` order — the one place replay, refinement and the
     worker get their references from.
 
-    A hand with MANO parameters, when ``HOI_REFINE_MANO_DIR`` holds its model file, becomes a reference on its
+    A hand with MANO parameters, when ``mano_dir`` holds its model file, becomes a reference on its
     own MANO hand (``worker.hand.mano.pose.mano_reference``: exact hinges, per-part hulls; DESIGN §1.1-1.2);
     otherwise its keypoints are retargeted by IK. A MANO-only hand without the model file raises
     ``ManoModelMissingError`` naming the setting.
@@ -179,10 +181,10 @@ def retarget_sequence(seq: Sequence) -> list[HandReference]:
     refs = []
     for hand in seq.hands:
         if hand.mano is not None:
-            if mano_available([hand.side]):
-                refs.append(mano_reference(seq, hand))
+            if mano_available([hand.side], mano_dir):
+                refs.append(mano_reference(seq, hand, mano_dir))
                 continue
             if hand.keypoints is None:
-                mano_model_path(hand.side)  # raises the clear error
+                mano_model_path(hand.side, mano_dir)  # raises the clear error
         refs.append(retarget_hand(seq, hand))
     return refs

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
-from typing import Any
+from pathlib import Path
 
 import numpy as np
 
@@ -17,6 +17,7 @@ from common.sequence import FINGERTIP_INDICES, Sequence
 from worker.hand.mano.pose import mano_pca_basis
 from worker.hand.model import JOINT_LIMITS
 from worker.hand.pose_basis import load_pose_basis
+from worker.hand.reference import HandReference
 from worker.hand.retarget import retarget_sequence
 from worker.refine.controls import HandControlSpace, PoseBasis10
 from worker.refine.evaluator import ParallelEvaluator, SimState
@@ -29,7 +30,8 @@ from worker.refine.losses import (
 )
 from worker.refine.problem import SimLayout
 from worker.refine.spline import default_keyframe_interval
-from worker.simulation.scene import SimConfig, build_scene
+from worker.simulation.config import SimConfig
+from worker.simulation.scene import Scene, build_scene
 from worker.simulation.stepping import HandTargets as SimTargets
 from worker.simulation.stepping import initial_state as sim_initial_state
 from worker.simulation.stepping import lead_track, lead_values
@@ -52,14 +54,16 @@ class Prepared:
     seq: Sequence
     options: JobOptions
     interval: int
-    references: list[Any]  # worker.hand.retarget.HandReference
-    scene: Any  # worker.simulation.scene.Scene
+    references: list[HandReference]
+    scene: Scene
     layout: SimLayout
     spaces: dict[str, HandControlSpace]
     obj_targets: ObjectTargets
     hand_targets: dict[str, HandTargets]
     basis_provenance: str
     rotation_pivot: str  # what the wrist rotation offset turns the hand about (one of PIVOTS)
+    #: The MANO model folder the references were made with (None: no MANO hand), for the result's MANO arrays.
+    mano_dir: Path | None = None
 
     @property
     def num_frames(self) -> int:
@@ -70,20 +74,22 @@ class Prepared:
         return np.concatenate([self.obj_targets.pos, self.obj_targets.quat], axis=1)
 
 
-def mano_pose_basis(seq: Sequence, reference: Any, like: PoseBasis10) -> PoseBasis10:
+def mano_pose_basis(seq: Sequence, reference: HandReference, like: PoseBasis10, mano_dir: Path | None) -> PoseBasis10:
     """MANO's own hand PCA (DESIGN §1.3: "MANO's own PCA when MANO is used"), as hinge changes per unit
     coefficient. Each component is scaled so one unit moves the hinges by as much (RMS) as one unit of the
     built-in basis's component of the same rank, which keeps CMA-ES's step size and bounds meaningful."""
     hand = seq.hand(reference.side)
     assert hand is not None and hand.mano is not None
-    mano = mano_pca_basis(None, reference.side, betas=hand.mano.betas, n_components=10)
+    mano = mano_pca_basis(mano_dir, reference.side, betas=hand.mano.betas, n_components=10)
     comps = np.asarray(mano.components[:10], dtype=np.float64)
     norms = np.maximum(np.linalg.norm(comps, axis=1), 1e-9)
     builtin_norms = np.linalg.norm(like.components, axis=1) * like.stddev
     return PoseBasis10(comps / norms[:, None], builtin_norms)
 
 
-def pose_basis(references: list[Any], seq: Sequence | None = None) -> tuple[dict[str, PoseBasis10], str]:
+def pose_basis(
+    references: list[HandReference], seq: Sequence | None = None, mano_dir: Path | None = None
+) -> tuple[dict[str, PoseBasis10], str]:
     """The packaged pose basis (``worker.hand.pose_basis``, one PCA over the built-in hand's hinges, used for both
     sides since the left hand mirrors the right with the same hinge conventions); without the packaged file,
     a PCA of this sequence's own reference hinge angles (a documented fallback named in the provenance)."""
@@ -95,16 +101,18 @@ def pose_basis(references: list[Any], seq: Sequence | None = None) -> tuple[dict
         basis = PoseBasis10(np.asarray(packaged.components[:10], dtype=np.float64),
                             np.asarray(packaged.stddev[:10], dtype=np.float64))
         source = json.dumps(packaged.provenance, sort_keys=True)[:300]
-        bases = {r.side: basis for r in references}
-        mano_sides = [r.side for r in references if getattr(r, "from_mano", False) and seq is not None]
+        bases: dict[str, PoseBasis10] = {r.side: basis for r in references}
+        mano_sides = [r.side for r in references if r.from_mano and seq is not None]
         for r in references:
             if r.side in mano_sides:
                 assert seq is not None
-                bases[r.side] = mano_pose_basis(seq, r, basis)
+                bases[r.side] = mano_pose_basis(seq, r, basis, mano_dir)
         if mano_sides:
             source += f"; MANO PCA basis for {', '.join(mano_sides)}"
-        return bases, f"worker.hand.pose_basis (packaged): {source}"
-    out = {}
+        # A provenance label stored in every result: it keeps the name the basis had when results began to
+        # record it (the module now lives in worker.hand), so a result's bytes do not depend on where code sits.
+        return bases, f"worker.pose_basis (packaged): {source}"
+    out: dict[str, PoseBasis10] = {}
     for r in references:
         q = r.q[r.valid] if r.valid.sum() >= 2 else r.q
         _, sing, vt = np.linalg.svd(q - q.mean(axis=0), full_matrices=False)
@@ -117,14 +125,24 @@ def pose_basis(references: list[Any], seq: Sequence | None = None) -> tuple[dict
     return out, "fallback: PCA of this sequence's reference hinge angles (packaged pose basis missing)"
 
 
-def prepare(seq: Sequence, options: JobOptions, config: Any = None, rotation_pivot: str | None = None) -> Prepared:
-    """``rotation_pivot``: ``ROTATION_PIVOT`` when None (``verify`` passes the one a result was made with)."""
+def prepare(
+    seq: Sequence,
+    options: JobOptions,
+    config: SimConfig | None = None,
+    rotation_pivot: str | None = None,
+    *,
+    cache_dir: Path | None = None,
+    mano_dir: Path | None = None,
+) -> Prepared:
+    """``rotation_pivot``: ``ROTATION_PIVOT`` when None (``verify`` passes the one a result was made with).
+    ``cache_dir``: where convex parts are cached (None: memory only); ``mano_dir``: the MANO model folder
+    (None: hands given by keypoints only, see ``retarget_sequence``)."""
     config = config or SimConfig()
-    references = retarget_sequence(seq)
-    scene = build_scene(seq, references, config)
+    references = retarget_sequence(seq, mano_dir=mano_dir)
+    scene = build_scene(seq, references, config, cache_dir=cache_dir)
     layout = SimLayout.from_scene(scene)
     interval = options.keyframe_interval or default_keyframe_interval(seq.fps)
-    bases, provenance = pose_basis(references, seq)
+    bases, provenance = pose_basis(references, seq, mano_dir)
     pivot_kind = rotation_pivot or ROTATION_PIVOT
     if pivot_kind not in PIVOTS:
         raise ValueError(f"rotation_pivot must be one of {', '.join(PIVOTS)}, got {pivot_kind!r}")
@@ -155,7 +173,8 @@ def prepare(seq: Sequence, options: JobOptions, config: Any = None, rotation_piv
             free_translation=options.free_wrist_translation,
             pivot=None if pivot is None else lead_values(pivot, lead),
         )
-    return Prepared(seq, options, interval, references, scene, layout, spaces, obj, hands, provenance, pivot_kind)
+    return Prepared(seq, options, interval, references, scene, layout, spaces, obj, hands, provenance, pivot_kind,
+                    mano_dir)
 
 
 def pivot_track(kind: str, keypoints: FloatArray, joint_weights: FloatArray) -> FloatArray | None:

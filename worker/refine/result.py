@@ -16,6 +16,7 @@ deterministic counters; the wall-clock figures are stored in the ``timings_json`
 from __future__ import annotations
 
 from dataclasses import asdict
+from pathlib import Path
 from typing import Any
 
 import cma
@@ -76,7 +77,7 @@ def build_arrays(
             # The refined hand as MANO parameters (issue #6): exact because the scene used the MANO geometry.
             hand = prep.seq.hand(s)
             assert hand is not None
-            arrays.update(mano_result_arrays(prep.seq, hand, p, r, q))
+            arrays.update(mano_result_arrays(prep.seq, hand, p, r, q, prep.mano_dir))
     for name, m in (("raw", m_raw), ("refined", m_ref)):
         for key, val in m["per_frame"].items():
             arrays[f"metrics_{name}_{key}"] = val
@@ -140,8 +141,11 @@ def build_summary(
     }
 
 
-def verify_result(blob: bytes, sequence: Sequence | None = None) -> dict[str, Any]:
-    """Re-simulate a result's stored keyframes from frame 0 and compare the object trajectory.
+def verify_result(
+    blob: bytes, sequence: Sequence | None = None, *, cache_dir: Path | None = None, mano_dir: Path | None = None
+) -> dict[str, Any]:
+    """Re-simulate a result's stored keyframes from frame 0 and compare the object trajectory (``cache_dir`` and
+    ``mano_dir`` as for ``prepare``).
 
     Raises ``ResultMismatchError`` when the object trajectory (or the stored per-frame controls) differ.
     """
@@ -160,7 +164,8 @@ def verify_result(blob: bytes, sequence: Sequence | None = None) -> dict[str, An
     sim.setdefault("wrist_lead_s", 0.0)
     sim.setdefault("rest_approach_m", 0.0)
     sim.setdefault("finger_lead_s", 0.0)
-    prep = prepare(sequence, options, SimConfig(**sim), rotation_pivot=summary["config"].get("rotation_pivot", "wrist"))
+    prep = prepare(sequence, options, SimConfig(**sim), rotation_pivot=summary["config"].get("rotation_pivot", "wrist"),
+                   cache_dir=cache_dir, mano_dir=mano_dir)
     keyframes = {}
     for side, space in prep.spaces.items():
         key = f"{side}_keyframes"

@@ -13,6 +13,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -69,9 +70,13 @@ def refine_sequence(
     progress: Callable[[RefineProgress], None] | None = None,
     should_stop: Callable[[], bool] | None = None,
     evaluator: ParallelEvaluator | None = None,
+    *,
+    cache_dir: Path | None = None,
+    mano_dir: Path | None = None,
 ) -> RefineOutcome:
     """Refine one sequence; see the module docstring. ``should_stop`` is polled once per CMA-ES generation
     (``JobCancelledError`` when it answers True). ``evaluator`` lets a long-lived worker reuse its pool.
+    ``cache_dir`` and ``mano_dir``: as for ``prepare`` (the entry points pass the configured folders).
 
     When the refined replay fails the success criterion and ``options.restarts`` allows, the whole window loop
     runs again from zero offsets with another seed (``attempt_seed``): the greedy sliding window cannot undo a
@@ -79,7 +84,7 @@ def refine_sequence(
     (success first, then the lower mean object error) is the result; every attempt is listed in the summary.
     """
     t0 = time.perf_counter()
-    prep = prepare(seq, options)
+    prep = prepare(seq, options, cache_dir=cache_dir, mano_dir=mano_dir)
     t_prep = time.perf_counter()
     own = evaluator is None
     ev = evaluator or ParallelEvaluator(prep.scene.model, threads)

@@ -14,6 +14,7 @@ import importlib.metadata as md
 import platform
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import mujoco
@@ -69,13 +70,21 @@ def versions() -> dict[str, str]:
     return out
 
 
-def raw_replay(seq: Sequence, config: SimConfig | None = None, record_contacts: bool = True) -> ReplayResult:
-    """Retarget, build the scene and replay the reference open-loop; see the module docstring."""
+def raw_replay(
+    seq: Sequence,
+    config: SimConfig | None = None,
+    record_contacts: bool = True,
+    *,
+    cache_dir: Path | None = None,
+    mano_dir: Path | None = None,
+) -> ReplayResult:
+    """Retarget, build the scene and replay the reference open-loop; see the module docstring. ``cache_dir``:
+    where convex parts are cached (None: memory only); ``mano_dir``: the MANO model folder (None: no MANO)."""
     config = config or SimConfig()
     t0 = time.perf_counter()
-    references = retarget_sequence(seq)
+    references = retarget_sequence(seq, mano_dir=mano_dir)
     t1 = time.perf_counter()
-    scene = build_scene(seq, references, config)
+    scene = build_scene(seq, references, config, cache_dir=cache_dir)
     data = scene.make_data()
     t2 = time.perf_counter()
     targets: dict[str, HandTargets] = {r.side: HandTargets.from_reference(r) for r in references}
@@ -96,7 +105,7 @@ def raw_replay(seq: Sequence, config: SimConfig | None = None, record_contacts: 
     steps = settle_steps + record.steps
     mano_arrays: dict[str, np.ndarray] = {}
     if any(r.from_mano for r in references):  # the driven pose as MANO parameters (DESIGN §1.7)
-        mano_arrays = reference_mano_arrays(seq, references)
+        mano_arrays = reference_mano_arrays(seq, references, mano_dir)
     timings = {
         "retarget_s": t1 - t0,
         "build_scene_s": t2 - t1,
