@@ -98,7 +98,7 @@ def finite_difference_velocity(pos: FloatArray, quat: FloatArray, fps: float) ->
 
 
 @dataclass
-class HandTargets:
+class HandKeypointTargets:
     """One hand's reference for the losses."""
 
     keypoints: FloatArray  # (T, J, 3) world
@@ -186,7 +186,7 @@ def object_terms(rec: WindowRecord, ref: ObjectTargets) -> dict[str, FloatArray]
     }
 
 
-def hand_terms(rec: WindowRecord, side: str, ref: HandTargets) -> dict[str, FloatArray]:
+def hand_terms(rec: WindowRecord, side: str, ref: HandKeypointTargets) -> dict[str, FloatArray]:
     f = rec.frames
     kp = rec.keypoints[side]
     valid = ref.valid[f].astype(np.float64)
@@ -215,7 +215,7 @@ def hand_terms(rec: WindowRecord, side: str, ref: HandTargets) -> dict[str, Floa
 def window_losses(
     rec: WindowRecord,
     obj: ObjectTargets,
-    hands: dict[str, HandTargets],
+    hands: dict[str, HandKeypointTargets],
     weights: dict[str, float],
 ) -> tuple[dict[str, FloatArray], dict[str, FloatArray]]:
     """Per-hand objectives (C,) (shared object terms + that hand's terms) and the weighted terms (C,).

@@ -22,7 +22,7 @@ from worker.hand.retarget import retarget_sequence
 from worker.refine.controls import HandControlSpace, PoseBasis10
 from worker.refine.evaluator import ParallelEvaluator, SimState
 from worker.refine.losses import (
-    HandTargets,
+    HandKeypointTargets,
     ObjectTargets,
     SurfaceDistance,
     contact_targets,
@@ -32,9 +32,7 @@ from worker.refine.problem import SimLayout
 from worker.refine.spline import default_keyframe_interval
 from worker.simulation.config import SimConfig
 from worker.simulation.scene import Scene, build_scene
-from worker.simulation.stepping import HandTargets as SimTargets
-from worker.simulation.stepping import initial_state as sim_initial_state
-from worker.simulation.stepping import lead_track, lead_values
+from worker.simulation.stepping import HandTargets, initial_state, lead_track, lead_values
 
 #: Defaults chosen for the speed budget (2 shared cores, <= 60 s for 72 frames at 30 fps); see bench/refine.py.
 #: 10 generations rather than 6: on dev40 E_t 0.58 -> 0.50 cm and E_r 2.78 -> 2.63 deg for a median of 30 s
@@ -59,7 +57,7 @@ class Prepared:
     layout: SimLayout
     spaces: dict[str, HandControlSpace]
     obj_targets: ObjectTargets
-    hand_targets: dict[str, HandTargets]
+    hand_targets: dict[str, HandKeypointTargets]
     basis_provenance: str
     rotation_pivot: str  # what the wrist rotation offset turns the hand about (one of PIVOTS)
     #: The MANO model folder the references were made with (None: no MANO hand), for the result's MANO arrays.
@@ -149,10 +147,10 @@ def prepare(
     pose = seq.object_pose_world()
     obj = ObjectTargets(pose[:, :3], pose[:, 3:], finite_difference_velocity(pose[:, :3], pose[:, 3:], seq.fps))
     surface = SurfaceDistance(_surface_samples(seq))
-    hands: dict[str, HandTargets] = {}
+    hands: dict[str, HandKeypointTargets] = {}
     for r in references:
         mask, local = contact_targets(r.keypoints, r.valid, pose[:, :3], pose[:, 3:], surface, FINGERTIP_INDICES)
-        hands[r.side] = HandTargets(r.keypoints, r.valid, FINGERTIP_INDICES, mask, local)
+        hands[r.side] = HandKeypointTargets(r.keypoints, r.valid, FINGERTIP_INDICES, mask, local)
     # The mocap and the servo targets run ahead of their tracks by the weld's and the servos' lags
     # (``SimConfig.wrist_lead_s`` / ``finger_lead_s``), as in the raw replay (``stepping.substep_controls``);
     # the pivot moves with the wrist so the hand turns about its centre.
@@ -195,9 +193,9 @@ def _surface_samples(seq: Sequence) -> FloatArray:
     return np.concatenate([verts, mids, tri.mean(axis=1)])
 
 
-def initial_state(prep: Prepared, evaluator: ParallelEvaluator) -> tuple[SimState, int]:
+def settled_start(prep: Prepared, evaluator: ParallelEvaluator) -> tuple[SimState, int]:
     """The settled frame-0 state (``worker.simulation.stepping.initial_state``) with its solver warmstart."""
     data = evaluator.step_data
-    targets = {r.side: SimTargets.from_reference(r) for r in prep.references}
-    physics, steps = sim_initial_state(prep.scene, data, targets)
+    targets = {r.side: HandTargets.from_reference(r) for r in prep.references}
+    physics, steps = initial_state(prep.scene, data, targets)
     return SimState(physics.copy(), data.qacc_warmstart.copy()), steps

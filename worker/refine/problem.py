@@ -17,7 +17,7 @@ import numpy as np
 from common.geometry import FloatArray, IntArray, quat_conj, quat_mul, quat_rotate
 from worker.refine.controls import HandControlSpace
 from worker.refine.evaluator import ParallelEvaluator, SimState
-from worker.refine.losses import HandTargets, ObjectTargets, WindowRecord, window_losses
+from worker.refine.losses import HandKeypointTargets, ObjectTargets, WindowRecord, window_losses
 from worker.refine.spline import keyframe_window
 
 
@@ -129,7 +129,7 @@ class SimWindowProblem:
         layout: SimLayout,
         spaces: dict[str, HandControlSpace],
         obj: ObjectTargets,
-        hands: dict[str, HandTargets],
+        hands: dict[str, HandKeypointTargets],
         weights: dict[str, float],
         evaluator: ParallelEvaluator,
         initial: SimState,

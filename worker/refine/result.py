@@ -30,7 +30,7 @@ from common.sequence import Sequence
 from common.sequence_io import sequence_from_npz_bytes, sequence_to_npz_bytes
 from worker.hand.mano.pose import mano_result_arrays
 from worker.refine.evaluator import ParallelEvaluator
-from worker.refine.prepare import Prepared, initial_state, prepare
+from worker.refine.prepare import Prepared, prepare, settled_start
 from worker.refine.replay import ReplayRecord, replay
 from worker.refine.windowed import CmaSettings, WindowLog
 from worker.simulation.config import SimConfig
@@ -176,7 +176,7 @@ def verify_result(
         if not np.allclose(q, arrays[f"{side}_q_target"], atol=1e-9):
             raise ResultMismatchError(f"{side}_q_target does not match the stored keyframes")
     with ParallelEvaluator(prep.scene.model, 1) as ev:
-        start, _ = initial_state(prep, ev)
+        start, _ = settled_start(prep, ev)
         rec = replay(prep, ev, start, keyframes, record_contacts=False)
     stored = arrays["object_pose_sim"]
     if stored.shape != rec.object_pose.shape:

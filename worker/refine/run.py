@@ -24,7 +24,7 @@ from common.result_format import write_result_npz
 from common.sequence import Sequence
 from worker.refine.evaluator import ParallelEvaluator
 from worker.refine.losses import ROT_SCALE, resolve_weights
-from worker.refine.prepare import DEFAULT_MAX_GENERATIONS, DEFAULT_POPSIZE, initial_state, prepare
+from worker.refine.prepare import DEFAULT_MAX_GENERATIONS, DEFAULT_POPSIZE, prepare, settled_start
 from worker.refine.replay import ReplayRecord, replay, window_problem
 from worker.refine.result import build_arrays, build_summary
 from worker.refine.windowed import CmaSettings, RefineProgress, WindowLog, optimise_windows
@@ -106,7 +106,7 @@ def refine_sequence(
 
     attempts: list[dict[str, Any]] = []
     try:
-        start, settle_steps = initial_state(prep, ev)
+        start, settle_steps = settled_start(prep, ev)
         zero = {side: sp.zero_keyframes() for side, sp in prep.spaces.items()}
         raw = replay(prep, ev, start, zero)
         weights = resolve_weights(options.loss_weights)
