@@ -115,8 +115,8 @@ def test_scene_hand_is_the_mano_mesh(mano_dir: Path) -> None:
     smplx poses from the same parameters (up to pose correctives and blend skinning near the joints)."""
     from worker.hand.mano.decode import decode_mano, load_mano_model
     from worker.hand.mano.synthetic_model import MANO_FINGER_START
-    from worker.hand.mjcf import hand_mjcf
     from worker.hand.model import BODY_PARTS, default_geometry
+    from worker.simulation.hand_mjcf import hand_mjcf
 
     seq = mano_grasp_sequence()
     (ref,) = retarget_sequence(seq, mano_dir=mano_dir)
@@ -151,8 +151,8 @@ def test_scene_hand_is_the_mano_mesh(mano_dir: Path) -> None:
 
 
 def test_part_meshes_are_checked() -> None:
-    from worker.hand.mjcf import hand_asset_xml
     from worker.hand.model import default_geometry
+    from worker.simulation.hand_mjcf import hand_asset_xml
 
     geo = default_geometry("left")
     assert hand_asset_xml(geo) == ""

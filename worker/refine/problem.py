@@ -1,7 +1,7 @@
 """The simulation-backed window problem: controls -> rollouts -> recorded frames -> losses.
 
 ``SimLayout`` names what the refinement drives and reads in a compiled model (found by the MJCF naming
-conventions of ``worker.hand.mjcf``: actuators ``{side}_{hinge}``, mocap body ``{side}_mocap``, keypoint
+conventions of ``worker.simulation.hand_mjcf``: actuators ``{side}_{hinge}``, mocap body ``{side}_mocap``, keypoint
 ``framepos`` sensors ``{side}_kp{j}``), so tests can use tiny inline MJCF models with the same names.
 ``SimWindowProblem`` implements ``windowed.WindowProblem`` on a ``ParallelEvaluator``.
 """
@@ -22,7 +22,9 @@ from worker.refine.spline import keyframe_window
 
 
 @dataclass
-class HandHandles:
+class HandLayout:
+    """Where one hand sits in the rollout arrays: actuators, hinge DoFs, mocap, keypoint sensors, bodies."""
+
     side: str
     actuator_ids: IntArray  # (H,) in hinge order
     hinge_dof_adrs: IntArray  # (H,)
@@ -40,7 +42,7 @@ class SimLayout:
     substeps: int
     object_body_id: int
     object_sensor_adr: int
-    hands: dict[str, HandHandles]
+    hands: dict[str, HandLayout]
 
     def object_from_sensors(self, sens: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Object body-frame position (..., 3), quaternion (..., 4) and world velocity (..., 6) from sensordata.
@@ -67,7 +69,7 @@ class SimLayout:
     def from_scene(scene: Any) -> SimLayout:
         """From a ``worker.simulation.scene.Scene``."""
         hands = {
-            side: HandHandles(
+            side: HandLayout(
                 side=side,
                 actuator_ids=np.asarray(h.actuator_ids),
                 hinge_dof_adrs=np.asarray(h.dof_adr),
@@ -100,7 +102,7 @@ class SimLayout:
             root = int(model.jnt_bodyid[joints[0]])
             while model.body_parentid[root] != 0:
                 root = int(model.body_parentid[root])
-            hands[side] = HandHandles(
+            hands[side] = HandLayout(
                 side=side,
                 actuator_ids=np.array([obj_id(mujoco.mjtObj.mjOBJ_ACTUATOR, f"{side}_{h}") for h in hinge_names]),
                 hinge_dof_adrs=np.array([int(model.jnt_dofadr[j]) for j in joints]),

@@ -14,9 +14,9 @@ import numpy as np
 
 from common.geometry import FloatArray
 from common.sequence import ObjectSpec
-from worker.hand.mjcf import fmt
 from worker.simulation.config import HAND_BIT, OBJECT_BIT, TABLE_BIT, SimConfig
 from worker.simulation.convex_cache import convex_parts
+from worker.simulation.hand_mjcf import fmt
 
 OBJECT_BODY = "object"
 OBJECT_JOINT = "object_root"

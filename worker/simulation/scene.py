@@ -26,7 +26,10 @@ import numpy as np
 
 from common.geometry import FloatArray, IntArray
 from common.sequence import Sequence
-from worker.hand.mjcf import (
+from worker.hand.model import HINGE_NAMES
+from worker.hand.reference import HandReference
+from worker.simulation.config import SimConfig
+from worker.simulation.hand_mjcf import (
     hand_actuator_xml,
     hand_asset_xml,
     hand_body_names,
@@ -34,9 +37,6 @@ from worker.hand.mjcf import (
     hand_sensor_xml,
     hand_worldbody_xml,
 )
-from worker.hand.model import HINGE_NAMES
-from worker.hand.reference import HandReference
-from worker.simulation.config import SimConfig
 from worker.simulation.object_model import OBJECT_BODY, OBJECT_JOINT, object_mjcf
 from worker.simulation.rest_pose import rest_pose
 from worker.simulation.support_plane import SupportPlane

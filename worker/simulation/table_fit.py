@@ -19,8 +19,8 @@ import numpy as np
 
 from common.geometry import FloatArray, quat_to_matrix, rotation_error_deg
 from common.sequence import Sequence
-from worker.hand.mjcf import fmt
 from worker.simulation.config import OBJECT_BIT, TABLE_BIT, SimConfig
+from worker.simulation.hand_mjcf import fmt
 from worker.simulation.object_model import OBJECT_JOINT, centre_of_mass, object_mjcf
 from worker.simulation.support_plane import SupportPlane, support_candidates
 
