@@ -11,13 +11,13 @@ import pytest
 
 from common.job_options import JobOptions
 from common.result_format import read_summary
-from tests.integration.test_mano_scene import mano_dir, mano_grasp_sequence  # noqa: F401
+from tests.support.mano import mano_grasp_sequence
 from worker.hand.mano.pose import mano_pca_basis
 
 
 @pytest.mark.slow
 def test_mano_hand_is_refined_in_mano_pca_space_and_returns_mano_parameters(
-    mano_dir: Path,  # noqa: F811
+    mano_dir: Path,
 ) -> None:
     from worker.refine.prepare import prepare
     from worker.refine.run import refine_sequence

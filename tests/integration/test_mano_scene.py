@@ -14,50 +14,12 @@ import pytest
 
 from common.errors import ManoModelMissingError
 from common.result_format import read_contacts, read_summary
-from common.sequence import HandTrack, ManoParams, ObjectSpec, Sequence
+from common.sequence import ManoParams
 from common.sequence_io import save_sequence
-from common.settings import get_settings
-from worker.hand.mano import build_test_mano_model, ensure_keypoints
+from tests.support.mano import T, mano_grasp_sequence, use_mano_dir
+from worker.hand.mano import ensure_keypoints
 from worker.hand.retarget import retarget_sequence
 from worker.simulation.scene import Scene, build_scene
-
-T = 8
-
-
-@pytest.fixture(scope="module")
-def mano_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    pytest.importorskip("torch")
-    pytest.importorskip("smplx")
-    d = tmp_path_factory.mktemp("mano")
-    build_test_mano_model(d, "right", seed=0)
-    return d
-
-
-def _use_mano_dir(monkeypatch: pytest.MonkeyPatch, mano_dir: Path | None) -> None:
-    if mano_dir is None:
-        monkeypatch.delenv("HOI_REFINE_MANO_DIR", raising=False)
-    else:
-        monkeypatch.setenv("HOI_REFINE_MANO_DIR", str(mano_dir))
-    get_settings.cache_clear()
-
-
-def mano_grasp_sequence(frames: int = T) -> Sequence:
-    """A right MANO hand (palm down, fingers slightly curled) over a 6 cm box on the table, fingertips
-    touching its top; the first frame is invalid."""
-    rng = np.random.default_rng(1)
-    pose = np.tile(np.abs(rng.normal(0, 0.1, 45)), (frames, 1))
-    mano = ManoParams(
-        global_orient=np.tile([np.pi, 0.0, 0.0], (frames, 1)), hand_pose=pose,
-        trans=np.tile([-0.06, 0.0, 0.075], (frames, 1)), betas=np.array([0.2] + [0.0] * 9),
-    )  # fmt: skip
-    valid = np.ones(frames, bool)
-    valid[0] = False
-    return Sequence(
-        name="mano-grasp", fps=30.0,
-        object=ObjectSpec(name="box", mass_kg=0.1, primitive="box", size=np.array([0.03, 0.03, 0.03])),
-        object_pose=np.tile([0.0, 0, 0.03, 1, 0, 0, 0], (frames, 1)),
-        hands=[HandTrack(side="right", valid=valid, mano=mano)],
-    ).validate()  # fmt: skip
 
 
 def test_retarget_sequence_dispatch(mano_dir: Path) -> None:
@@ -89,9 +51,9 @@ def test_replay_cli_mano_only(
 
     src, out = tmp_path / "mano.npz", tmp_path / "result.npz"
     save_sequence(mano_grasp_sequence(), src)
-    _use_mano_dir(monkeypatch, None)
+    use_mano_dir(monkeypatch, None)
     assert main(["replay", str(src), "--out", str(out)]) == 2 and not out.exists()
-    _use_mano_dir(monkeypatch, mano_dir)
+    use_mano_dir(monkeypatch, mano_dir)
     capsys.readouterr()
     assert main(["inspect", str(src)]) == 0 and "the MANO hand is used" in capsys.readouterr().out
     assert main(["replay", str(src), "--out", str(out)]) == 0

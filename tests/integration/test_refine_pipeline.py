@@ -17,7 +17,7 @@ from common.errors import ResultMismatchError
 from common.job_options import LOSS_NAMES, JobOptions
 from common.result_format import content_digest, read_arrays, read_summary, write_result_npz
 from common.sequence_io import save_sequence
-from tests.integration.test_refine_synthetic import push_sequence, recovery_case
+from tests.support.synthetic_push import push_sequence, recovery_case
 from worker.refine.evaluator import ParallelEvaluator
 from worker.refine.losses import ROT_SCALE
 from worker.refine.prepare import prepare, settled_start
