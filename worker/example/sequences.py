@@ -114,7 +114,7 @@ def synthetic_grasp_and_lift(timeline: Timeline | None = None, seed: int = 0, er
         object_pose=obj_pose,
         hands=[hand],
         world_from_source=np.eye(4),
-        meta={"source": "worker.example.sequences", "seed": str(seed), "errors": str(errors)},
+        meta={"source": "worker.example", "seed": str(seed), "errors": str(errors)},
     )
     return seq.validate()
 
