@@ -10,7 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from common.sequence import HandTrack, ManoParams, ObjectSpec, Sequence
-from worker.hand.mano import build_test_mano_model, ensure_keypoints, load_mano_pickle
+from worker.hand.mano import ensure_keypoints, load_mano_pickle
 from worker.hand.mano.decode import MANO21_ORDER, decode_mano
 from worker.hand.mano.hand_geometry import mano_hand_geometry
 from worker.hand.mano.pose import (
@@ -29,13 +29,6 @@ pytest.importorskip("smplx")
 
 T = 4
 
-
-@pytest.fixture(scope="module")
-def mano_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    d = tmp_path_factory.mktemp("mano")
-    build_test_mano_model(d, "right", seed=0)
-    build_test_mano_model(d, "left", seed=0)
-    return d
 
 
 def _params(rng: np.random.Generator, pose_format: str = "axis_angle", n: int = 45, flat: bool = True) -> ManoParams:

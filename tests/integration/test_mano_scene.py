@@ -21,6 +21,8 @@ from worker.hand.mano import ensure_keypoints
 from worker.hand.retarget import retarget_sequence
 from worker.simulation.scene import Scene, build_scene
 
+pytest.importorskip("torch")  # the MANO reference decodes with smplx (the `mano` extra)
+pytest.importorskip("smplx")
 
 def test_retarget_sequence_dispatch(mano_dir: Path) -> None:
     seq = mano_grasp_sequence()

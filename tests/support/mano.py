@@ -17,10 +17,11 @@ T = 8
 
 @pytest.fixture(scope="module")
 def mano_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    pytest.importorskip("torch")
-    pytest.importorskip("smplx")
+    """A folder with MANO_RIGHT.pkl and MANO_LEFT.pkl in the MANO format (small synthetic models; the real ones
+    are licensed). Building and reading them needs no torch; decoding with smplx does (those tests skip)."""
     d = tmp_path_factory.mktemp("mano")
     build_test_mano_model(d, "right", seed=0)
+    build_test_mano_model(d, "left", seed=0)
     return d
 
 
