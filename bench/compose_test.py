@@ -52,7 +52,7 @@ from common.job_options import JobOptions  # noqa: E402
 from common.queue import JobQueue  # noqa: E402
 from common.result_format import read_summary  # noqa: E402
 from common.sequence_io import sequence_to_npz_bytes  # noqa: E402
-from worker.example import short_example_sequence  # noqa: E402
+from worker.example.sequences import short_example_sequence  # noqa: E402
 from worker.runtime.demo_client import ApiClient  # noqa: E402
 
 API_URL = "http://127.0.0.1:18000"  # docker-compose.test.yml

@@ -126,7 +126,7 @@ def override() -> dict[str, Any]:
 
 
 def _ray_start_args(cmd: list[str]) -> list[str]:
-    from worker.cli_runtime import _ray_start_args as parse
+    from worker.runtime.commands.pool_options import parse_ray_start_args as parse
 
     joined = [c.split("=", 1)[1] for c in cmd if c.startswith("--ray-start-args=")]
     assert len(joined) == 1, cmd
