@@ -242,8 +242,9 @@ def report(fig: Figures, args: argparse.Namespace) -> str:
         "",
         "Stack: docker-compose.yml + docker-compose.test.yml, every container on the host network, all traffic on "
         "loopback: API on 127.0.0.1:18000, Ray on 127.0.0.2 with its GCS on 6380 (Redis holds 6379), the host's "
-        "PostgreSQL at 127.0.0.1:5432 in a database created for the run and dropped after; 1 worker actor x 1 "
-        "thread per worker container; "
+        "PostgreSQL at 127.0.0.1:5432 in a database created for the run and dropped after (Ray still listens on "
+        "all interfaces for its GCS, node manager and object manager: it binds them so whatever the node IP); "
+        "1 worker actor x 1 thread per worker container; "
         f"`HOI_REFINE_LEASE_SECONDS={args.lease_seconds:g}` so the killed job's lease runs out quickly. Jobs: the "
         f"24-frame built-in example, seeds 0..{args.jobs - 1}, `max_generations=3, popsize=8`.",
         "",
