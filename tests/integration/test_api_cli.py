@@ -15,9 +15,8 @@ import httpx
 import pytest
 import sqlalchemy as sa
 
-from common.api_keys import hash_key
+from common.api_key_store import ApiKeyStore, hash_key
 from common.database import create_engine_for, is_at_head
-from common.queue import JobQueue
 from common.settings import get_settings
 from service import cli
 
@@ -40,7 +39,7 @@ def test_keys_create_prints_the_key_once_and_stores_only_its_hash(capsys: pytest
         with engine.connect() as conn:
             stored = conn.execute(sa.text("SELECT name, key_hash FROM api_keys")).all()
         assert [tuple(r) for r in stored] == [("alice", hash_key(plaintext))]
-        assert JobQueue(engine).authenticate(plaintext)
+        assert ApiKeyStore(engine).authenticate(plaintext)
     finally:
         engine.dispose()
     assert run_cli("keys", "list") == 0

@@ -92,16 +92,15 @@ def wait_for_api(base_url: str, proc: subprocess.Popen[bytes], timeout_s: float,
 
 
 def create_dev_key(name: str) -> str:
+    from common.api_key_store import ApiKeyStore
     from common.database import create_engine_for
-    from common.queue import JobQueue
 
-    settings = get_settings()
-    engine = create_engine_for(settings.resolved_database_url())
+    engine = create_engine_for(get_settings().resolved_database_url())
     try:
-        _key_id, plaintext = JobQueue(engine, settings=settings).create_api_key(name)
+        _key_id, plaintext = ApiKeyStore(engine).create(name)
     finally:
         engine.dispose()
-    return str(plaintext)
+    return plaintext
 
 
 def stop_api(proc: subprocess.Popen[bytes], timeout_s: float = 15.0) -> None:
