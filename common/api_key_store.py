@@ -14,12 +14,10 @@ import builtins
 import hashlib
 import secrets
 import uuid
-from collections.abc import Iterator
-from contextlib import contextmanager
 from typing import Any, cast
 
 import sqlalchemy as sa
-from sqlalchemy.engine import Connection, Engine, Row
+from sqlalchemy.engine import Engine, Row
 
 from common.database import IMMEDIATE
 from common.db_models import ApiKey, utcnow
@@ -51,19 +49,13 @@ class ApiKeyStore:
 
     def __init__(self, engine: Engine) -> None:
         self.engine = engine
-
-    @contextmanager
-    def _write(self) -> Iterator[Connection]:
-        # BEGIN IMMEDIATE on SQLite (see ``common.database``), as the queue's writes.
-        with self.engine.connect() as conn:
-            conn.execution_options(**{IMMEDIATE: True})
-            with conn.begin():
-                yield conn
+        # Writes run as BEGIN IMMEDIATE on SQLite (see ``common.database``), like the queue's.
+        self._writer = engine.execution_options(**{IMMEDIATE: True})
 
     def create(self, name: str) -> tuple[str, str]:
         """(key_id, plaintext). Only the key's SHA-256 is stored; the plaintext cannot be shown again."""
         key_id, plaintext = uuid.uuid4().hex, new_key()
-        with self._write() as conn:
+        with self._writer.begin() as conn:
             conn.execute(
                 sa.insert(keys).values(
                     id=key_id, name=name[:200], key_hash=hash_key(plaintext), prefix=display_prefix(plaintext),
@@ -109,7 +101,7 @@ class ApiKeyStore:
         query = sa.select(keys).order_by(keys.c.created_at)
         if self.engine.dialect.name == "postgresql":  # SQLite's BEGIN IMMEDIATE already holds the database
             query = query.with_for_update()
-        with self._write() as conn:
+        with self._writer.begin() as conn:
             # Operators hold a handful of keys: match in Python (SQL LIKE would read the '_' of 'hoi_' as a
             # wildcard) over every row, locked so a concurrent revoke or create cannot slip in between.
             rows = conn.execute(query).all()
