@@ -40,8 +40,10 @@ OPEN_LOOP_CONNECTIONS = 32
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # bench/ runs as a script; the claimer body lives in tests/queue_claimer.py
 
+from common.api_client import wait_until_ready  # noqa: E402
 from common.api_key_store import ApiKeyStore  # noqa: E402
 from common.database import create_engine_for, upgrade_to_head  # noqa: E402
+from common.errors import ApiError  # noqa: E402
 from common.job_options import JobOptions  # noqa: E402
 from common.queue import JobQueue  # noqa: E402
 from common.sequence_io import sequence_to_json_dict  # noqa: E402
@@ -116,16 +118,10 @@ def server(url: str) -> Iterator[tuple[str, int]]:
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env)
     base = f"http://127.0.0.1:{port}"
     try:
-        deadline = time.monotonic() + 30
-        while True:
-            try:
-                if httpx.get(f"{base}/readyz", timeout=1).status_code == 200:
-                    break
-            except httpx.HTTPError:
-                pass
-            if time.monotonic() > deadline or proc.poll() is not None:
-                raise SystemExit("uvicorn did not become ready")
-            time.sleep(0.2)
+        try:
+            wait_until_ready(base, 30, alive=lambda: proc.poll() is None, interval_s=0.2)
+        except ApiError as exc:
+            raise SystemExit(f"uvicorn did not become ready: {exc}") from exc
         yield base, proc.pid
     finally:
         proc.terminate()

@@ -71,6 +71,41 @@ def parse_retry_after(value: str | None) -> float | None:
     return max(0.0, when.timestamp() - time.time())
 
 
+def wait_until_ready(
+    base_url: str,
+    timeout_s: float,
+    *,
+    alive: Callable[[], bool] | None = None,
+    stop: threading.Event | None = None,
+    paths: tuple[str, ...] = ("/readyz",),
+    interval_s: float = 0.3,
+) -> httpx.Response | None:
+    """Poll a starting server until one of ``paths`` answers 200, and return that answer.
+
+    ``None`` when ``stop`` is set first. ``ApiError`` when ``alive()`` turns False (the server's process
+    ended) or after ``timeout_s``. Needs no API key: the health endpoints are public.
+    """
+    deadline = time.monotonic() + timeout_s
+    with httpx.Client(base_url=base_url.rstrip("/"), timeout=2.0) as http:
+        while stop is None or not stop.is_set():
+            if alive is not None and not alive():
+                raise ApiError(f"the API at {base_url} exited before it was ready")
+            for path in paths:
+                try:
+                    resp = http.get(path)
+                except httpx.HTTPError:
+                    break  # not listening yet
+                if resp.status_code == 200:
+                    return resp
+            if time.monotonic() >= deadline:
+                raise ApiError(f"the API did not answer at {base_url} within {timeout_s:.0f} s")
+            if stop is not None:
+                stop.wait(interval_s)
+            else:
+                time.sleep(interval_s)
+    return None
+
+
 def _problem(resp: httpx.Response) -> dict[str, Any]:
     try:
         doc = resp.json()
