@@ -14,6 +14,8 @@ import builtins
 import hashlib
 import secrets
 import uuid
+from dataclasses import dataclass
+from datetime import datetime
 from typing import Any, cast
 
 import sqlalchemy as sa
@@ -22,13 +24,23 @@ from sqlalchemy.engine import Engine, Row
 from common.database import IMMEDIATE
 from common.db_models import ApiKey, utcnow
 from common.errors import AuthenticationError, ConflictError, NotFoundError
-from common.queue_types import ApiKeyRecord
 
 KEY_PREFIX = "hoi_"
 #: Shortest key prefix ``ApiKeyStore.revoke`` accepts: ``hoi_`` and two characters of the random part.
 MIN_REVOKE_PREFIX = len(KEY_PREFIX) + 2
 
 keys = cast(sa.Table, ApiKey.__table__)
+
+
+@dataclass(frozen=True)
+class ApiKeyRecord:
+    """A key as ``hoi-refine keys list`` shows it (never its hash or plaintext)."""
+
+    id: str
+    name: str
+    prefix: str
+    created_at: datetime
+    revoked_at: datetime | None
 
 
 def new_key() -> str:

@@ -1,8 +1,9 @@
 """Database models: jobs, their inputs and results, the append-only event log, and API keys (DESIGN §2).
 
 The schema changes only through an Alembic migration (``migrations/versions``); ``alembic check`` in
-``tests/migration`` proves these models and the migrations agree. Queue queries live in ``common.queue``
-only; other modules read these classes for their column names, never to write SQL.
+``tests/migration`` proves these models and the migrations agree. Queries live in ``common.queue`` (jobs)
+and ``common.api_key_store`` (API keys) only; other modules read these classes for their column names,
+never to write SQL.
 
 Times are timezone-aware UTC in Python. SQLite has no time zone type, so ``UTCDateTime`` stores naive UTC
 there and re-attaches UTC on the way out; comparisons in SQL stay correct because every value is UTC.

@@ -67,15 +67,6 @@ class JobEventRecord:
 
 
 @dataclass(frozen=True)
-class ApiKeyRecord:
-    id: str
-    name: str
-    prefix: str
-    created_at: datetime
-    revoked_at: datetime | None
-
-
-@dataclass(frozen=True)
 class QueueStats:
     """Figures for ``/metrics``: jobs per state, claims so far, and recent durations in seconds."""
 
