@@ -18,6 +18,7 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/ruff check common worker service migrations tests bench
 	$(BIN)/mypy
+	$(BIN)/lint-imports --no-cache
 	$(BIN)/python -m pytest
 
 test-fast: $(STAMP)
@@ -26,6 +27,7 @@ test-fast: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check common worker service migrations tests bench
 	$(BIN)/mypy
+	$(BIN)/lint-imports --no-cache
 
 bench-replay: $(STAMP)
 	$(BIN)/python bench/replay.py

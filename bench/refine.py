@@ -45,6 +45,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def run_one(path: Path, args: argparse.Namespace, cache: Path) -> dict[str, Any]:
     from common.dexycb import load_dexycb_npz
     from common.job_options import JobOptions
+    from common.settings import get_settings
     from worker.refine.run import refine_sequence
 
     key = f"{path.stem}__p{args.popsize}_g{args.max_generations}_s{args.seed}_t{args.threads}_c{code_digest()}.json"
@@ -60,7 +61,7 @@ def run_one(path: Path, args: argparse.Namespace, cache: Path) -> dict[str, Any]
     seq = load_dexycb_npz(path)
     options = JobOptions(seed=args.seed, popsize=args.popsize, max_generations=args.max_generations)
     t0 = time.perf_counter()
-    outcome = refine_sequence(seq, options, threads=args.threads)
+    outcome = refine_sequence(seq, options, threads=args.threads, cache_dir=get_settings().resolved_cache_dir())
     summary = dict(outcome.summary)
     summary["bench_wall_s"] = time.perf_counter() - t0
     summary["object"] = seq.object.name

@@ -27,11 +27,12 @@ if str(ROOT) not in sys.path:
 
 def _one(path: str) -> dict[str, Any]:
     from common.dexycb import load_dexycb_npz
+    from common.settings import get_settings
     from worker.simulation.replay import raw_replay
 
     seq = load_dexycb_npz(path)
     start = time.perf_counter()
-    result = raw_replay(seq, record_contacts=True)
+    result = raw_replay(seq, record_contacts=True, cache_dir=get_settings().resolved_cache_dir())
     m = result.metrics
     hand = seq.hands[0]
     return {

@@ -36,8 +36,9 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from common.errors import ManoModelMissingError, SequenceValidationError
-from common.sequence import NUM_JOINTS, FloatArray, HandTrack, ManoParams, ObjectSpec, Sequence
-from common.sequence_io import load_mesh_file
+from common.geometry import FloatArray
+from common.mesh_io import load_mesh_file
+from common.sequence import NUM_JOINTS, HandTrack, ManoParams, ObjectSpec, Sequence
 from common.settings import get_settings
 
 #: DexYCB records at 30 fps; meta.yml does not say so.

@@ -25,7 +25,7 @@ from common.job_options import JobOptions
 from common.queue import JobQueue
 from common.result_format import read_arrays
 from common.sequence_io import sequence_from_npz_bytes, sequence_to_npz_bytes
-from tests.queue_fixtures import BACKENDS
+from tests.support.queue_fixtures import BACKENDS
 from worker.runtime.demo_client import local_deployment
 
 pytestmark = pytest.mark.slow

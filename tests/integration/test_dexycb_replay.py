@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from common.dexycb import load_dexycb_npz
+from common.geometry import quat_to_matrix
 from common.sequence import Sequence
-from worker.hand.model import quat_to_matrix
 from worker.hand.retarget import retarget_hand
 from worker.simulation.scene import SimConfig
 from worker.simulation.table_fit import fit_table
@@ -76,7 +76,7 @@ NON_CONVEX = {
 @pytest.mark.parametrize("name", sorted(NON_CONVEX))
 def test_a_non_convex_object_rests_as_recorded_until_the_hand_arrives(dexycb_dev_files: list[Path],
                                                                       name: str) -> None:
-    from worker.simulation.metrics import rotation_error_deg
+    from common.geometry import rotation_error_deg
     from worker.simulation.replay import raw_replay
 
     before_touch = _before_the_hand_arrives(load_dexycb_npz(_file(dexycb_dev_files, name)), NON_CONVEX[name] - 2)
@@ -99,7 +99,7 @@ def test_the_object_starts_from_its_rest_pose_averaged_over_the_approach(dexycb_
     """A large marker lying on the table: while the hand is still 5-50 cm away its recorded pose turns 7.6 degrees
     about its long axis (the turn a vision fit barely sees). The simulated marker rests still, so starting it from
     the mean of those poses instead of frame 0 lowers its error over the approach."""
-    from worker.simulation.metrics import rotation_error_deg
+    from common.geometry import rotation_error_deg
     from worker.simulation.replay import raw_replay
 
     seq = _before_the_hand_arrives(load_dexycb_npz(_file(dexycb_dev_files, "20200908-subject-05__20200908_152037.npz")),

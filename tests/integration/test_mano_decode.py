@@ -10,7 +10,6 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from common.sequence import HandTrack, ManoParams, ObjectSpec, Sequence
-from common.settings import get_settings
 from worker.hand.mano import build_test_mano_model, ensure_keypoints, load_mano_pickle
 from worker.hand.mano.decode import MANO21_ORDER, decode_mano
 from worker.hand.mano.hand_geometry import mano_hand_geometry
@@ -115,9 +114,7 @@ def test_builtin_hand_reproduces_mano_and_back(mano_dir: Path, side: str) -> Non
     np.testing.assert_allclose(back.hand_pose, params.hand_pose, atol=1e-8)  # PCA 45 is a change of basis
 
 
-def test_ensure_keypoints_and_reference(mano_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setenv("HOI_REFINE_MANO_DIR", str(mano_dir))
-    get_settings.cache_clear()
+def test_ensure_keypoints_and_reference(mano_dir: Path) -> None:
     params = _params(np.random.default_rng(3), "pca", 10, flat=False)
     valid = np.array([False, True, True, True])
     world = np.eye(4)
@@ -129,19 +126,19 @@ def test_ensure_keypoints_and_reference(mano_dir: Path, monkeypatch: pytest.Monk
         object_pose=np.tile([0.0, 0, 0.02, 1, 0, 0, 0], (T, 1)),
         hands=[HandTrack(side="right", valid=valid, mano=params)], world_from_source=world,
     ).validate()  # fmt: skip
-    out = ensure_keypoints(seq)
+    out = ensure_keypoints(seq, mano_dir)
     assert out is not seq and seq.hands[0].keypoints is None
     kp = out.hands[0].keypoints
     assert kp is not None and np.all(kp[0] == 0.0)
-    np.testing.assert_allclose(kp[1:], decode_mano(params, "right").keypoints[1:])
-    ref = mano_reference(out, out.hands[0])
+    np.testing.assert_allclose(kp[1:], decode_mano(params, "right", mano_dir).keypoints[1:])
+    ref = mano_reference(out, out.hands[0], mano_dir)
     np.testing.assert_allclose(ref.keypoints[1:, :4], out.keypoints_world(out.hands[0])[1:, :4], atol=1e-6)
     np.testing.assert_allclose(ref.wrist_pos[0], ref.wrist_pos[1])  # invalid frame held at the nearest valid
     # The world-frame reference maps back to MANO parameters that decode to the same source keypoints.
-    back = refined_mano_params(out, out.hands[0], ref.wrist_pos, ref.wrist_quat, ref.q, pose_format="pca")
+    back = refined_mano_params(out, out.hands[0], ref.wrist_pos, ref.wrist_quat, ref.q, mano_dir, pose_format="pca")
     np.testing.assert_allclose(back.hand_pose[1:], params.hand_pose[1:] @ np.eye(10, 45), atol=1e-8)
-    np.testing.assert_allclose(decode_mano(back, "right").keypoints[1:], kp[1:], atol=1e-9)
-    arrays = mano_result_arrays(out, out.hands[0], ref.wrist_pos, ref.wrist_quat, ref.q)
+    np.testing.assert_allclose(decode_mano(back, "right", mano_dir).keypoints[1:], kp[1:], atol=1e-9)
+    arrays = mano_result_arrays(out, out.hands[0], ref.wrist_pos, ref.wrist_quat, ref.q, mano_dir)
     assert str(arrays["right_mano_pose_format"]) == "axis_angle" and arrays["right_mano_hand_pose"].shape == (T, 45)
 
 

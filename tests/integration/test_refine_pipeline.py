@@ -17,10 +17,10 @@ from common.errors import ResultMismatchError
 from common.job_options import LOSS_NAMES, JobOptions
 from common.result_format import content_digest, read_arrays, read_summary, write_result_npz
 from common.sequence_io import save_sequence
-from tests.integration.test_refine_synthetic import push_sequence, recovery_case
+from tests.support.synthetic_push import push_sequence, recovery_case
 from worker.refine.evaluator import ParallelEvaluator
 from worker.refine.losses import ROT_SCALE
-from worker.refine.prepare import initial_state, prepare
+from worker.refine.prepare import prepare, settled_start
 from worker.refine.problem import SimWindowProblem
 from worker.refine.result import verify_result
 from worker.refine.run import RefineOutcome, refine_sequence
@@ -92,7 +92,7 @@ def test_zero_weight_changes_the_optimised_objective() -> None:
     seq, _ = push_sequence(frames=12), None
     base = prepare(seq, JobOptions())
     with ParallelEvaluator(base.scene.model, 1) as ev:
-        start, _ = initial_state(base, ev)
+        start, _ = settled_start(base, ev)
         kf = {s: sp.zero_keyframes() for s, sp in base.spaces.items()}
         cand = {"right": np.random.default_rng(0).normal(size=(3, base.spaces["right"].dim))}
 

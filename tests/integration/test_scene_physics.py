@@ -8,7 +8,8 @@ import pytest
 
 from common.sequence import HandTrack, ObjectSpec, Sequence
 from worker.hand.model import JOINT_LOWER, JOINT_UPPER, default_geometry, forward_keypoints
-from worker.hand.retarget import HandReference, retarget_sequence
+from worker.hand.reference import HandReference
+from worker.hand.retarget import retarget_sequence
 from worker.simulation.config import HAND_BIT, OBJECT_BIT, TABLE_BIT
 from worker.simulation.scene import Scene, SimConfig, build_scene
 from worker.simulation.stepping import HandTargets, RolloutRecord, initial_state, lead_track, rollout, substep_controls

@@ -37,7 +37,7 @@ from service.app import create_app
 from service.submit import cli as submit_cli
 from service.submit.manifest import Manifest
 from service.submit.runner import SubmitConfig, SubmitOutcome, run_submit
-from tests.queue_fixtures import tiny_sequence
+from tests.support.queue_fixtures import tiny_sequence
 from worker.runtime.loop import WorkerLoop
 from worker.simulation.replay import raw_replay, replay_result_bytes, replay_summary
 

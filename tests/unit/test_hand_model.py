@@ -6,7 +6,6 @@ import mujoco
 import numpy as np
 import pytest
 
-from worker.hand.mjcf import hand_mjcf
 from worker.hand.model import (
     HINGE_NAMES,
     JOINT_LOWER,
@@ -15,6 +14,7 @@ from worker.hand.model import (
     fit_hand_geometry,
     forward_keypoints,
 )
+from worker.simulation.hand_mjcf import hand_mjcf
 
 
 def test_hinge_names_and_limits() -> None:

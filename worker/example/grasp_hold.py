@@ -11,10 +11,13 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
+from common.geometry import FloatArray, matrix_to_quat
 from common.sequence import HandTrack, ObjectSpec, Sequence
-from worker.example.grasp_synthesis import BoxGrasp, _box_sdf, _capsule_samples
-from worker.hand.mjcf import matrix_to_quat
-from worker.hand.model import JOINT_LOWER, JOINT_UPPER, FloatArray, HandGeometry, forward_keypoints
+from worker.example.box_geometry import BoxGrasp, box_sdf, capsule_samples
+from worker.hand.model import JOINT_LOWER, JOINT_UPPER, HandGeometry, forward_keypoints
+from worker.hand.reference import HandReference
+from worker.simulation.scene import build_scene
+from worker.simulation.stepping import HandTargets, pose_hands
 
 
 def _candidates(
@@ -25,9 +28,9 @@ def _candidates(
     rng = np.random.default_rng(seed)
     samples = np.tile(q, (n, 1))
     samples[:, :9] = rng.uniform(JOINT_LOWER[:9], JOINT_UPPER[:9], (n, 9))
-    pts, radii, tips = _capsule_samples(geometry, samples)
+    pts, radii, tips = capsule_samples(geometry, samples)
     world = pts[:, 0] @ grasp.wrist_rot.T + grasp.wrist_pos
-    clearance = _box_sdf(world, half) - radii[:, 0]
+    clearance = box_sdf(world, half) - radii[:, 0]
     pad = clearance[:, 2, 4:].min(axis=1)
     rest = np.concatenate([clearance[:, :2].reshape(n, -1), clearance[:, 2, :4]], axis=1).min(axis=1)
     tip_x = (tips[:, 0] @ grasp.wrist_rot.T + grasp.wrist_pos)[:, 0]
@@ -38,9 +41,9 @@ def _candidates(
     for alpha in np.linspace(0.0, 0.85, 12):
         path = samples[ok].copy()
         path[:, :9] *= alpha
-        p_pts, p_radii, _ = _capsule_samples(geometry, path)
+        p_pts, p_radii, _ = capsule_samples(geometry, path)
         p_world = p_pts[:, 0] @ grasp.wrist_rot.T + grasp.wrist_pos
-        clear_path &= (_box_sdf(p_world, half) - p_radii[:, 0]).min(axis=(1, 2)) > -0.0005
+        clear_path &= (box_sdf(p_world, half) - p_radii[:, 0]).min(axis=(1, 2)) > -0.0005
     ok = ok[clear_path]
     return samples[ok[np.argsort(tip_x[ok])]]
 
@@ -56,10 +59,6 @@ def select_thumb(
     seed: int = 1,
 ) -> FloatArray:
     """Hinges ``q`` (45,) with the thumb replaced by the sampled pose that best holds the box while lifting."""
-    from worker.hand.retarget import HandReference
-    from worker.simulation.scene import build_scene
-    from worker.simulation.stepping import HandTargets, pose_hands
-
     cands = _candidates(geometry, grasp, q, half, n, seed)[:top]
     if len(cands) == 0:
         return q

@@ -8,22 +8,13 @@ natural half-closed hand. Deterministic (fixed start, no randomness).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from functools import lru_cache
-from pathlib import Path
-
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from worker.hand.model import (
-    JOINT_LOWER,
-    JOINT_UPPER,
-    FloatArray,
-    HandGeometry,
-    default_geometry,
-    finger_kinematics,
-)
+from common.geometry import FloatArray
+from worker.example.box_geometry import BoxGrasp, box_sdf, capsule_samples
+from worker.hand.model import JOINT_LOWER, JOINT_UPPER, HandGeometry
 
 #: Natural half-closed hand (the regulariser's target and the solver's start).
 _NATURAL = np.zeros(45)
@@ -31,38 +22,6 @@ _NATURAL[:9] = [0.5, 0.4, 0.0, 0.0, 0.5, 0.0, 0.0, 0.5, 0.0]
 for _f in range(1, 5):
     _NATURAL[9 * _f : 9 * _f + 9] = [0.0, 0.6, 0.0, 0.0, 0.9, 0.0, 0.0, 0.5, 0.0]
 _PAD_FINGERS = (1, 2, 3)  # index, middle, ring on the +x face; thumb (0) on the -x face
-
-
-@dataclass(frozen=True)
-class BoxGrasp:
-    """Wrist rotation (3,3) and position (3,) in the box frame (origin at the box centre), hinges (45,),
-    the open-hand hinges used while approaching, and the final residual norm."""
-
-    wrist_rot: FloatArray
-    wrist_pos: FloatArray
-    q: FloatArray
-    q_open: FloatArray
-    cost: float
-
-
-def _box_sdf(points: FloatArray, half: FloatArray) -> FloatArray:
-    d = np.abs(points) - half
-    return np.asarray(np.linalg.norm(np.maximum(d, 0.0), axis=-1) + np.minimum(d.max(axis=-1), 0.0))
-
-
-def _capsule_samples(geometry: HandGeometry, q: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """For hinges ``q`` (B,45): points (B,5,3,7,3) along every capsule as built in the MJCF (the distal one
-    ends one radius short of the tip), their radii (B,5,3,7) and the fingertip keypoints (B,5,3); wrist frame."""
-    fk = finger_kinematics(geometry, q)
-    b = q.shape[0]
-    starts = np.concatenate([np.broadcast_to(geometry.bases[None, :, None, :], (b, 5, 1, 3)), fk.points[:, :, :2]], 2)
-    ends = fk.points.copy()
-    shorten = np.maximum(geometry.lengths[:, 2] - geometry.radii[:, 2], 0.3 * geometry.lengths[:, 2])
-    ends[:, :, 2] = starts[:, :, 2] + (ends[:, :, 2] - starts[:, :, 2]) * (shorten / geometry.lengths[:, 2])[:, None]
-    frac = np.linspace(0.0, 1.0, 7)[None, None, None, :, None]
-    pts = starts[:, :, :, None, :] + frac * (ends - starts)[:, :, :, None, :]
-    radii = np.broadcast_to(geometry.radii[None, :, :, None], pts.shape[:-1])
-    return pts, radii, fk.points[:, :, 2]
 
 
 def _palm_samples(geometry: HandGeometry) -> FloatArray:
@@ -84,16 +43,16 @@ def synthesize_box_grasp(geometry: HandGeometry, half: FloatArray, penetration: 
     def batch(x: FloatArray) -> FloatArray:
         rot = Rotation.from_rotvec(x[:, :3]).as_matrix()  # (B,3,3)
         pos, q = x[:, 3:6], x[:, 6:]
-        pts, radii, tips = _capsule_samples(geometry, q)
+        pts, radii, tips = capsule_samples(geometry, q)
         world = np.einsum("bij,bfskj->bfski", rot, pts) + pos[:, None, None, None, :]
         tips_w = np.einsum("bij,bfj->bfi", rot, tips) + pos[:, None, :]
-        clearance = _box_sdf(world, half) - radii  # (B,5,3,7)
+        clearance = box_sdf(world, half) - radii  # (B,5,3,7)
         contact = 10.0 * (clearance[:, pads, 2].min(axis=2) + penetration)  # distal capsules just sink in
         side = 3.0 * np.minimum(face_sign * tips_w[:, pads, 0] - (half[0] - 0.01), 0.0)  # on the right face
         face = 10.0 * np.maximum(np.abs(tips_w[:, pads, 1:]) - (half[1:] - 0.01), 0.0).reshape(len(x), -1)
         pen = 10.0 * np.maximum(-clearance[:, keep], 0.0)
         palm_w = np.einsum("bij,pj->bpi", rot, palm_pts) + pos[:, None, :]
-        palm = 10.0 * np.maximum(geometry.palm_half_thickness - _box_sdf(palm_w, half), 0.0)
+        palm = 10.0 * np.maximum(geometry.palm_half_thickness - box_sdf(palm_w, half), 0.0)
         up = 0.02 * (rot[:, :, 2] - down)
         reg = 0.003 * (q - _NATURAL)
         return np.concatenate([contact, side, face, pen, palm, up, reg], axis=1)
@@ -136,77 +95,10 @@ def close_to_contact(
         sl = slice(9 * f, 9 * f + 9)
         trials = np.tile(grasp.q, (len(alphas), 1))
         trials[:, sl] = grasp.q_open[sl] + alphas[:, None] * (grasp.q[sl] - grasp.q_open[sl])
-        pts, radii, _ = _capsule_samples(geometry, trials)
+        pts, radii, _ = capsule_samples(geometry, trials)
         world = pts[:, f] @ grasp.wrist_rot.T + grasp.wrist_pos
-        clearance = (_box_sdf(world, np.asarray(half)) - radii[:, f]).min(axis=(1, 2))
+        clearance = (box_sdf(world, np.asarray(half)) - radii[:, f]).min(axis=(1, 2))
         hit = np.flatnonzero(clearance <= -penetration)
         if hit.size:
             q_out[sl] = trials[hit[0], sl]
     return q_out
-
-
-#: The solved example grasp shipped with the package (solving takes ~40 s on 2 shared cores).
-GRASP_FILE = Path(__file__).parent / "data" / "example_grasp.npz"
-_GRASP_VERSION = 2
-
-
-def _grasp_key(hand_length: float, half: tuple[float, float, float], mass: float) -> FloatArray:
-    return np.array([_GRASP_VERSION, hand_length, *half, mass], dtype=np.float64)
-
-
-def finalize_grasp(geometry: HandGeometry, grasp: BoxGrasp, half: FloatArray, mass: float) -> BoxGrasp:
-    """Stop each finger 4 mm inside the box (``close_to_contact``), then choose the thumb by simulated holding
-    (``worker.example.grasp_hold``); the open hand is a quarter of the final hinge angles."""
-    from worker.example.grasp_hold import select_thumb
-
-    q = close_to_contact(geometry, grasp, half, penetration=0.004)
-    q = select_thumb(geometry, grasp, q, np.asarray(half), mass)
-    q_open = np.clip(0.25 * q, JOINT_LOWER, JOINT_UPPER)
-    q_open[:9] = 0.0  # the thumb comes in straight (its closing path is checked against the box)
-    return BoxGrasp(grasp.wrist_rot, grasp.wrist_pos, q, q_open, grasp.cost)
-
-
-def write_grasp_file(
-    hand_length: float, half: tuple[float, float, float], mass: float, path: Path = GRASP_FILE
-) -> BoxGrasp:
-    """Solve, finalise and store the example grasp (``python -m worker.example.grasp_synthesis`` rewrites it)."""
-    geometry = default_geometry("right", hand_length)
-    grasp = finalize_grasp(geometry, synthesize_box_grasp(geometry, np.array(half)), np.array(half), mass)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(
-        path,
-        key=_grasp_key(hand_length, half, mass),
-        wrist_rot=grasp.wrist_rot,
-        wrist_pos=grasp.wrist_pos,
-        q=grasp.q,
-        q_open=grasp.q_open,
-        cost=np.array(grasp.cost),
-    )
-    return grasp
-
-
-@lru_cache(maxsize=4)
-def cached_box_grasp(hand_length: float, half: tuple[float, float, float], mass: float) -> BoxGrasp:
-    """The finalised box grasp for the right template hand of ``hand_length``: read from the shipped file when
-    it was made for these inputs, else solved now (~1 min; memoised per process)."""
-    if GRASP_FILE.is_file():
-        with np.load(GRASP_FILE) as data:
-            key = _grasp_key(hand_length, half, mass)
-            if data["key"].shape == key.shape and np.allclose(data["key"], key):
-                return BoxGrasp(
-                    wrist_rot=data["wrist_rot"],
-                    wrist_pos=data["wrist_pos"],
-                    q=data["q"],
-                    q_open=data["q_open"],
-                    cost=float(data["cost"]),
-                )
-    geometry = default_geometry("right", hand_length)
-    return finalize_grasp(geometry, synthesize_box_grasp(geometry, np.array(half)), np.array(half), mass)
-
-
-if __name__ == "__main__":
-    from worker.example.sequences import BOX_HALF, MASS_KG
-    from worker.hand.model import TEMPLATE_HAND_LENGTH
-
-    solved = write_grasp_file(TEMPLATE_HAND_LENGTH, BOX_HALF, MASS_KG)
-    print(f"wrote {GRASP_FILE} (residual {solved.cost:.4f})")

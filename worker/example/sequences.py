@@ -2,7 +2,7 @@
 
 A right hand (the built-in template hand) comes down over a 0.2 kg box (5.6 x 5.6 x 9 cm) standing on the
 table, closes the index, middle and ring fingers on one face and the thumb on the opposite face (a grasp solved
-once by ``grasp_synthesis`` and shipped in ``worker/example/data/example_grasp.npz``; each finger stops 4 mm
+once by ``grasp_file`` and shipped in ``worker/example/data/example_grasp.npz``; each finger stops 4 mm
 inside the surface so the position servos press), lifts the box 20 cm and holds it. The clean trajectory is
 kinematically consistent: the object rests until the hand has closed, then moves rigidly with the wrist. The
 *observed* keypoints then get vision-like errors — a hovering middle finger and pinky, index and ring fingers
@@ -19,20 +19,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.geometry import FloatArray, matrix_to_quat
 from common.sequence import HandTrack, ObjectSpec, Sequence
-from worker.example.grasp_synthesis import cached_box_grasp
-from worker.hand.mjcf import matrix_to_quat
+from worker.example.box_geometry import BOX_HALF, MASS_KG
+from worker.example.grasp_file import cached_box_grasp
 from worker.hand.model import (
     FINGERS,
     JOINT_LOWER,
     JOINT_UPPER,
     TEMPLATE_HAND_LENGTH,
-    FloatArray,
     default_geometry,
     forward_keypoints,
 )
 
-MASS_KG = 0.2
 FPS = 30.0
 
 
@@ -58,8 +57,6 @@ def _smoothstep(x: FloatArray) -> FloatArray:
 
 #: Finger flexion direction (MCP, PIP, DIP) used for the observation errors.
 _FLEX_PATTERN = np.array([0.0, 0.9, 0.0, 0.0, 1.0, 0.0, 0.0, 0.7, 0.0])
-#: Half-extents of the example box (5.6 x 5.6 x 9 cm) and its mass.
-BOX_HALF: tuple[float, float, float] = (0.028, 0.028, 0.045)
 
 
 def _object_spec(half_extents: FloatArray) -> ObjectSpec:
@@ -117,7 +114,7 @@ def synthetic_grasp_and_lift(timeline: Timeline | None = None, seed: int = 0, er
         object_pose=obj_pose,
         hands=[hand],
         world_from_source=np.eye(4),
-        meta={"source": "worker.example.sequences", "seed": str(seed), "errors": str(errors)},
+        meta={"source": "worker.example", "seed": str(seed), "errors": str(errors)},
     )
     return seq.validate()
 

@@ -22,9 +22,8 @@ import numpy as np
 import numpy.typing as npt
 
 from common.errors import SequenceValidationError
+from common.geometry import FloatArray, quat_to_matrix
 from common.sequence import Side
-
-FloatArray = npt.NDArray[np.float64]
 
 FINGERS: tuple[str, ...] = ("thumb", "index", "middle", "ring", "pinky")
 HINGE_AXES: tuple[str, ...] = ("abd", "flex", "twist")
@@ -275,19 +274,6 @@ def local_keypoints(geometry: HandGeometry, q: FloatArray) -> FloatArray:
     return out
 
 
-def quat_to_matrix(quat: FloatArray) -> FloatArray:
-    """(...,4) wxyz quaternions -> (...,3,3) rotation matrices."""
-    q = np.asarray(quat, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
 
 
 def forward_keypoints(

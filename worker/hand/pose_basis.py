@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from common.errors import ConfigurationError
-from worker.hand.model import FloatArray
+from common.geometry import FloatArray
 
 POSE_BASIS_FILE = Path(__file__).parent / "data" / "pose_basis.npz"
 

@@ -10,26 +10,29 @@ Frames without a valid hand are interpolated (wrist: slerp; hinges: linear; cons
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation, Slerp
 
 from common.errors import SequenceValidationError
+from common.geometry import FloatArray
 from common.sequence import HandTrack, Sequence, Side
+from worker.hand.mano import mano_available, mano_model_path
+from worker.hand.mano.pose import mano_reference
 from worker.hand.model import (
     FINGER_BASE_KEYPOINT,
     JOINT_LOWER,
     JOINT_UPPER,
     PALM_KEYPOINTS,
     PRIMARY_HINGES,
-    FloatArray,
     HandGeometry,
     finger_kinematics,
     fit_hand_geometry,
     forward_keypoints,
 )
+from worker.hand.reference import HandReference
 
 #: LM damping (m²) and the pull of secondary hinges towards neutral (m²/rad² — a 1 cm error outweighs
 #: ~0.7 rad of secondary angle); iterations per frame and convergence threshold (rad).
@@ -38,39 +41,6 @@ IK_SECONDARY_WEIGHT = 2e-4
 IK_MAX_ITERATIONS = 30
 IK_TOLERANCE = 1e-7
 _FIRST_FRAME_ITERATIONS = 100
-
-
-@dataclass
-class HandReference:
-    """The retargeted reference of one hand (world frame, T frames).
-
-    ``wrist_pos`` (T,3), ``wrist_quat`` (T,4) wxyz (sign-continuous), ``q`` (T,45) hinge angles in HINGE_NAMES
-    order, ``keypoints`` (T,21,3) the target keypoints (observed where valid, the fitted hand's where
-    interpolated), ``valid`` (T,), ``residual_mm`` (T,) mean keypoint distance of the fit (NaN where invalid).
-    ``from_mano``: the hand is the subject's MANO hand posed from MANO parameters (results then also carry
-    ``S_mano_*`` parameters, ``worker.hand.mano.pose.mano_result_arrays``).
-    """
-
-    side: Side
-    geometry: HandGeometry
-    wrist_pos: FloatArray
-    wrist_quat: FloatArray
-    q: FloatArray
-    keypoints: FloatArray
-    valid: npt.NDArray[np.bool_]
-    residual_mm: FloatArray
-    from_mano: bool = False
-
-    @property
-    def num_frames(self) -> int:
-        return int(self.q.shape[0])
-
-    def mean_residual_mm(self) -> float:
-        return float(np.nanmean(self.residual_mm)) if self.valid.any() else float("nan")
-
-    def fitted_keypoints(self) -> FloatArray:
-        """(T,21,3) keypoints of the built-in hand at the reference pose."""
-        return forward_keypoints(self.geometry, self.wrist_pos, self.wrist_quat, self.q)
 
 
 def kabsch(template: FloatArray, observed: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -199,11 +169,11 @@ def retarget_keypoints(
     )
 
 
-def retarget_sequence(seq: Sequence) -> list[HandReference]:
+def retarget_sequence(seq: Sequence, *, mano_dir: Path | None = None) -> list[HandReference]:
     """Retarget every hand of a sequence, in ``seq.hands`` order — the one place replay, refinement and the
     worker get their references from.
 
-    A hand with MANO parameters, when ``HOI_REFINE_MANO_DIR`` holds its model file, becomes a reference on its
+    A hand with MANO parameters, when ``mano_dir`` holds its model file, becomes a reference on its
     own MANO hand (``worker.hand.mano.pose.mano_reference``: exact hinges, per-part hulls; DESIGN §1.1-1.2);
     otherwise its keypoints are retargeted by IK. A MANO-only hand without the model file raises
     ``ManoModelMissingError`` naming the setting.
@@ -211,14 +181,10 @@ def retarget_sequence(seq: Sequence) -> list[HandReference]:
     refs = []
     for hand in seq.hands:
         if hand.mano is not None:
-            from worker.hand.mano import mano_available, mano_model_path
-
-            if mano_available([hand.side]):
-                from worker.hand.mano.pose import mano_reference  # imports this module: kept lazy
-
-                refs.append(mano_reference(seq, hand))
+            if mano_available([hand.side], mano_dir):
+                refs.append(mano_reference(seq, hand, mano_dir))
                 continue
             if hand.keypoints is None:
-                mano_model_path(hand.side)  # raises the clear error
+                mano_model_path(hand.side, mano_dir)  # raises the clear error
         refs.append(retarget_hand(seq, hand))
     return refs

@@ -2,9 +2,10 @@
 
 MuJoCo collides meshes through their convex hulls, so a non-convex object (mug, bowl, clamp) needs a convex
 decomposition. Meshes that are already (nearly) convex — volume at least ``CONVEX_VOLUME_RATIO`` of their
-hull's — are used as one hull and never sent to CoACD. Results are stored under
-``get_settings().resolved_cache_dir() / "convex"`` keyed by a SHA-256 of the mesh bytes and the CoACD
-parameters, so only the first run on a mesh pays for CoACD (0.5-10 s on the YCB meshes, 2 shared cores).
+hull's — are used as one hull and never sent to CoACD. With a ``cache_dir`` (the entry points pass the configured
+one) results are stored under ``cache_dir / "convex"`` keyed by a SHA-256 of the mesh bytes and the CoACD
+parameters, so only the first run on a mesh pays for CoACD (0.5-10 s on the YCB meshes, 2 shared cores);
+without one they are kept in memory for the process.
 """
 
 from __future__ import annotations
@@ -20,9 +21,11 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from common.settings import get_settings
+from common.geometry import FloatArray
 
-FloatArray = npt.NDArray[np.float64]
+#: Convex parts made in this process without a ``cache_dir``, by ``cache_key``, with how they were made: the
+#: table fit and the scene build the same object, a refinement twice more for ``verify``.
+_MEMO: dict[str, tuple[tuple[FloatArray, ...], str]] = {}
 
 #: Quick CoACD settings (seconds, not minutes, on 300-800-vertex meshes), at most 16 parts.
 COACD_PARAMS: dict[str, Any] = {
@@ -89,14 +92,22 @@ def convex_parts(
     params: dict[str, Any] | None = None,
 ) -> tuple[list[FloatArray], str]:
     """Convex parts of a mesh as vertex arrays (each (n_i,3), object frame) and how they were made
-    (``"hull"``, ``"coacd"``, or ``"cache"`` when read back). Cached under ``cache_dir`` (default: settings)."""
+    (``"hull"``, ``"coacd"``, or ``"cache"`` when read back from ``cache_dir``). ``cache_dir`` None: memoised in
+    this process only, nothing is written."""
     params = params or COACD_PARAMS
     if vertices.ndim != 2 or vertices.shape[1] != 3:
         raise ValueError(f"vertices must have shape (V, 3), got {vertices.shape}")
     if faces.ndim != 2 or faces.shape[1] != 3:
         raise ValueError(f"faces must have shape (F, 3), got {faces.shape}")
-    folder = (cache_dir or get_settings().resolved_cache_dir()) / "convex"
-    path = folder / f"{cache_key(vertices, faces, params)}.npz"
+    key = cache_key(vertices, faces, params)
+    if cache_dir is None:
+        if key not in _MEMO:
+            parts, how = _decompose(np.asarray(vertices, np.float64), np.asarray(faces, np.int64), params)
+            _MEMO[key] = (tuple(parts), how)
+        memo_parts, memo_how = _MEMO[key]
+        return list(memo_parts), memo_how
+    folder = cache_dir / "convex"
+    path = folder / f"{key}.npz"
     if path.is_file():
         try:
             with np.load(path, allow_pickle=False) as data:

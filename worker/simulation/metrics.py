@@ -15,21 +15,14 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from common.geometry import FloatArray, rotation_error_deg
 from common.sequence import FINGERTIP_INDICES
-
-FloatArray = npt.NDArray[np.float64]
 
 SUCCESS_POSITION_CM = 3.0
 SUCCESS_ROTATION_DEG = 30.0
 METRIC_KEYS: tuple[str, ...] = ("E_t", "E_r", "E_j", "E_ft", "success")
 
 
-def rotation_error_deg(quat_a: FloatArray, quat_b: FloatArray) -> FloatArray:
-    """Geodesic angle (deg) between wxyz quaternions (...,4): 2·acos|<a, b>|."""
-    a = quat_a / np.linalg.norm(quat_a, axis=-1, keepdims=True)
-    b = quat_b / np.linalg.norm(quat_b, axis=-1, keepdims=True)
-    dot = np.clip(np.abs(np.sum(a * b, axis=-1)), 0.0, 1.0)
-    return np.asarray(np.degrees(2.0 * np.arccos(dot)))
 
 
 def compute_metrics(

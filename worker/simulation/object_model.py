@@ -8,14 +8,15 @@ watertight mesh (its convex hull when it is not watertight), scaled to the datas
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+from common.geometry import FloatArray
 from common.sequence import ObjectSpec
-from worker.hand.mjcf import fmt
-from worker.hand.model import FloatArray
 from worker.simulation.config import HAND_BIT, OBJECT_BIT, TABLE_BIT, SimConfig
 from worker.simulation.convex_cache import convex_parts
+from worker.simulation.hand_mjcf import fmt
 
 OBJECT_BODY = "object"
 OBJECT_JOINT = "object_root"
@@ -54,7 +55,9 @@ def centre_of_mass(obj: ObjectSpec) -> FloatArray:
     return mesh_inertia(obj.mesh_vertices, obj.mesh_faces, obj.mass_kg)[0]
 
 
-def object_mjcf(obj: ObjectSpec, config: SimConfig, pos: FloatArray, quat: FloatArray) -> ObjectMjcf:
+def object_mjcf(
+    obj: ObjectSpec, config: SimConfig, pos: FloatArray, quat: FloatArray, *, cache_dir: Path | None = None
+) -> ObjectMjcf:
     """Assets and body XML of the object placed at ``pos`` (3,) / ``quat`` (4,) wxyz."""
     friction = obj.friction if obj.friction is not None else config.object_friction
     common = (
@@ -76,7 +79,7 @@ def object_mjcf(obj: ObjectSpec, config: SimConfig, pos: FloatArray, quat: Float
         return ObjectMjcf(assets="", body=f"{head}\n{geom}\n</body>", num_geoms=1, collision="primitive")
 
     assert obj.mesh_vertices is not None and obj.mesh_faces is not None
-    parts, how = convex_parts(obj.mesh_vertices, obj.mesh_faces)
+    parts, how = convex_parts(obj.mesh_vertices, obj.mesh_faces, cache_dir=cache_dir)
     com, inertia = mesh_inertia(obj.mesh_vertices, obj.mesh_faces, obj.mass_kg)
     full = [inertia[0, 0], inertia[1, 1], inertia[2, 2], inertia[0, 1], inertia[0, 2], inertia[1, 2]]
     assets, geoms = [], []

@@ -10,9 +10,11 @@ deterministic step count is ``simulated_steps``.
 
 from __future__ import annotations
 
+import importlib.metadata as md
 import platform
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import mujoco
@@ -20,7 +22,9 @@ import numpy as np
 
 from common.result_format import write_result_npz
 from common.sequence import Sequence
-from worker.hand.retarget import HandReference, retarget_sequence
+from worker.hand.mano.pose import reference_mano_arrays
+from worker.hand.reference import HandReference
+from worker.hand.retarget import retarget_sequence
 from worker.simulation.metrics import compute_metrics, scalar_metrics
 from worker.simulation.scene import Scene, SimConfig, build_scene
 from worker.simulation.stepping import (
@@ -58,8 +62,6 @@ class ReplayResult:
 
 
 def versions() -> dict[str, str]:
-    import importlib.metadata as md
-
     out = {"python": platform.python_version(), "mujoco": mujoco.__version__, "numpy": np.__version__}
     try:
         out["hoi-refine"] = md.version("hoi-refine")
@@ -68,13 +70,21 @@ def versions() -> dict[str, str]:
     return out
 
 
-def raw_replay(seq: Sequence, config: SimConfig | None = None, record_contacts: bool = True) -> ReplayResult:
-    """Retarget, build the scene and replay the reference open-loop; see the module docstring."""
+def raw_replay(
+    seq: Sequence,
+    config: SimConfig | None = None,
+    record_contacts: bool = True,
+    *,
+    cache_dir: Path | None = None,
+    mano_dir: Path | None = None,
+) -> ReplayResult:
+    """Retarget, build the scene and replay the reference open-loop; see the module docstring. ``cache_dir``:
+    where convex parts are cached (None: memory only); ``mano_dir``: the MANO model folder (None: no MANO)."""
     config = config or SimConfig()
     t0 = time.perf_counter()
-    references = retarget_sequence(seq)
+    references = retarget_sequence(seq, mano_dir=mano_dir)
     t1 = time.perf_counter()
-    scene = build_scene(seq, references, config)
+    scene = build_scene(seq, references, config, cache_dir=cache_dir)
     data = scene.make_data()
     t2 = time.perf_counter()
     targets: dict[str, HandTargets] = {r.side: HandTargets.from_reference(r) for r in references}
@@ -95,9 +105,7 @@ def raw_replay(seq: Sequence, config: SimConfig | None = None, record_contacts: 
     steps = settle_steps + record.steps
     mano_arrays: dict[str, np.ndarray] = {}
     if any(r.from_mano for r in references):  # the driven pose as MANO parameters (DESIGN §1.7)
-        from worker.hand.mano.pose import reference_mano_arrays
-
-        mano_arrays = reference_mano_arrays(seq, references)
+        mano_arrays = reference_mano_arrays(seq, references, mano_dir)
     timings = {
         "retarget_s": t1 - t0,
         "build_scene_s": t2 - t1,

@@ -18,8 +18,7 @@ from collections.abc import Sequence as Seq
 import numpy as np
 from scipy.spatial import cKDTree
 
-from worker.hand.model import FloatArray, quat_to_matrix
-from worker.simulation.metrics import rotation_error_deg
+from common.geometry import FloatArray, quat_to_matrix, rotation_error_deg
 
 #: Beyond these from frame 0 the recorded object has moved, not jittered: vision noise of a resting DexYCB object
 #: stays within 3 mm, and its turn about a symmetry axis within 8 degrees, before a hand comes near.

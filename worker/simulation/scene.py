@@ -19,13 +19,17 @@ bits in ``sim_config``). Sensors make ``mujoco.rollout`` recordings self-suffici
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import mujoco
 import numpy as np
-import numpy.typing as npt
 
+from common.geometry import FloatArray, IntArray
 from common.sequence import Sequence
-from worker.hand.mjcf import (
+from worker.hand.model import HINGE_NAMES
+from worker.hand.reference import HandReference
+from worker.simulation.config import SimConfig
+from worker.simulation.hand_mjcf import (
     hand_actuator_xml,
     hand_asset_xml,
     hand_body_names,
@@ -33,15 +37,10 @@ from worker.hand.mjcf import (
     hand_sensor_xml,
     hand_worldbody_xml,
 )
-from worker.hand.model import HINGE_NAMES, FloatArray
-from worker.hand.retarget import HandReference
-from worker.simulation.config import SimConfig
 from worker.simulation.object_model import OBJECT_BODY, OBJECT_JOINT, object_mjcf
 from worker.simulation.rest_pose import rest_pose
 from worker.simulation.support_plane import SupportPlane
 from worker.simulation.table_fit import fit_table, option_xml, table_geom_xml
-
-IntArray = npt.NDArray[np.int64]
 
 __all__ = ["HandHandles", "Scene", "SimConfig", "build_scene"]
 
@@ -106,11 +105,13 @@ def scene_xml(
     references: list[HandReference],
     config: SimConfig,
     start: tuple[FloatArray, SupportPlane],
+    *,
+    cache_dir: Path | None = None,
 ) -> tuple[str, str, int]:
     """The scene's MJCF, the object's collision method and its number of geoms. ``start``: the object's
-    frame-0 pose and the table under it (``fit_table``'s)."""
+    frame-0 pose and the table under it (``fit_table``'s); ``cache_dir``: where convex parts are cached."""
     pose0, table = start
-    obj = object_mjcf(seq.object, config, pose0[:3], pose0[3:])
+    obj = object_mjcf(seq.object, config, pose0[:3], pose0[3:], cache_dir=cache_dir)
     hands_body = "\n".join(hand_worldbody_xml(r.geometry, config, r.wrist_pos[0], r.wrist_quat[0]) for r in references)
     sensors = [
         f'<framepos name="object_pos" objtype="body" objname="{OBJECT_BODY}"/>',
@@ -145,15 +146,18 @@ def scene_xml(
     return xml, obj.collision, obj.num_geoms
 
 
-def build_scene(seq: Sequence, references: list[HandReference], config: SimConfig | None = None) -> Scene:
-    """Compile the scene for a sequence and its retargeted hands (one ``HandReference`` per hand)."""
+def build_scene(
+    seq: Sequence, references: list[HandReference], config: SimConfig | None = None, *, cache_dir: Path | None = None
+) -> Scene:
+    """Compile the scene for a sequence and its retargeted hands (one ``HandReference`` per hand). ``cache_dir``:
+    where a mesh object's convex parts are cached on disk (None: memory only)."""
     config = config or SimConfig()
     if not references:
         raise ValueError("references must hold at least one HandReference")
     keypoints = [r.keypoints for r in references]
     start = rest_pose(seq.object_pose_world(), seq.object.surface_vertices(), keypoints, config.rest_approach_m)
-    pose0, table = fit_table(seq, config, start)
-    xml, collision, ngeom = scene_xml(seq, references, config, (pose0, table))
+    pose0, table = fit_table(seq, config, start, cache_dir=cache_dir)
+    xml, collision, ngeom = scene_xml(seq, references, config, (pose0, table), cache_dir=cache_dir)
     model = mujoco.MjModel.from_xml_string(xml)
     hands: dict[str, HandHandles] = {}
     body_side: dict[int, str] = {}

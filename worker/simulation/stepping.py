@@ -23,8 +23,9 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from worker.hand.model import JOINT_LOWER, JOINT_UPPER, FloatArray, quat_to_matrix
-from worker.hand.retarget import HandReference
+from common.geometry import FloatArray, quat_to_matrix, slerp
+from worker.hand.model import JOINT_LOWER, JOINT_UPPER
+from worker.hand.reference import HandReference
 from worker.simulation.contacts import ContactRecorder
 from worker.simulation.scene import Scene
 
@@ -84,18 +85,6 @@ class RolloutRecord:
     contacts: dict[str, np.ndarray] | None = None
 
 
-def slerp(q0: FloatArray, q1: FloatArray, t: FloatArray) -> FloatArray:
-    """Spherical interpolation of wxyz quaternions (...,4) at fractions t (...); shortest path."""
-    dot = np.sum(q0 * q1, axis=-1)
-    q1 = np.where(dot[..., None] < 0, -q1, q1)
-    dot = np.abs(dot)
-    theta = np.arccos(np.clip(dot, -1.0, 1.0))
-    sin = np.sin(theta)
-    small = sin < 1e-8
-    w0 = np.where(small, 1 - t, np.sin((1 - t) * theta) / np.where(small, 1.0, sin))
-    w1 = np.where(small, t, np.sin(t * theta) / np.where(small, 1.0, sin))
-    out = w0[..., None] * q0 + w1[..., None] * q1
-    return np.asarray(out / np.linalg.norm(out, axis=-1, keepdims=True))
 
 
 def lead_track(pos: FloatArray, quat: FloatArray, lead_frames: float) -> tuple[FloatArray, FloatArray]:

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from worker.hand.model import FloatArray
+from common.geometry import FloatArray
 
 
 @dataclass(frozen=True)

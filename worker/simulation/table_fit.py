@@ -12,13 +12,15 @@ costs a few hundred physics steps of one free body per candidate.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import mujoco
 import numpy as np
 
+from common.geometry import FloatArray, quat_to_matrix, rotation_error_deg
 from common.sequence import Sequence
-from worker.hand.mjcf import fmt
-from worker.hand.model import FloatArray, quat_to_matrix
 from worker.simulation.config import OBJECT_BIT, TABLE_BIT, SimConfig
+from worker.simulation.hand_mjcf import fmt
 from worker.simulation.object_model import OBJECT_JOINT, centre_of_mass, object_mjcf
 from worker.simulation.support_plane import SupportPlane, support_candidates
 
@@ -58,7 +60,7 @@ def level_start_pose(recorded: FloatArray, vertices_world: FloatArray, config: S
 
 
 def fit_table(
-    seq: Sequence, config: SimConfig, rest_pose: FloatArray | None = None
+    seq: Sequence, config: SimConfig, rest_pose: FloatArray | None = None, *, cache_dir: Path | None = None
 ) -> tuple[FloatArray, SupportPlane]:
     """Frame-0 world pose of the object and the table plane under it (see the module docstring).
 
@@ -75,7 +77,7 @@ def fit_table(
     candidates = [c for start in starts for c in _start_candidates(seq, config, surface, start)]
     if len(candidates) == 1:
         return candidates[0]
-    scores = _drift_scores(seq, config, target, candidates)
+    scores = _drift_scores(seq, config, target, candidates, cache_dir)
     best = int(np.argmin(scores))
     return candidates[best]
 
@@ -96,10 +98,14 @@ def _start_candidates(
 
 
 def _drift_scores(
-    seq: Sequence, config: SimConfig, target: FloatArray, candidates: list[tuple[FloatArray, SupportPlane]]
+    seq: Sequence,
+    config: SimConfig,
+    target: FloatArray,
+    candidates: list[tuple[FloatArray, SupportPlane]],
+    cache_dir: Path | None,
 ) -> list[float]:
     """Degrees + millimetres between ``target`` and where the object is after ``FIT_SECONDS``."""
-    obj = object_mjcf(seq.object, config, target[:3], target[3:])
+    obj = object_mjcf(seq.object, config, target[:3], target[3:], cache_dir=cache_dir)
     xml = f"""<mujoco model="table-fit">
   <compiler angle="radian" autolimits="true"/>
   {option_xml(config)}
@@ -130,7 +136,6 @@ def _drift_scores(
         for _ in range(steps):
             mujoco.mj_step(model, data)
         end = data.qpos[adr : adr + 7]
-        cos_half = min(1.0, abs(float(end[3:] @ target[3:])) / float(np.linalg.norm(end[3:])))
-        angle = 2 * float(np.degrees(np.arccos(cos_half)))
+        angle = float(rotation_error_deg(end[3:], target[3:]))
         scores.append(angle + 1000 * float(np.linalg.norm(end[:3] - target[:3])))
     return scores

@@ -20,7 +20,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from common.errors import ConfigurationError, SequenceValidationError
-from common.sequence import FloatArray, ManoParams, Side
+from common.geometry import FloatArray
+from common.sequence import ManoParams, Side
 from worker.hand.mano.pickle_io import load_mano_pickle, mano_model_path
 
 #: Fingertip vertices of the real MANO mesh (thumb, index, middle, ring, pinky), as in manopth / DexYCB.

@@ -24,7 +24,8 @@ import numpy as np
 from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
-from common.sequence import FloatArray, IntArray, Side
+from common.geometry import FloatArray, IntArray
+from common.sequence import Side
 from worker.hand.mano.decode import MANO21_ORDER, ManoModel, load_mano_model
 from worker.hand.mano.synthetic_model import MANO_FINGER_START
 from worker.hand.model import (

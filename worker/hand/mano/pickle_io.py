@@ -17,7 +17,6 @@ import numpy as np
 
 from common.errors import ConfigurationError, ManoModelMissingError
 from common.sequence import Side
-from common.settings import get_settings
 
 #: Keys every MANO-format file must hold (the names of the released files).
 REQUIRED_KEYS = (
@@ -75,8 +74,9 @@ def load_mano_pickle(path: Path | str) -> dict[str, Any]:
 
 
 def mano_model_path(side: Side, mano_dir: Path | str | None = None) -> Path:
-    """``<mano_dir>/MANO_<SIDE>.pkl`` (``mano_dir`` defaults to ``HOI_REFINE_MANO_DIR``), or a clear error."""
-    directory = Path(mano_dir) if mano_dir is not None else get_settings().mano_dir
+    """``<mano_dir>/MANO_<SIDE>.pkl``, or a clear error. Entry points pass ``HOI_REFINE_MANO_DIR`` as
+    ``mano_dir``, so the errors name that setting."""
+    directory = mano_dir
     fname = f"MANO_{side.upper()}.pkl"
     if directory is None:
         raise ManoModelMissingError(

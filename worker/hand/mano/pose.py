@@ -19,7 +19,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from common.errors import SequenceValidationError
-from common.sequence import FloatArray, HandTrack, ManoParams, Sequence, Side
+from common.geometry import FloatArray
+from common.sequence import HandTrack, ManoParams, Sequence, Side
 from worker.hand.mano.decode import full_hand_pose, load_mano_model, local_rotations
 from worker.hand.mano.hand_geometry import (
     ManoHandGeometry,
@@ -27,7 +28,7 @@ from worker.hand.mano.hand_geometry import (
     mano_hand_geometry,
     rotations_to_hinges,
 )
-from worker.hand.retarget import HandReference
+from worker.hand.reference import HandReference
 
 
 def mano_hand_pose(params: ManoParams, mgeo: ManoHandGeometry, mano_dir: Path | str | None = None

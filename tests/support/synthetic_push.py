@@ -47,12 +47,12 @@ def push_sequence(frames: int = 30, fps: float = 30.0, yaw_deg: float = 0.0, off
 def recovery_case(frames: int = 30, yaw_deg: float = 0.0, offset_x: float = -0.035) -> tuple[Sequence, np.ndarray]:
     """The object track the unperturbed hand produces in simulation, attached to the perturbed hand."""
     from worker.refine.evaluator import ParallelEvaluator
-    from worker.refine.prepare import initial_state, prepare
-    from worker.refine.run import replay
+    from worker.refine.prepare import prepare, settled_start
+    from worker.refine.replay import replay
 
     truth = push_sequence(frames)
     prep = prepare(truth, JobOptions())
     with ParallelEvaluator(prep.scene.model, 1) as ev:
-        start, _ = initial_state(prep, ev)
+        start, _ = settled_start(prep, ev)
         rec = replay(prep, ev, start, {s: sp.zero_keyframes() for s, sp in prep.spaces.items()}, False)
     return push_sequence(frames, yaw_deg=yaw_deg, offset_x=offset_x, object_pose=rec.object_pose), rec.object_pose

@@ -19,7 +19,7 @@ from common.queue import JobQueue
 from common.sequence_io import save_sequence
 from service.submit.manifest import Manifest
 from service.submit.runner import SubmitConfig, SubmitOutcome, run_submit
-from tests.queue_fixtures import ApiHarness, fake_result, tiny_sequence
+from tests.support.queue_fixtures import ApiHarness, fake_result, tiny_sequence
 
 
 def _dataset(folder: Path, names: list[str]) -> None:

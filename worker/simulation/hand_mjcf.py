@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from common.geometry import FloatArray, matrix_to_quat
 from worker.hand.model import (
     AXIS_VECTORS,
     FINGER_BASE_KEYPOINT,
@@ -20,7 +21,6 @@ from worker.hand.model import (
     HINGE_AXES,
     HINGE_NAMES,
     JOINT_LIMITS,
-    FloatArray,
     HandGeometry,
 )
 from worker.simulation.config import HAND_BIT, OBJECT_BIT, SimConfig
@@ -31,12 +31,6 @@ def fmt(values: FloatArray | list[float] | tuple[float, ...]) -> str:
     return " ".join(f"{float(v):.9g}" for v in np.ravel(values))
 
 
-def matrix_to_quat(rot: FloatArray) -> FloatArray:
-    """3x3 rotation -> wxyz quaternion (w >= 0)."""
-    from scipy.spatial.transform import Rotation
-
-    q = Rotation.from_matrix(rot).as_quat(scalar_first=True)
-    return q if q[0] >= 0 else -q
 
 
 def segment_body_name(side: str, finger: int, segment: int) -> str:
