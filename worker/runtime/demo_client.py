@@ -85,6 +85,7 @@ def local_deployment(
                 proc.kill()
                 proc.wait()
         pump.join(5)
+        proc.stdout.close()  # the pipe's end in this process (a ResourceWarning if left to the collector)
         sink.close()
 
 
