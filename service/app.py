@@ -1,4 +1,4 @@
-"""The FastAPI application: ``create_app()`` wires the queue, the routes, the problem handlers and limits.
+"""The FastAPI application: ``create_app()`` wires the queue, the API keys, the routes, problem handlers, limits.
 
 ``uvicorn --factory service.app:create_app`` (what ``hoi-refine serve`` runs) or ``create_app(settings,
 engine)`` in tests. The database must already be at the migration head (``serve`` upgrades it first;
@@ -16,6 +16,7 @@ from fastapi.openapi.utils import get_openapi
 from sqlalchemy.engine import Engine
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+from common.api_key_store import ApiKeyStore
 from common.database import create_engine_for
 from common.queue import JobQueue
 from common.settings import Settings, get_settings
@@ -66,6 +67,7 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None) -
     app.state.settings = settings
     app.state.engine = engine
     app.state.queue = queue
+    app.state.api_keys = ApiKeyStore(engine)
     app.state.key_cache = {}
     app.state.metrics_registry = make_registry(queue)
     install_problem_handlers(app)

@@ -13,11 +13,11 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from common.job_options import JobOptions
+from common.job_state import JobState
 from common.queue_types import JobRecord
 
 VertexIndex = Annotated[int, Field(ge=0, le=2**31 - 1)]
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
-JobState = Literal["QUEUED", "RUNNING", "SUCCEEDED", "FAILED", "CANCELLED"]
 
 
 class PrimitiveIn(BaseModel):
@@ -128,7 +128,7 @@ class JobPublic(BaseModel):
         progress = None
         if job.progress is not None:
             progress = ProgressPublic.model_validate(job.progress)
-            if progress.eta_s is None and job.state == "RUNNING" and job.started_at:
+            if progress.eta_s is None and job.state == JobState.RUNNING and job.started_at:
                 # Rate up to the last heartbeat (updated_at), not up to now: the representation, and so its
                 # ETag, then changes only when the job does.
                 progress.eta_s = _eta(progress, (job.updated_at - job.started_at).total_seconds())

@@ -21,6 +21,7 @@ from typing import Any, Protocol
 
 from common.errors import HoiRefineError, JobCancelledError, LeaseLostError
 from common.job_options import JobOptions
+from common.queue_types import ClaimedJob
 from worker.runtime.backoff import Backoff, WorkerStopping, call_with_backoff, is_unreachable
 from worker.runtime.heartbeat import Heartbeat
 
@@ -30,19 +31,10 @@ ProgressFn = Callable[[dict[str, Any]], None]
 StopFn = Callable[[], bool]
 
 
-class ClaimedJobLike(Protocol):
-    job_id: str
-    lease_token: str
-    attempt: int
-    payload: bytes
-    options: JobOptions
-    name: str
-
-
 class QueueLike(Protocol):
     """The subset of ``common.queue.JobQueue`` a worker uses."""
 
-    def claim(self, worker_id: str, lease_seconds: float | None = None) -> Any: ...
+    def claim(self, worker_id: str, lease_seconds: float | None = None) -> ClaimedJob | None: ...
     def heartbeat(self, job_id: str, lease_token: str, progress: dict[str, Any] | None = None) -> bool: ...
     def complete(self, job_id: str, lease_token: str, result: bytes, summary: dict[str, Any]) -> Any: ...
     def fail(self, job_id: str, lease_token: str, error: str, retryable: bool = False) -> Any: ...
@@ -166,7 +158,7 @@ class WorkerLoop:
         self.jobs_done[outcome] = self.jobs_done.get(outcome, 0) + 1
         return outcome
 
-    def _run_claimed(self, job: ClaimedJobLike) -> str:
+    def _run_claimed(self, job: ClaimedJob) -> str:
         log.info("claimed job %s (attempt %d) %r", job.job_id, job.attempt, job.name)
         base = {**self.extra_progress, "worker_id": self.worker_id, "pid": os.getpid(), "attempt": job.attempt}
         hb = Heartbeat(
@@ -191,7 +183,7 @@ class WorkerLoop:
                 self._current = None
                 self._heartbeat = None
 
-    def _execute(self, job: ClaimedJobLike, hb: Heartbeat) -> str:
+    def _execute(self, job: ClaimedJob, hb: Heartbeat) -> str:
         t0 = time.monotonic()
         try:
             if hb.should_stop():
@@ -214,7 +206,7 @@ class WorkerLoop:
             job, "succeeded", lambda: self.queue.complete(job.job_id, job.lease_token, result, summary)
         )
 
-    def _after_stop(self, job: ClaimedJobLike, hb: Heartbeat) -> str:
+    def _after_stop(self, job: ClaimedJob, hb: Heartbeat) -> str:
         if hb.lease_lost:
             log.warning("job %s stopped: lease lost, nothing written", job.job_id)
             return "lost"
@@ -224,7 +216,7 @@ class WorkerLoop:
         log.info("job %s released (worker stopping)", job.job_id)
         return self._write(job, "released", lambda: self.queue.release(job.job_id, job.lease_token))
 
-    def _write(self, job: ClaimedJobLike, outcome: str, fn: Callable[[], Any]) -> str:
+    def _write(self, job: ClaimedJob, outcome: str, fn: Callable[[], Any]) -> str:
         """A token-checked write; a lost lease means another attempt owns the job now."""
         next_delay = self.backoff.delays()
         while True:

@@ -15,16 +15,14 @@ import signal
 import subprocess
 import sys
 import threading
-import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
 
-import httpx
-
-from common.errors import ConfigurationError
+from common.api_client import wait_until_ready
+from common.errors import ApiError, ConfigurationError
 from common.settings import get_settings
 from worker.runtime.pool import PoolConfig, WorkerPool
 
@@ -75,33 +73,24 @@ def start_api(host: str, port: int) -> subprocess.Popen[bytes]:
 
 
 def wait_for_api(base_url: str, proc: subprocess.Popen[bytes], timeout_s: float, stop: threading.Event) -> None:
-    deadline = time.monotonic() + timeout_s
-    with httpx.Client(timeout=2.0) as client:
-        while time.monotonic() < deadline and not stop.is_set():
-            if proc.poll() is not None:
-                raise ConfigurationError(f"the API process exited with code {proc.returncode} during start-up")
-            for path in HEALTH_PATHS:
-                try:
-                    if client.get(base_url + path).status_code == 200:
-                        return
-                except httpx.HTTPError:
-                    break
-            time.sleep(0.3)
-    if not stop.is_set():
-        raise ConfigurationError(f"the API did not answer at {base_url} within {timeout_s:.0f} s")
+    try:
+        wait_until_ready(base_url, timeout_s, alive=lambda: proc.poll() is None, stop=stop, paths=HEALTH_PATHS)
+    except ApiError as exc:
+        if proc.poll() is not None:
+            raise ConfigurationError(f"the API process exited with code {proc.returncode} during start-up") from exc
+        raise ConfigurationError(str(exc)) from exc
 
 
 def create_dev_key(name: str) -> str:
+    from common.api_key_store import ApiKeyStore
     from common.database import create_engine_for
-    from common.queue import JobQueue
 
-    settings = get_settings()
-    engine = create_engine_for(settings.resolved_database_url())
+    engine = create_engine_for(get_settings().resolved_database_url())
     try:
-        _key_id, plaintext = JobQueue(engine, settings=settings).create_api_key(name)
+        _key_id, plaintext = ApiKeyStore(engine).create(name)
     finally:
         engine.dispose()
-    return str(plaintext)
+    return plaintext
 
 
 def stop_api(proc: subprocess.Popen[bytes], timeout_s: float = 15.0) -> None:
