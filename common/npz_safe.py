@@ -162,7 +162,9 @@ class SafeNpz:
 
     def _inflate(self, h: MemberHeader, field: str) -> np.ndarray:
         out = np.empty(h.shape, dtype=h.dtype, order="F" if h.fortran_order else "C")
-        view = memoryview(out.reshape(-1, order="A").view(np.uint8)) if out.size else memoryview(b"")
+        # Filled in place, in memory order: no second copy of the data is ever made.
+        flat: Any = out.reshape(-1, order="A").view(np.uint8)
+        view = memoryview(flat) if out.size else memoryview(b"")
         try:
             with self._zip.open(h.info) as fp:
                 fp.read(h.header_bytes)

@@ -272,6 +272,55 @@ class JobQueue(QueueBase):
                 self._after_attempt(conn, row.id, row.lease_token, row, msg, True, now)
         return len(rows)
 
+    def requeue_worker_jobs(self, worker_id_prefix: str, reason: str, now: datetime | None = None) -> int:
+        """Requeue (attempt + 1, as for an expired lease) the RUNNING jobs of workers whose id starts with
+        ``worker_id_prefix``: a deployment found dead (``hoi-refine up`` after a SIGKILL) need not wait for
+        their leases to run out."""
+        now = now or utcnow()
+        with self._write() as conn:
+            rows = conn.execute(
+                self._locked(
+                    sa.select(
+                        jobs.c.id, jobs.c.lease_token, jobs.c.attempt, jobs.c.errors, jobs.c.cancel_requested,
+                        jobs.c.worker_id,
+                    ).where(jobs.c.state == "RUNNING", jobs.c.worker_id.startswith(worker_id_prefix, autoescape=True)),
+                    skip_locked=True,
+                )
+            ).all()  # fmt: skip
+            for row in rows:
+                self._after_attempt(conn, row.id, row.lease_token, row, reason, True, now)
+        return len(rows)
+
+    def cancel_jobs_of_key(self, key_id: str) -> tuple[int, int]:
+        """Cancel every QUEUED job of an API key and flag its RUNNING ones (``keys revoke --cancel-jobs``):
+        a revoked key can no longer see or cancel them itself. Returns (cancelled, flagged)."""
+        now = utcnow()
+        with self._write() as conn:
+            rows = conn.execute(
+                self._locked(
+                    sa.select(jobs.c.id, jobs.c.state).where(
+                        jobs.c.owner_key_id == key_id, jobs.c.state.in_(ACTIVE_STATES)
+                    )
+                )
+            ).all()
+            queued = [r.id for r in rows if r.state == "QUEUED"]
+            running = [r.id for r in rows if r.state == "RUNNING"]
+            if queued:
+                conn.execute(
+                    sa.update(jobs)
+                    .where(jobs.c.id.in_(queued))
+                    .values(state="CANCELLED", finished_at=now, updated_at=now)
+                )
+            if running:
+                conn.execute(
+                    sa.update(jobs).where(jobs.c.id.in_(running)).values(cancel_requested=True, updated_at=now)
+                )
+            for job_id in queued:
+                self._event(conn, job_id, "cancelled", now, reason="API key revoked")
+            for job_id in running:
+                self._event(conn, job_id, "cancel_requested", now, reason="API key revoked")
+        return len(queued), len(running)
+
     # ------------------------------------------------------------------ owner-scoped actions
     def cancel(self, owner_key_id: str | None, job_id: str) -> JobRecord:
         """QUEUED -> CANCELLED now; RUNNING -> cancel flag (the worker stops at its next heartbeat)."""

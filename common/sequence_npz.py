@@ -10,7 +10,7 @@ member; no other exception leaves ``sequence_from_npz_bytes`` (the fuzz test in
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, cast
 
@@ -41,7 +41,7 @@ class ParseLimits:
     max_frames: int = DEFAULT_MAX_FRAMES
     max_mesh_vertices: int = 200_000
     max_mesh_faces: int = 400_000
-    npz: NpzLimits = NpzLimits()
+    npz: NpzLimits = field(default_factory=NpzLimits)
 
     def dims(self) -> dict[str, int]:
         # T frames, V/F mesh vertices/faces, S hand sides, P MANO pose coefficients, B betas, N primitive sizes.

@@ -28,8 +28,8 @@ def readyz(request: Request) -> Response:
 
 
 @router.get("/metrics", summary="Prometheus metrics (needs an API key: deployment-wide job totals)",
-            response_class=Response,
-            responses={200: {"content": {CONTENT_TYPE_LATEST: {}}}, 401: {"content": {"application/problem+json": {}}}})  # fmt: skip
+            response_class=Response, responses={200: {"content": {CONTENT_TYPE_LATEST: {}}},
+                                                401: {"content": {"application/problem+json": {}}}})  # fmt: skip
 def metrics(request: Request, _key: KeyDep) -> Response:
     # Protected rather than public (issue #16): the totals say how busy the deployment is and when its
     # clients work, which is nobody's business without a key. Any valid key may scrape (Prometheus:

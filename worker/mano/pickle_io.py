@@ -52,7 +52,8 @@ ALLOWED_GLOBALS = {
     ("numpy._core.multiarray", "_reconstruct"), ("numpy.core.multiarray", "scalar"),
     ("numpy._core.multiarray", "scalar"), ("numpy.core.numeric", "_frombuffer"), ("numpy._core.numeric", "_frombuffer"),
     ("scipy.sparse", "csc_matrix"), ("scipy.sparse", "csr_matrix"), ("scipy.sparse", "coo_matrix"),
-    ("copyreg", "_reconstructor"), ("copy_reg", "_reconstructor"), ("_codecs", "encode"), ("builtins", "object"), ("__builtin__", "object"),
+    ("copyreg", "_reconstructor"), ("copy_reg", "_reconstructor"), ("_codecs", "encode"),
+    ("builtins", "object"), ("__builtin__", "object"),
 }  # fmt: skip
 
 #: Per key: (dimensions, of which None = any size); checked after loading (all float64 but the integer ones).
