@@ -47,7 +47,7 @@ def test_dead_deployment_jobs_are_requeued_by_worker_prefix(queue: JobQueue, own
     mine = [submit_tiny(queue, owner, seed=i) for i in range(2)]
     theirs = submit_tiny(queue, owner, seed=9)
     record = DeploymentRecord(supervisor_pid=4242, host="host_a%", url="http://x")
-    for job in mine:
+    for _ in mine:
         assert queue.claim(f"{record.worker_prefix}1-abc") is not None
     assert queue.claim("host_a%-42420-w1-def") is not None  # another supervisor: pid 42420, not 4242
     assert queue.requeue_worker_jobs(record.worker_prefix, "the up running it died") == 2
