@@ -12,6 +12,11 @@ Native NPZ (``format == "hoi-refine-sequence"``, ``format_version == 1``), keys:
 Native JSON: the same content nested, see ``sequence_to_json_dict``; ``object.mesh_file`` may name an
 OBJ/PLY/STL/GLB file relative to the JSON file instead of inline ``object.mesh``.
 The DexYCB development NPZs in ``shared/data/dexycb`` are read by ``common.dexycb``.
+
+Reading is done for untrusted bytes: NPZ through ``common.sequence_npz`` (headers checked before anything is
+decompressed), JSON through ``parse_json_text`` + ``sequence_from_json_dict`` (every value type-checked);
+both end in ``Sequence.validate`` (at least ``MIN_FRAMES`` = 2 frames, finite bounded numbers, safe names).
+Every problem is a ``SequenceValidationError`` naming its field.
 """
 
 from __future__ import annotations
