@@ -245,3 +245,58 @@ def test_dexycb_folder_with_mutated_meta_and_poses(
             arrays = data.draw(mutated_members({k: npz[k] for k in npz.files}))
         (seq_dir / "pose.npz").write_bytes(deterministic_npz_bytes(arrays))
     _check(lambda: load_dexycb_native(seq_dir, max_frames=50))
+
+
+@pytest.fixture(scope="module")
+def mano_pickle(tmp_path_factory: pytest.TempPathFactory) -> bytes:
+    from worker.mano import build_test_mano_model
+
+    return build_test_mano_model(tmp_path_factory.mktemp("mano"), "right", seed=1).read_bytes()
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=list(HealthCheck))
+@given(edits=st.lists(EDITS, min_size=1, max_size=3))
+def test_mano_pickle_with_mutated_bytes(
+    mano_pickle: bytes, tmp_path_factory: pytest.TempPathFactory, edits: list[tuple[float, str, bytes]]
+) -> None:
+    """MANO files are the operator's configuration: a broken one is a ``ConfigurationError`` naming the file."""
+    from common.errors import ConfigurationError
+    from worker.mano import load_mano_pickle
+
+    blob = bytearray(mano_pickle)
+    for where, action, data in edits:
+        i = int(where * (len(blob) - 1))
+        if action == "flip":
+            blob[i] ^= data[0] or 1
+        elif action == "cut":
+            del blob[max(i, 1) :]
+        elif action == "insert":
+            blob[i:i] = data
+        else:
+            blob[i : i + len(data)] = bytes(len(data))
+    path = tmp_path_factory.mktemp("bad") / "MANO_RIGHT.pkl"
+    path.write_bytes(bytes(blob))
+    try:
+        model = load_mano_pickle(path)
+    except ConfigurationError as exc:
+        assert "MANO" in str(exc) or path.name in str(exc)
+        return
+    assert isinstance(model["v_template"], np.ndarray) and model["v_template"].shape[1] == 3
+
+
+def test_mano_pickle_may_not_call_functions(tmp_path: Path) -> None:
+    import os
+    import pickle
+
+    from common.errors import ConfigurationError
+    from worker.mano import load_mano_pickle
+
+    class Evil:
+        def __reduce__(self) -> tuple[Any, ...]:
+            return (os.system, ("touch " + str(tmp_path / "pwned"),))
+
+    path = tmp_path / "MANO_RIGHT.pkl"
+    path.write_bytes(pickle.dumps({"v_template": Evil()}))
+    with pytest.raises(ConfigurationError, match="may not reference"):
+        load_mano_pickle(path)
+    assert not (tmp_path / "pwned").exists()
