@@ -28,6 +28,7 @@ from common.errors import (
     NotFoundError,
 )
 from common.queue_types import ApiKeyRecord, JobEventRecord, JobRecord, QueueStats
+from common.safe_text import text_problem
 from common.settings import Settings, get_settings
 
 # Core tables of the mapped models: the queue speaks SQL expressions, never ORM sessions.
@@ -152,6 +153,8 @@ class QueueBase:
     # ------------------------------------------------------------------ API keys
     def create_api_key(self, name: str) -> tuple[str, str]:
         """(key_id, plaintext). Only the key's SHA-256 is stored; the plaintext cannot be shown again."""
+        if (why := text_problem(name, 200)) is not None:  # NUL would fail on PostgreSQL only: refuse everywhere
+            raise InvalidRequestError([FieldProblem("name", why)])
         key_id, plaintext = uuid.uuid4().hex, api_keys.new_key()
         with self._write() as conn:
             conn.execute(

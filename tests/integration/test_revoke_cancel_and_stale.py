@@ -68,3 +68,12 @@ def test_development_key_is_reused_until_revoked(db_url: str, tmp_path: Path, mo
     assert main(["keys", "revoke", first]) == 0
     second = development_key(state, "dev")
     assert second != first and development_key(state, "dev") == second
+
+
+def test_key_names_with_nul_or_controls_are_refused_on_every_database(queue: JobQueue) -> None:
+    from common.errors import InvalidRequestError
+
+    for bad in ("a\x00b", "bell\x07", "\u202eevil"):
+        with pytest.raises(InvalidRequestError, match="name"):
+            queue.create_api_key(bad)
+    assert [k.name for k in queue.list_api_keys()] == []
