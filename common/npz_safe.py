@@ -37,6 +37,8 @@ ALLOWED_KINDS = "biufU"
 #: ``.npy`` headers are a short Python dict literal; NumPy itself caps them at 10000 bytes.
 MAX_HEADER_BYTES = 4096
 MAX_NDIM = 4
+#: Central-directory bytes allowed per member (46 fixed + name + extra fields, generously).
+MAX_DIRECTORY_ENTRY_BYTES = 1024
 _READ_CHUNK = 1 << 20
 _SAFE_KEY = re.compile(r"[A-Za-z0-9_]{1,100}")
 #: Whole-file problems name this field (the multipart part holding the file has the same name).
@@ -90,6 +92,7 @@ class SafeNpz:
         self.limits = limits or NpzLimits()
         #: Upper bounds of named dimensions (``"T"`` -> max frames, ...); checked before decompressing.
         self.dim_limits = dict(dim_limits or {})
+        _check_directory_size(blob, self.limits.max_members * MAX_DIRECTORY_ENTRY_BYTES)
         try:
             self._zip = zipfile.ZipFile(io.BytesIO(blob))
             infos = self._zip.infolist()
@@ -219,6 +222,18 @@ class SafeNpz:
             raise _fail(key, f"its header declares shape {header.shape} of {dtype.str} ({header.data_bytes} bytes) "
                         f"but the zip entry holds {info.file_size - header.header_bytes}")  # fmt: skip
         return header
+
+
+def _check_directory_size(blob: bytes, limit: int) -> None:
+    """Refuse a central directory larger than ``limit`` bytes *before* ``zipfile`` parses it: it builds one
+    ``ZipInfo`` (hundreds of bytes) per ~50-byte entry, so a directory of a million tiny entries would cost
+    ten times the upload in memory. The end-of-directory record is within the last 64 KiB + 22 bytes."""
+    end = blob.rfind(b"PK\x05\x06", max(0, len(blob) - 65536 - 22))
+    if end < 0 or end + 22 > len(blob):
+        return  # not a zip: zipfile says so
+    size_cd = int.from_bytes(blob[end + 12 : end + 16], "little")
+    if size_cd > limit:
+        raise _fail(CONTAINER_FIELD, f"its zip directory is {size_cd} bytes, more than {limit} (too many members)")
 
 
 def _kinds(kinds: str) -> str:
