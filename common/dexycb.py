@@ -16,10 +16,10 @@ from typing import Any, cast
 import numpy as np
 
 from common.errors import ConfigurationError, SequenceValidationError
+from common.mesh_io import load_mesh_file
 from common.npz_safe import SafeNpz, Spec
 from common.safe_text import shown
 from common.sequence import NUM_JOINTS, HandTrack, ManoParams, ObjectSpec, Sequence
-from common.sequence_io import load_mesh_file
 from common.sequence_npz import ParseLimits, get_float, get_floats, get_str, open_npz
 from common.settings import get_settings
 

@@ -18,11 +18,10 @@ import numpy as np
 import numpy.typing as npt
 
 from common.errors import FieldProblem, SequenceValidationError
+from common.geometry import FloatArray, IntArray
 from common.safe_text import shown, text_problem
 
-FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
-IntArray = npt.NDArray[np.int64]
 
 Side = Literal["right", "left"]
 PrimitiveKind = Literal["box", "cylinder", "sphere", "capsule"]

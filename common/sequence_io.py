@@ -22,12 +22,16 @@ Every problem is a ``SequenceValidationError`` naming its field.
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, cast
 
 import numpy as np
 
+from common.dexycb import sequence_from_dexycb_npz
+from common.dexycb_native import is_dexycb_sequence_dir, load_dexycb_native
 from common.errors import FieldProblem, SequenceValidationError, UnsupportedFormatError
+from common.mesh_io import load_mesh_file
 from common.npz_writer import deterministic_npz_bytes
 from common.safe_text import shown
 from common.sequence import (
@@ -37,38 +41,9 @@ from common.sequence import (
     ObjectSpec,
     Sequence,
 )
-from common.sequence_npz import FORMAT_NAME as FORMAT_NAME
-from common.sequence_npz import FORMAT_VERSION as FORMAT_VERSION
-from common.sequence_npz import ParseLimits as ParseLimits
-from common.sequence_npz import sequence_from_npz_bytes as sequence_from_npz_bytes
+from common.sequence_npz import FORMAT_NAME, FORMAT_VERSION, ParseLimits, native_sequence, open_npz
 
-MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
-
-
-# ---------------------------------------------------------------------- meshes
-
-
-def load_mesh_file(path: Path, field: str = "object.mesh_file") -> tuple[np.ndarray, np.ndarray]:
-    """Read a triangle mesh (vertices, faces) with trimesh; scenes are merged into one mesh."""
-    import trimesh
-
-    # Messages name the file, not its folder: a DexYCB upload's mesh lives on the server (issue #16).
-    if not path.is_file():
-        raise SequenceValidationError.single(field, f"mesh file {path.name} does not exist")
-    if path.suffix.lower() not in MESH_SUFFIXES:
-        raise SequenceValidationError.single(
-            field, f"unsupported mesh type {path.suffix!r}; use one of {', '.join(MESH_SUFFIXES)}"
-        )
-    try:
-        loaded = trimesh.load(path, force="mesh", process=False)
-    except Exception as exc:  # trimesh raises many types for corrupt files
-        raise SequenceValidationError.single(field, f"could not read mesh {path.name} ({type(exc).__name__})") from exc
-    mesh = cast(Any, loaded)
-    vertices = np.asarray(mesh.vertices, dtype=np.float64)
-    faces = np.asarray(mesh.faces, dtype=np.int64)
-    if vertices.size == 0 or faces.size == 0:
-        raise SequenceValidationError.single(field, f"mesh {path.name} is empty")
-    return vertices, faces
+# ---------------------------------------------------------------------- NPZ
 
 
 # ---------------------------------------------------------------------- NPZ
@@ -117,6 +92,25 @@ def sequence_to_npz_bytes(seq: Sequence) -> bytes:
     # Fixed zip timestamps and member order: the bytes are embedded in refinement results (``sequence_npz``),
     # which must be identical between runs.
     return deterministic_npz_bytes(arrays)
+
+
+def sequence_from_npz_bytes(
+    blob: bytes, max_frames: int | None = None, source_path: Path | None = None, limits: ParseLimits | None = None
+) -> Sequence:
+    """Parse the native NPZ format (or the DexYCB development NPZ) from untrusted bytes and validate.
+
+    ``source_path`` (when the bytes came from a file) lets DexYCB files find the YCB folder beside them;
+    ``limits`` (frames, mesh size, uncompressed bytes) default to ``ParseLimits()``, ``max_frames`` overrides
+    its frame limit. Every member is checked before it is decompressed (``common.sequence_npz``).
+    """
+    limits = limits or ParseLimits()
+    if max_frames is not None:
+        limits = replace(limits, max_frames=max_frames)
+    with open_npz(blob, limits) as npz:
+        if "hand_joints" in npz and "object_name" in npz and "format" not in npz:
+            return sequence_from_dexycb_npz(npz, max_frames=limits.max_frames, path=source_path)
+        seq = native_sequence(npz)
+    return seq.validate(max_frames=limits.max_frames)
 
 
 # ---------------------------------------------------------------------- JSON
@@ -356,8 +350,6 @@ def load_sequence(path: Path | str, max_frames: int | None = None) -> Sequence:
     path = Path(path)
     if path.is_dir() or path.name == "meta.yml":
         # DexYCB native layout: <root>/<subject>/<sequence>/{meta.yml,pose.npz}
-        from common.dexycb_native import is_dexycb_sequence_dir, load_dexycb_native
-
         seq_dir = path if path.is_dir() else path.parent
         if is_dexycb_sequence_dir(seq_dir):
             return load_dexycb_native(seq_dir, max_frames=max_frames)

@@ -3,15 +3,15 @@
 Every member is read through ``common.npz_safe.SafeNpz``: its dtype and shape are checked against what
 the format says (``Spec`` below) and its frame count against ``max_frames`` *before* it is decompressed,
 and floating members must be finite. Whatever is wrong becomes one ``SequenceValidationError`` naming the
-member; no other exception leaves ``sequence_from_npz_bytes`` (the fuzz test in
-``tests/unit/test_parser_fuzz.py`` holds it to that).
+member; no other exception leaves ``common.sequence_io.sequence_from_npz_bytes``, which dispatches between
+this module's native reader and ``common.dexycb`` (the fuzz test in ``tests/unit/test_parser_fuzz.py`` holds
+it to that).
 """
 
 from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, cast
 
 import numpy as np
@@ -72,26 +72,8 @@ def get_int(npz: SafeNpz, key: str, low: int, high: int) -> int:
     return value
 
 
-def sequence_from_npz_bytes(
-    blob: bytes, max_frames: int | None = None, source_path: Path | None = None, limits: ParseLimits | None = None
-) -> Sequence:
-    """Parse the native NPZ format (or the DexYCB development NPZ) and validate.
-
-    ``source_path`` (when the bytes came from a file) lets DexYCB files find the YCB folder beside them.
-    """
-    limits = limits or ParseLimits()
-    if max_frames is not None:
-        limits = ParseLimits(max_frames, limits.max_mesh_vertices, limits.max_mesh_faces, limits.npz)
-    with open_npz(blob, limits) as npz:
-        if "hand_joints" in npz and "object_name" in npz and "format" not in npz:
-            from common.dexycb import sequence_from_dexycb_npz
-
-            return sequence_from_dexycb_npz(npz, max_frames=limits.max_frames, path=source_path)
-        seq = _native(npz)
-    return seq.validate(max_frames=limits.max_frames)
-
-
-def _native(npz: SafeNpz) -> Sequence:
+def native_sequence(npz: SafeNpz) -> Sequence:
+    """The native format's members as a ``Sequence`` (not yet validated: the caller validates)."""
     fmt = get_str(npz, "format")
     if fmt != FORMAT_NAME:
         raise SequenceValidationError.single("format", f"expected {FORMAT_NAME!r}, got {shown(fmt)}")

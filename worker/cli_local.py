@@ -118,15 +118,16 @@ def _check_mano(seq: Any, console: Any) -> None:
     """MANO-only hands cannot run without the model files: say so, then raise the error that names
     ``HOI_REFINE_MANO_DIR`` (``common.cli.main`` prints it and exits 2). No torch is imported."""
     from common.errors import ManoModelMissingError
-    from worker.mano import mano_available, require_mano_models
+    from common.settings import get_settings
+    from worker.hand.mano import mano_available, require_mano_models
 
     try:
-        require_mano_models(seq)
+        require_mano_models(seq, get_settings().mano_dir)
     except ManoModelMissingError:
         console.print("[bold red]cannot run[/]: a hand is given only as MANO parameters and the MANO model is missing")
         raise
     sides = [h.side for h in seq.hands if h.mano is not None]
-    if sides and mano_available(sides):
+    if sides and mano_available(sides, get_settings().mano_dir):
         console.print(f"MANO model found for the {' and '.join(sides)} hand: the MANO hand is used")
 
 
@@ -148,11 +149,13 @@ def metrics_table(title: str, columns: dict[str, dict[str, Any]]) -> Any:
 def _run_replay(seq: Any, out: Path | None) -> Any:
     from rich.console import Console
 
-    from worker.replay import raw_replay, replay_result_bytes
+    from common.settings import get_settings
+    from worker.simulation.replay import raw_replay, replay_result_bytes
 
     console = Console()
     with console.status(f"raw replay of {seq.name} ({seq.num_frames} frames)..."):
-        result = raw_replay(seq)
+        settings = get_settings()
+        result = raw_replay(seq, cache_dir=settings.resolved_cache_dir(), mano_dir=settings.mano_dir)
     console.print(metrics_table(f"raw replay: {seq.name}", {"raw": result.metrics}))
     t = result.timings
     ik = ", ".join(f"{side} {v:.2f} mm" for side, v in result.ik_residual_mm().items())
@@ -173,7 +176,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from common.settings import get_settings
 
     if args.example:
-        from worker.example import example_sequence
+        from worker.example.sequences import example_sequence
 
         seq = example_sequence()
     else:
@@ -204,7 +207,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         return run_service_demo(out_dir=args.out_dir, port=_free_port())
     from rich.console import Console
 
-    from worker.example import example_sequence
+    from worker.example.sequences import example_sequence
 
     console = Console()
     console.print(

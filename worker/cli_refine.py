@@ -12,6 +12,7 @@ from typing import Any
 
 from common.job_options import JobOptions
 from common.job_options_cli import add_job_option_arguments, job_options_from_args
+from common.settings import get_settings
 
 
 def register(subparsers: Any) -> None:
@@ -58,7 +59,9 @@ def _refine(args: argparse.Namespace) -> int:
 
     options = job_options_from_args(args)  # before loading: a bad flag should not wait for a slow load
     seq = _load(args.sequence)
-    outcome = refine_sequence(seq, options, threads=args.threads, progress=None if args.quiet else _ProgressBar())
+    settings = get_settings()
+    outcome = refine_sequence(seq, options, threads=args.threads, progress=None if args.quiet else _ProgressBar(),
+                              cache_dir=settings.resolved_cache_dir(), mano_dir=settings.mano_dir)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_bytes(outcome.to_npz_bytes(wall_clock=not args.no_wall_clock))
     if not args.quiet:
@@ -74,7 +77,8 @@ def _verify(args: argparse.Namespace) -> int:
 
     seq = _load(args.sequence) if args.sequence else None
     blob = args.result.read_bytes()
-    report = verify_result(blob, seq)
+    settings = get_settings()
+    report = verify_result(blob, seq, cache_dir=settings.resolved_cache_dir(), mano_dir=settings.mano_dir)
     print(f"verify: OK - object trajectory reproduced over {report['frames']} frames "
           f"(max position difference {report['max_pos_diff_m']:.3g} m)")
     # Equal for two runs with the same input, options and seed even when their wall-clock timings differ.
@@ -140,11 +144,12 @@ def format_metrics_table(summary: dict[str, Any]) -> str:
 
 def run_demo(threads: int = 2, short: bool = False) -> int:
     """Refine the built-in example and print raw vs refined (``make demo``)."""
-    from worker.example import example_sequence, short_example_sequence
+    from worker.example.sequences import example_sequence, short_example_sequence
     from worker.refine.run import refine_sequence
 
     seq = short_example_sequence() if short else example_sequence()
-    outcome = refine_sequence(seq, JobOptions(), threads=threads, progress=_ProgressBar())
+    outcome = refine_sequence(seq, JobOptions(), threads=threads, progress=_ProgressBar(),
+                              cache_dir=get_settings().resolved_cache_dir())
     print(file=sys.stderr)
     print(f"refined the built-in example {seq.name!r} ({seq.num_frames} frames)")
     print(format_metrics_table(outcome.summary))

@@ -21,7 +21,7 @@ import httpx
 import pytest
 
 from common.job_options import JobOptions
-from tests.queue_fixtures import BACKENDS, tiny_payload
+from tests.support.queue_fixtures import BACKENDS, tiny_payload
 from worker.runtime.demo_client import ApiClient, local_deployment
 from worker.runtime.deployment_state import process_start_time
 

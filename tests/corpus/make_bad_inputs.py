@@ -25,7 +25,7 @@ import numpy as np
 
 from common.npz_writer import FIXED_DATE_TIME, deterministic_npz_bytes, npy_bytes
 from common.sequence_io import sequence_to_json_dict, sequence_to_npz_bytes
-from tests.queue_fixtures import tiny_sequence
+from tests.support.queue_fixtures import tiny_sequence
 
 OUT = Path(__file__).resolve().parent / "bad_inputs"
 Arrays = dict[str, Any]

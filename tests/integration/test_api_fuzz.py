@@ -12,8 +12,8 @@ from hypothesis import strategies as st
 
 from common.npz_writer import deterministic_npz_bytes
 from common.sequence_io import sequence_to_json_dict
-from tests.queue_fixtures import BACKENDS, ApiHarness, tiny_sequence
-from tests.unit.test_parser_fuzz import JSON_VALUES, VALID, _paths, mutated_members
+from tests.support.fuzz_strategies import JSON_VALUES, VALID, json_paths, mutated_members
+from tests.support.queue_fixtures import BACKENDS, ApiHarness, tiny_sequence
 
 API_FUZZ = settings(max_examples=40, deadline=None, suppress_health_check=list(HealthCheck))
 OPTION_VALUES = st.one_of(
@@ -59,7 +59,7 @@ def test_mutated_json_bodies_never_5xx(api: ApiHarness) -> None:
         doc: Any = sequence_to_json_dict(tiny_sequence(data.draw(st.integers(0, 3))).validate())
         doc["options"] = options
         for _ in range(data.draw(st.integers(0, 2))):
-            path = data.draw(st.sampled_from(_paths(doc)))
+            path = data.draw(st.sampled_from(json_paths(doc)))
             if not path:
                 doc = data.draw(JSON_VALUES)
                 break

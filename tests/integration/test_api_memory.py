@@ -32,7 +32,7 @@ from common.database import create_engine_for
 from common.npz_writer import npy_bytes
 from common.queue import JobQueue
 from common.sequence_io import sequence_to_json_dict, sequence_to_npz_bytes
-from tests.queue_fixtures import tiny_sequence
+from tests.support.queue_fixtures import tiny_sequence
 from worker.runtime.supervisor import hoi_refine_command
 
 pytestmark = [pytest.mark.slow, pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")]

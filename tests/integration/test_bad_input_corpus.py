@@ -11,7 +11,7 @@ from typing import Any
 import pytest
 
 from tests.corpus.make_bad_inputs import OUT, cases
-from tests.queue_fixtures import BACKENDS, ApiHarness
+from tests.support.queue_fixtures import BACKENDS, ApiHarness
 
 MANIFEST: list[dict[str, Any]] = json.loads((OUT / "manifest.json").read_text())
 REPO = str(Path(__file__).resolve().parents[2])

@@ -11,7 +11,7 @@ import pytest
 from common.cli import main
 from common.queue import JobQueue
 from common.settings import get_settings
-from tests.queue_fixtures import BACKENDS, submit_tiny
+from tests.support.queue_fixtures import BACKENDS, submit_tiny
 from worker.runtime.deployment_state import DeploymentRecord, DeploymentState
 from worker.runtime.supervisor import development_key
 

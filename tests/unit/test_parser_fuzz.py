@@ -21,86 +21,27 @@ import pytest
 import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from hypothesis.extra import numpy as hnp
 
 from common.dexycb_native import load_dexycb_native
 from common.errors import SequenceValidationError
 from common.npz_writer import deterministic_npz_bytes
-from common.sequence import HandTrack, ManoParams, ObjectSpec, Sequence
+from common.sequence import Sequence
 from common.sequence_io import sequence_from_json_bytes, sequence_from_npz_bytes, sequence_to_json_dict
 from common.settings import get_settings
-from tests.queue_fixtures import tiny_sequence
-from tests.unit.test_dexycb_native import _write_tree
+from tests.support.dexycb_tree import write_tree
+from tests.support.fuzz_strategies import (
+    DEXYCB,
+    EDITS,
+    JSON_VALUES,
+    VALID,
+    json_paths,
+    mano_sequence,
+    mesh_sequence,
+    mutated_members,
+)
+from tests.support.queue_fixtures import tiny_sequence
 
 FUZZ = settings(max_examples=80, deadline=None, suppress_health_check=list(HealthCheck))
-
-
-def _mesh_sequence() -> Sequence:
-    seq = tiny_sequence(1, frames=4, name="mesh")
-    corners = np.array([[x, y, z] for x in (0, 0.04) for y in (0, 0.04) for z in (0, 0.04)])
-    faces = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1], [2, 3, 7], [2, 7, 6]])
-    seq.object = ObjectSpec(name="cube", mass_kg=0.2, mesh_vertices=corners, mesh_faces=faces, friction=0.8)
-    return seq.validate()
-
-
-def _mano_sequence() -> Sequence:
-    seq = tiny_sequence(2, frames=3, name="mano")
-    t = seq.num_frames
-    seq.hands.append(HandTrack(side="left", valid=np.ones(t, bool), mano=ManoParams(
-        global_orient=np.zeros((t, 3)), hand_pose=np.zeros((t, 10)), trans=np.zeros((t, 3)), betas=np.zeros(10),
-        pose_format="pca")))  # fmt: skip
-    seq.meta = {"source": "fuzz"}
-    return seq.validate()
-
-
-def _native_arrays(seq: Sequence) -> dict[str, np.ndarray]:
-    from common.sequence_io import sequence_to_npz_bytes
-
-    with np.load(io.BytesIO(sequence_to_npz_bytes(seq))) as data:
-        return {k: data[k] for k in data.files}
-
-
-VALID = [_native_arrays(s) for s in (tiny_sequence(0).validate(), _mesh_sequence(), _mano_sequence())]
-DEXYCB = {
-    "fps": np.array(30.0), "subject": np.array("s01"), "sequence": np.array("seq"), "side": np.array("right"),
-    "object_name": np.array("cube"), "hand_joints": np.full((4, 21, 3), 0.05, np.float32),
-    "hand_valid": np.ones(4, bool), "mano_pose_pca": np.zeros((4, 48), np.float32),
-    "mano_trans": np.zeros((4, 3), np.float32), "mano_betas": np.zeros(10, np.float32),
-    "object_pose": np.tile(np.array([0, 0, 0.5, 1, 0, 0, 0], np.float32), (4, 1)), "world_from_camera": np.eye(4),
-}  # fmt: skip
-
-DTYPES = st.sampled_from(["?", "i1", "<i8", ">i4", "<u8", "<f4", "<f8", ">f8", "<U1", "<U7", "<f2"])
-
-
-@st.composite
-def random_arrays(draw: st.DrawFn) -> np.ndarray:
-    dtype = np.dtype(draw(DTYPES))
-    shape = draw(hnp.array_shapes(min_dims=0, max_dims=3, min_side=0, max_side=25))
-    if dtype.kind == "f":
-        width = dtype.itemsize * 8
-        huge = float(np.finfo(dtype).max)  # beyond every plausible coordinate, representable in the dtype
-        elements = st.floats(width=width) | st.sampled_from([huge, -huge, 0.0])
-        return draw(hnp.arrays(dtype, shape, elements=elements))
-    return draw(hnp.arrays(dtype, shape))
-
-
-@st.composite
-def mutated_members(draw: st.DrawFn, base: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    arrays = dict(base)
-    for _ in range(draw(st.integers(1, 3))):
-        key = draw(st.sampled_from(sorted(arrays))) if arrays else "name"
-        action = draw(st.sampled_from(["replace", "replace", "delete", "add", "reshape"]))
-        if action == "delete":
-            arrays.pop(key, None)
-        elif action == "add":
-            arrays[draw(st.sampled_from(["right_keypoints", "left_valid", "up", "world_from_camera", "x"]))] = draw(
-                random_arrays()
-            )
-        elif action == "reshape" and key in arrays and arrays[key].size:
-            arrays[key] = arrays[key].reshape(-1)
-        else:
-            arrays[key] = draw(random_arrays())
-    return arrays
 
 
 def _check(parse: Any) -> None:
@@ -118,10 +59,6 @@ def _check(parse: Any) -> None:
 def test_native_npz_with_mutated_members(data: st.DataObject, which: int) -> None:
     arrays = data.draw(mutated_members(VALID[which]))
     _check(lambda: sequence_from_npz_bytes(deterministic_npz_bytes(arrays), max_frames=50))
-
-
-ACTIONS = st.sampled_from(["flip", "cut", "insert", "zero"])
-EDITS = st.tuples(st.floats(0, 1), ACTIONS, st.binary(min_size=1, max_size=8))
 
 
 @FUZZ
@@ -159,30 +96,13 @@ def _zip(arrays: dict[str, np.ndarray], stored: bool) -> bytes:
     return buf.getvalue()
 
 
-JSON_VALUES = st.recursive(
-    st.none() | st.booleans() | st.integers(-(2**70), 2**70) | st.floats(allow_nan=False) | st.text(max_size=5),
-    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=4), inner, max_size=3),
-    max_leaves=12,
-)
-
-
-def _paths(doc: Any, prefix: tuple[Any, ...] = ()) -> list[tuple[Any, ...]]:
-    out = [prefix]
-    if isinstance(doc, dict):
-        for k, v in doc.items():
-            out += _paths(v, (*prefix, k))
-    elif isinstance(doc, list) and doc:
-        out += _paths(doc[0], (*prefix, 0))
-    return out
-
-
 @FUZZ
 @given(data=st.data(), which=st.integers(0, len(VALID) - 1))
 def test_native_json_with_mutated_values(data: st.DataObject, which: int) -> None:
-    seqs = [tiny_sequence(0).validate(), _mesh_sequence(), _mano_sequence()]
+    seqs = [tiny_sequence(0).validate(), mesh_sequence(), mano_sequence()]
     doc = sequence_to_json_dict(seqs[which])
     for _ in range(data.draw(st.integers(1, 3))):
-        path = data.draw(st.sampled_from(_paths(doc)))
+        path = data.draw(st.sampled_from(json_paths(doc)))
         if not path:
             doc = data.draw(JSON_VALUES)
             break
@@ -235,7 +155,7 @@ def test_dexycb_folder_with_mutated_meta_and_poses(
     tmp_path_factory: pytest.TempPathFactory, data: st.DataObject
 ) -> None:
     root = tmp_path_factory.mktemp("dexycb")
-    seq_dir = _write_tree(root)["s1"]
+    seq_dir = write_tree(root)["s1"]
     if data.draw(st.booleans()):
         meta = yaml.safe_load((seq_dir / "meta.yml").read_text())
         meta[data.draw(st.sampled_from(sorted(meta)))] = data.draw(YAML_VALUES)
@@ -260,8 +180,9 @@ def test_mano_pickle_with_mutated_bytes(
     mano_pickle: bytes, tmp_path_factory: pytest.TempPathFactory, edits: list[tuple[float, str, bytes]]
 ) -> None:
     """MANO files are the operator's configuration: a broken one is a ``ConfigurationError`` naming the file."""
-    from common.errors import ConfigurationError
     from worker.mano import load_mano_pickle
+
+    from common.errors import ConfigurationError
 
     blob = bytearray(mano_pickle)
     for where, action, data in edits:
@@ -288,8 +209,9 @@ def test_mano_pickle_may_not_call_functions(tmp_path: Path) -> None:
     import os
     import pickle
 
-    from common.errors import ConfigurationError
     from worker.mano import load_mano_pickle
+
+    from common.errors import ConfigurationError
 
     class Evil:
         def __reduce__(self) -> tuple[Any, ...]:

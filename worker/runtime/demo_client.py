@@ -183,7 +183,7 @@ def run_demo(
     from common.result_format import read_summary
     from common.sequence_io import sequence_to_npz_bytes
     from worker.cli_refine import format_metrics_table
-    from worker.example import example_sequence, short_example_sequence
+    from worker.example.sequences import example_sequence, short_example_sequence
 
     seq = short_example_sequence() if short else example_sequence()
     client = ApiClient(base_url, api_key)
