@@ -169,7 +169,7 @@ def test_dexycb_folder_with_mutated_meta_and_poses(
 
 @pytest.fixture(scope="module")
 def mano_pickle(tmp_path_factory: pytest.TempPathFactory) -> bytes:
-    from worker.mano import build_test_mano_model
+    from worker.hand.mano import build_test_mano_model
 
     return build_test_mano_model(tmp_path_factory.mktemp("mano"), "right", seed=1).read_bytes()
 
@@ -180,9 +180,8 @@ def test_mano_pickle_with_mutated_bytes(
     mano_pickle: bytes, tmp_path_factory: pytest.TempPathFactory, edits: list[tuple[float, str, bytes]]
 ) -> None:
     """MANO files are the operator's configuration: a broken one is a ``ConfigurationError`` naming the file."""
-    from worker.mano import load_mano_pickle
-
     from common.errors import ConfigurationError
+    from worker.hand.mano import load_mano_pickle
 
     blob = bytearray(mano_pickle)
     for where, action, data in edits:
@@ -209,9 +208,8 @@ def test_mano_pickle_may_not_call_functions(tmp_path: Path) -> None:
     import os
     import pickle
 
-    from worker.mano import load_mano_pickle
-
     from common.errors import ConfigurationError
+    from worker.hand.mano import load_mano_pickle
 
     class Evil:
         def __reduce__(self) -> tuple[Any, ...]:
