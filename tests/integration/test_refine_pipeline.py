@@ -211,7 +211,7 @@ def test_verify_re_simulates_with_the_leads_the_result_was_made_with(monkeypatch
 
     seq = short_example_sequence()  # a grasp and lift: the wrist moves and the fingers close
     unled = SimConfig(wrist_lead_s=0.0, finger_lead_s=0.0)
-    monkeypatch.setattr(run_module, "prepare", lambda s, o: prepare(s, o, unled))
+    monkeypatch.setattr(run_module, "prepare", lambda s, o, **dirs: prepare(s, o, unled, **dirs))
     old = refine_sequence(seq, JobOptions(popsize=4, max_generations=1, restarts=0), threads=1)
     monkeypatch.undo()
     sim = old.summary["config"]["sim"]

@@ -21,20 +21,20 @@ import warnings
 warnings.filterwarnings("ignore", message="Could not import matplotlib", category=UserWarning)
 
 from worker.refine.evaluator import ParallelEvaluator  # noqa: E402  (after the warnings filter: it imports cma)
-from worker.refine.prepare import Prepared, prepare  # noqa: E402
-from worker.refine.replay import ReplayRecord, replay  # noqa: E402
+from worker.refine.prepare import Prepared  # noqa: E402
+from worker.refine.replay import ReplayRecord  # noqa: E402
 from worker.refine.result import verify_result  # noqa: E402
 from worker.refine.run import RefineOutcome, refine_sequence  # noqa: E402
 from worker.refine.windowed import RefineProgress  # noqa: E402
 
+# Not re-exported: the functions named like their modules (``prepare``, ``replay``): a package attribute of that
+# name would hide the module (``import worker.refine.prepare as m`` would then bind the function).
 __all__ = [
     "ParallelEvaluator",
     "Prepared",
     "RefineOutcome",
     "RefineProgress",
     "ReplayRecord",
-    "prepare",
     "refine_sequence",
-    "replay",
     "verify_result",
 ]

@@ -16,12 +16,12 @@ from worker.simulation.metrics import (
 )
 from worker.simulation.object_model import centre_of_mass, object_mjcf
 from worker.simulation.replay import ReplayResult, raw_replay, replay_result_bytes
-from worker.simulation.rest_pose import rest_pose
 from worker.simulation.scene import Scene, build_scene
 from worker.simulation.stepping import HandTargets, RolloutRecord, initial_state, rollout, substep_controls
 from worker.simulation.support_plane import SupportPlane
 from worker.simulation.table_fit import fit_table
 
+# ``rest_pose`` (the function) is not re-exported: it would hide its module ``worker.simulation.rest_pose``.
 __all__ = [
     "SUCCESS_POSITION_CM",
     "SUCCESS_ROTATION_DEG",
@@ -43,7 +43,6 @@ __all__ = [
     "object_mjcf",
     "raw_replay",
     "replay_result_bytes",
-    "rest_pose",
     "rollout",
     "scalar_metrics",
     "substep_controls",
