@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import base64
 import builtins
+import re
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -28,7 +29,7 @@ from common.errors import (
     NotFoundError,
 )
 from common.queue_types import ApiKeyRecord, JobEventRecord, JobRecord, QueueStats
-from common.safe_text import text_problem
+from common.safe_text import shown, text_problem
 from common.settings import Settings, get_settings
 
 # Core tables of the mapped models: the queue speaks SQL expressions, never ORM sessions.
@@ -111,6 +112,7 @@ class QueueBase:
         return bytes(row.result), dict(row.summary)
 
     def get_payload(self, job_id: str) -> bytes:
+        _require_plain_id(job_id)
         with self._read() as conn:
             blob = conn.execute(sa.select(inputs.c.payload).where(inputs.c.job_id == job_id)).scalar()
         if blob is None:
@@ -118,6 +120,7 @@ class QueueBase:
         return bytes(blob)
 
     def events(self, owner_key_id: str | None, job_id: str) -> builtins.list[JobEventRecord]:
+        _require_plain_id(job_id)
         with self._read() as conn:
             if owner_key_id is not None:
                 self._get(conn, job_id, owner_key_id)
@@ -229,6 +232,7 @@ class QueueBase:
         return sa.select(jobs, results.c.summary).select_from(jobs.outerjoin(results, results.c.job_id == jobs.c.id))
 
     def _get(self, conn: Connection, job_id: str, owner_key_id: str | None) -> JobRecord:
+        _require_plain_id(job_id)
         row = conn.execute(self._job_select().where(jobs.c.id == job_id)).first()
         # Another key's job answers exactly like a missing one, so ids cannot be probed.
         if row is None or (owner_key_id is not None and row.owner_key_id != owner_key_id):
@@ -236,6 +240,7 @@ class QueueBase:
         return self._record(row)
 
     def _owned_state(self, conn: Connection, owner_key_id: str | None, job_id: str) -> str:
+        _require_plain_id(job_id)
         query = sa.select(jobs.c.state, jobs.c.owner_key_id).where(jobs.c.id == job_id)
         row = conn.execute(self._locked(query)).first()
         if row is None or (owner_key_id is not None and row.owner_key_id != owner_key_id):
@@ -255,6 +260,16 @@ class QueueBase:
         )  # fmt: skip
 
 
+#: Job ids are uuid4 hex; anything else (NUL, which PostgreSQL cannot even compare, control characters, a
+#: megabyte of text) is answered like a missing job without reaching the database.
+_PLAIN_ID = re.compile(r"[A-Za-z0-9_-]{1,64}")
+
+
+def _require_plain_id(job_id: str) -> None:
+    if not _PLAIN_ID.fullmatch(job_id):
+        raise NotFoundError(f"no job {shown(job_id)}")
+
+
 def _key_record(row: Row[Any]) -> ApiKeyRecord:
     return ApiKeyRecord(row.id, row.name, row.prefix, row.created_at, row.revoked_at)
 
@@ -268,7 +283,7 @@ def _decode_page_token(token: str) -> tuple[datetime, str]:
         raw = base64.urlsafe_b64decode(token + "=" * (-len(token) % 4)).decode()
         created, job_id = raw.split("|", 1)
         when = datetime.fromisoformat(created)
-        if when.tzinfo is None or not job_id:
+        if when.tzinfo is None or not _PLAIN_ID.fullmatch(job_id):
             raise ValueError("incomplete token")
         return when, job_id
     except (ValueError, UnicodeDecodeError) as exc:

@@ -56,3 +56,27 @@ def test_every_bad_input_is_refused_with_its_field(api: ApiHarness, tmp_path: Pa
     assert api.client.get("/v1/jobs", headers=api.headers).json()["count"] == 0
     # The connection and the service are fine afterwards.
     assert api.client.get("/healthz").status_code == 200
+
+
+@pytest.mark.parametrize("empty_db_url", BACKENDS, indirect=True)
+def test_hostile_job_ids_and_page_tokens(api: ApiHarness) -> None:
+    """Ids and page tokens come from the client too: NUL (which PostgreSQL cannot compare), controls and
+    overlong text answer like a missing job (404) or a bad token (422), never 500, and are echoed escaped."""
+    import base64
+    from urllib.parse import quote
+
+    for raw in ("\x00abc", "a\u202eb", "x" * 5000, "../../etc/passwd", "' OR 1=1 --"):
+        job = quote(raw, safe="")
+        for method, path in [("GET", f"/v1/jobs/{job}"), ("POST", f"/v1/jobs/{job}:cancel"),
+                             ("POST", f"/v1/jobs/{job}:retry"), ("DELETE", f"/v1/jobs/{job}"),
+                             ("GET", f"/v1/jobs/{job}/result"), ("GET", f"/v1/jobs/{job}/contacts"),
+                             ("GET", f"/v1/jobs/{job}/metrics"), ("GET", f"/v1/jobs/{job}/events"),
+                             ("GET", f"/v1/jobs/{job}/input")]:  # fmt: skip
+            resp = api.client.request(method, path, headers=api.headers)
+            assert resp.status_code == 404, (method, path[:80], resp.status_code, resp.text[:200])
+            detail = resp.json().get("detail", "")  # a path with '/' in it matches no route: plain 404
+            assert "\u202e" not in detail and "\x00" not in detail
+    for token_text in ("2026-01-01T00:00:00+00:00|\x00", "2026-01-01T00:00:00+00:00|a\u202e", "x|y"):
+        token = base64.urlsafe_b64encode(token_text.encode()).decode().rstrip("=")
+        resp = api.client.get("/v1/jobs", params={"page_token": token}, headers=api.headers)
+        assert resp.status_code == 422 and resp.json()["errors"][0]["field"] == "page_token", resp.text
