@@ -251,7 +251,7 @@ def _check_array(
         bad = np.argwhere(~np.isfinite(arr))[0]
         problems.append(FieldProblem(name, f"contains NaN or Inf (first at index {tuple(int(b) for b in bad)})"))
         return None
-    if arr.dtype.kind in "iuf" and arr.size and np.max(np.abs(arr)) > MAX_ABS_VALUE:
+    if arr.dtype.kind == "f" and arr.size and np.max(np.abs(arr)) > MAX_ABS_VALUE:
         problems.append(FieldProblem(name, f"holds a value beyond +-{MAX_ABS_VALUE:g}"))
         return None
     return int(arr.shape[0]) if arr.ndim else 0
