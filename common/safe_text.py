@@ -17,9 +17,14 @@ from __future__ import annotations
 
 import unicodedata
 
+from common.errors import FieldProblem
+
 BIDI_CONTROLS = frozenset("\u061c\u200e\u200f\u202a\u202b\u202c\u202d\u202e\u2066\u2067\u2068\u2069")
 #: ``meta`` values may hold tabs and line breaks (free text); names may not.
 TEXT_WHITESPACE = frozenset("\t\n\r")
+MAX_META_ENTRIES = 64
+MAX_META_KEY_CHARS = 100
+MAX_META_VALUE_CHARS = 2000
 
 
 def text_problem(value: object, max_chars: int, allow_whitespace_controls: bool = False) -> str | None:
@@ -44,3 +49,18 @@ def shown(value: object, limit: int = 60) -> str:
     """``repr(value)`` (control and bidi characters escaped), cut to ``limit`` characters."""
     text = repr(value)
     return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def meta_problems(meta: object) -> list[FieldProblem]:
+    """A sequence's ``meta``: at most ``MAX_META_ENTRIES`` string keys and values, each passing ``text_problem``."""
+    if not isinstance(meta, dict):
+        return [FieldProblem("meta", f"must be an object of strings, got {type(meta).__name__}")]
+    if len(meta) > MAX_META_ENTRIES:
+        return [FieldProblem("meta", f"may hold at most {MAX_META_ENTRIES} entries, got {len(meta)}")]
+    problems = []
+    for key, value in meta.items():
+        if (why := text_problem(key, MAX_META_KEY_CHARS)) is not None:
+            problems.append(FieldProblem("meta", f"key {shown(key)} {why}"))
+        elif (why := text_problem(value, MAX_META_VALUE_CHARS, allow_whitespace_controls=True)) is not None:
+            problems.append(FieldProblem(f"meta.{key}", why))
+    return problems

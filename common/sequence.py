@@ -19,7 +19,7 @@ import numpy.typing as npt
 
 from common.errors import FieldProblem, SequenceValidationError
 from common.geometry import FloatArray, IntArray
-from common.safe_text import shown, text_problem
+from common.safe_text import meta_problems, shown, text_problem
 
 BoolArray = npt.NDArray[np.bool_]
 
@@ -51,9 +51,6 @@ MAX_FPS = 1000.0
 MAX_MASS_KG = 1000.0
 MAX_FRAME_START = 2**31 - 1
 MAX_NAME_CHARS = 200
-MAX_META_ENTRIES = 64
-MAX_META_KEY_CHARS = 100
-MAX_META_VALUE_CHARS = 2000
 
 
 @dataclass
@@ -179,7 +176,7 @@ class Sequence:
             add("name", why)
         elif not self.name:
             add("name", "must not be empty")
-        _validate_meta(problems, self.meta)
+        problems += meta_problems(self.meta)
         if not _is_real(self.fps) or not 0 < self.fps <= MAX_FPS:
             add("fps", f"must be a number in (0, {MAX_FPS:g}], got {shown(self.fps)}")
         if not isinstance(self.frame_start, int) or not 0 <= self.frame_start <= MAX_FRAME_START:
@@ -341,20 +338,6 @@ def _validate_hand(problems: list[FieldProblem], name: str, hand: HandTrack, t: 
 def _is_real(x: object) -> bool:
     """A finite int or float (not a bool, not NaN/Inf)."""
     return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool) and bool(np.isfinite(x))
-
-
-def _validate_meta(problems: list[FieldProblem], meta: object) -> None:
-    if not isinstance(meta, dict):
-        problems.append(FieldProblem("meta", f"must be an object of strings, got {type(meta).__name__}"))
-        return
-    if len(meta) > MAX_META_ENTRIES:
-        problems.append(FieldProblem("meta", f"may hold at most {MAX_META_ENTRIES} entries, got {len(meta)}"))
-        return
-    for key, value in meta.items():
-        if (why := text_problem(key, MAX_META_KEY_CHARS)) is not None:
-            problems.append(FieldProblem("meta", f"key {shown(key)} {why}"))
-        elif (why := text_problem(value, MAX_META_VALUE_CHARS, allow_whitespace_controls=True)) is not None:
-            problems.append(FieldProblem(f"meta.{key}", why))
 
 
 def _validate_rigid(problems: list[FieldProblem], name: str, mat: FloatArray) -> None:
