@@ -23,7 +23,8 @@ from sqlalchemy.engine import Engine, Row
 
 from common.database import IMMEDIATE
 from common.db_models import ApiKey, utcnow
-from common.errors import AuthenticationError, ConflictError, NotFoundError
+from common.errors import AuthenticationError, ConflictError, FieldProblem, InvalidRequestError, NotFoundError
+from common.safe_text import text_problem
 
 KEY_PREFIX = "hoi_"
 #: Shortest key prefix ``ApiKeyStore.revoke`` accepts: ``hoi_`` and two characters of the random part.
@@ -66,6 +67,8 @@ class ApiKeyStore:
 
     def create(self, name: str) -> tuple[str, str]:
         """(key_id, plaintext). Only the key's SHA-256 is stored; the plaintext cannot be shown again."""
+        if (why := text_problem(name, 200)) is not None:  # NUL would fail on PostgreSQL only: refuse everywhere
+            raise InvalidRequestError([FieldProblem("name", why)])
         key_id, plaintext = uuid.uuid4().hex, new_key()
         with self._writer.begin() as conn:
             conn.execute(

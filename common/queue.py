@@ -21,6 +21,7 @@ import base64
 import builtins
 import hashlib
 import json
+import re
 import secrets
 import uuid
 from collections.abc import Iterator
@@ -45,6 +46,7 @@ from common.errors import (
 from common.job_options import JobOptions
 from common.job_state import ACTIVE, JobState
 from common.queue_types import ClaimedJob, JobEventRecord, JobRecord, QueueStats
+from common.safe_text import shown
 from common.settings import Settings, get_settings
 
 # Core tables of the mapped models: the queue speaks SQL expressions, never ORM sessions.
@@ -201,6 +203,7 @@ class JobQueue:
         return bytes(row.result), dict(row.summary)
 
     def get_payload(self, job_id: str) -> bytes:
+        _require_plain_id(job_id)
         with self._read() as conn:
             blob = conn.execute(sa.select(inputs.c.payload).where(inputs.c.job_id == job_id)).scalar()
         if blob is None:
@@ -208,6 +211,7 @@ class JobQueue:
         return bytes(blob)
 
     def events(self, owner_key_id: str | None, job_id: str) -> builtins.list[JobEventRecord]:
+        _require_plain_id(job_id)
         with self._read() as conn:
             if owner_key_id is not None:
                 self._get(conn, job_id, owner_key_id)
@@ -396,6 +400,58 @@ class JobQueue:
                 self._after_attempt(conn, row.id, row.lease_token, row, msg, True, now)
         return len(rows)
 
+    def requeue_worker_jobs(self, worker_id_prefix: str, reason: str, now: datetime | None = None) -> int:
+        """Requeue (attempt + 1, as for an expired lease) the RUNNING jobs of workers whose id starts with
+        ``worker_id_prefix``: a deployment found dead (``hoi-refine up`` after a SIGKILL) need not wait for
+        their leases to run out."""
+        now = now or utcnow()
+        with self._write() as conn:
+            rows = conn.execute(
+                self._locked(
+                    sa.select(
+                        jobs.c.id, jobs.c.lease_token, jobs.c.attempt, jobs.c.errors, jobs.c.cancel_requested,
+                        jobs.c.worker_id,
+                    ).where(
+                        jobs.c.state == JobState.RUNNING,
+                        jobs.c.worker_id.startswith(worker_id_prefix, autoescape=True),
+                    ),
+                    skip_locked=True,
+                )
+            ).all()  # fmt: skip
+            for row in rows:
+                self._after_attempt(conn, row.id, row.lease_token, row, reason, True, now)
+        return len(rows)
+
+    def cancel_jobs_of_key(self, key_id: str) -> tuple[int, int]:
+        """Cancel every QUEUED job of an API key and flag its RUNNING ones (``keys revoke --cancel-jobs``):
+        a revoked key can no longer see or cancel them itself. Returns (cancelled, flagged)."""
+        now = utcnow()
+        with self._write() as conn:
+            rows = conn.execute(
+                self._locked(
+                    sa.select(jobs.c.id, jobs.c.state).where(
+                        jobs.c.owner_key_id == key_id, jobs.c.state.in_(ACTIVE)
+                    )
+                )
+            ).all()
+            queued = [r.id for r in rows if r.state == JobState.QUEUED]
+            running = [r.id for r in rows if r.state == JobState.RUNNING]
+            if queued:
+                conn.execute(
+                    sa.update(jobs)
+                    .where(jobs.c.id.in_(queued))
+                    .values(state=JobState.CANCELLED, finished_at=now, updated_at=now)
+                )
+            if running:
+                conn.execute(
+                    sa.update(jobs).where(jobs.c.id.in_(running)).values(cancel_requested=True, updated_at=now)
+                )
+            for job_id in queued:
+                self._event(conn, job_id, "cancelled", now, reason="API key revoked")
+            for job_id in running:
+                self._event(conn, job_id, "cancel_requested", now, reason="API key revoked")
+        return len(queued), len(running)
+
     # ------------------------------------------------------------------ owner-scoped actions
     def cancel(self, owner_key_id: str | None, job_id: str) -> JobRecord:
         """QUEUED -> CANCELLED now; RUNNING -> cancel flag (the worker stops at its next heartbeat)."""
@@ -453,6 +509,7 @@ class JobQueue:
         return sa.select(jobs, results.c.summary).select_from(jobs.outerjoin(results, results.c.job_id == jobs.c.id))
 
     def _get(self, conn: Connection, job_id: str, owner_key_id: str | None) -> JobRecord:
+        _require_plain_id(job_id)
         row = conn.execute(self._job_select().where(jobs.c.id == job_id)).first()
         # Another key's job answers exactly like a missing one, so ids cannot be probed.
         if row is None or (owner_key_id is not None and row.owner_key_id != owner_key_id):
@@ -460,6 +517,7 @@ class JobQueue:
         return self._record(row)
 
     def _owned_state(self, conn: Connection, owner_key_id: str | None, job_id: str) -> JobState:
+        _require_plain_id(job_id)
         query = sa.select(jobs.c.state, jobs.c.owner_key_id).where(jobs.c.id == job_id)
         row = conn.execute(self._locked(query)).first()
         if row is None or (owner_key_id is not None and row.owner_key_id != owner_key_id):
@@ -483,12 +541,22 @@ def _encode_page_token(created_at: datetime, job_id: str) -> str:
     return base64.urlsafe_b64encode(f"{created_at.isoformat()}|{job_id}".encode()).decode().rstrip("=")
 
 
+#: Job ids are uuid4 hex; anything else (NUL, which PostgreSQL cannot even compare, control characters, a
+#: megabyte of text) is answered like a missing job without reaching the database.
+_PLAIN_ID = re.compile(r"[A-Za-z0-9_-]{1,64}")
+
+
+def _require_plain_id(job_id: str) -> None:
+    if not _PLAIN_ID.fullmatch(job_id):
+        raise NotFoundError(f"no job {shown(job_id)}")
+
+
 def _decode_page_token(token: str) -> tuple[datetime, str]:
     try:
         raw = base64.urlsafe_b64decode(token + "=" * (-len(token) % 4)).decode()
         created, job_id = raw.split("|", 1)
         when = datetime.fromisoformat(created)
-        if when.tzinfo is None or not job_id:
+        if when.tzinfo is None or not _PLAIN_ID.fullmatch(job_id):
             raise ValueError("incomplete token")
         return when, job_id
     except (ValueError, UnicodeDecodeError) as exc:

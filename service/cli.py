@@ -46,6 +46,12 @@ def register(subparsers: Any) -> None:
         "few more seconds (its lookup cache). Exit status 2 when nothing or more than one key matches.",
     )
     revoke.add_argument("name_or_prefix", metavar="NAME_OR_PREFIX", help="the key's name, prefix, id, or the key")
+    revoke.add_argument(
+        "--cancel-jobs",
+        action="store_true",
+        help="also cancel the key's QUEUED jobs and ask its RUNNING ones to stop (otherwise they still run, "
+        "and nobody can read their results: the key that owns them no longer works)",
+    )
     revoke.set_defaults(func=_cmd_keys_revoke)
 
 
@@ -118,8 +124,15 @@ def _cmd_keys_revoke(args: argparse.Namespace) -> int:
     # No match or several matches raise a project error: ``hoi-refine`` prints it and exits 2.
     with _key_store() as store:
         key, newly = store.revoke(args.name_or_prefix)
+        cancelled = None
+        if args.cancel_jobs:
+            from common.queue import JobQueue
+
+            cancelled = JobQueue(store.engine).cancel_jobs_of_key(key.id)
     assert key.revoked_at is not None
     when = f"{key.revoked_at:%Y-%m-%d %H:%M:%S} UTC"
     state = "revoked" if newly else f"was already revoked (at {when})"
     print(f"API key {key.id} ({key.prefix}..., {key.name!r}) {state}")
+    if cancelled is not None:
+        print(f"its jobs: {cancelled[0]} queued cancelled, {cancelled[1]} running asked to stop")
     return 0

@@ -21,7 +21,7 @@ Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 
 
 class PrimitiveIn(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     kind: Literal["box", "cylinder", "sphere", "capsule"]
     size: list[float] = Field(
         min_length=1, max_length=3, description="box half-extents (3); cylinder/capsule (radius, half-length); sphere r"
@@ -29,22 +29,22 @@ class PrimitiveIn(BaseModel):
 
 
 class MeshIn(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     vertices: list[Annotated[list[float], Field(min_length=3, max_length=3)]] = Field(min_length=4)
     faces: list[Annotated[list[VertexIndex], Field(min_length=3, max_length=3)]] = Field(min_length=4)
 
 
 class ObjectIn(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     name: str = "object"
-    mass_kg: float = Field(gt=0)
+    mass_kg: float = Field(gt=0, le=1000)
     friction: float | None = Field(default=None, ge=0)
     primitive: PrimitiveIn | None = None
     mesh: MeshIn | None = None
 
 
 class ManoIn(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     global_orient: list[list[float]]
     hand_pose: list[list[float]]
     trans: list[list[float]]
@@ -54,7 +54,7 @@ class ManoIn(BaseModel):
 
 
 class HandIn(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     side: Literal["right", "left"]
     valid: list[bool]
     keypoints: list[Annotated[list[Vec3], Field(min_length=21, max_length=21)]] | None = Field(
@@ -66,12 +66,12 @@ class HandIn(BaseModel):
 class JobCreate(BaseModel):
     """A sequence in the native JSON form, with the job's options."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     format: Literal["hoi-refine-sequence"] = "hoi-refine-sequence"
     format_version: Literal[1] = 1
     name: str = "sequence"
-    fps: float = Field(gt=0)
-    frame_start: int = Field(default=0, ge=0)
+    fps: float = Field(gt=0, le=1000)
+    frame_start: int = Field(default=0, ge=0, le=2**31 - 1)
     object: ObjectIn
     object_pose: list[Annotated[list[float], Field(min_length=7, max_length=7)]] = Field(
         min_length=1, description="(T, 7): x y z qw qx qy qz per frame"

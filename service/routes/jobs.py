@@ -66,7 +66,7 @@ async def submit_job(
     queue: QueueDep,
     settings: SettingsDep,
     key_id: KeyDep,
-    idempotency_key: Annotated[str | None, Header(max_length=200)] = None,
+    idempotency_key: Annotated[str | None, Header(max_length=200, pattern=r"^[\x20-\x7E]+$")] = None,
 ) -> JobPublic:
     sub = await read_submission(request, settings)
     job, _created = await run_in_threadpool(

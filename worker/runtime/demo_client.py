@@ -85,7 +85,8 @@ def local_deployment(
                 proc.kill()
                 proc.wait()
         pump.join(5)
-        proc.stdout.close()  # the pipe's end in this process (a ResourceWarning if left to the collector)
+        if not pump.is_alive():  # it reached the end of the pipe: close our end (else a ResourceWarning)
+            proc.stdout.close()
         sink.close()
 
 
