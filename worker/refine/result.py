@@ -143,14 +143,11 @@ def build_summary(
     }
 
 
-def verify_result(blob: bytes, sequence: Sequence | None = None) -> dict[str, Any]:
-    """Re-simulate a result's stored keyframes from frame 0 and compare the object trajectory.
-
-    Raises ``ResultMismatchError`` when the object trajectory (or the stored per-frame controls) differ.
-    """
-    from worker.refine.evaluator import ParallelEvaluator
-    from worker.refine.prepare import initial_state, prepare
-    from worker.refine.run import replay
+def prepare_from_result(blob: bytes, sequence: Sequence | None = None) -> tuple[Prepared, dict[str, FloatArray]]:
+    """Rebuild a refinement result's scene and controls: the ``Prepared`` problem (same sequence, options and
+    simulation settings as the run) and the stored keyframes per hand side, checked against the stored
+    per-frame controls. Shared by ``verify_result`` and the visual tools (``worker.visual``)."""
+    from worker.refine.prepare import prepare
 
     summary = read_summary(blob)
     if summary.get("kind") != RESULT_KIND:
@@ -179,18 +176,38 @@ def verify_result(blob: bytes, sequence: Sequence | None = None) -> dict[str, An
         q, _, _ = space.frame_controls(arrays[key])
         if not np.allclose(q, arrays[f"{side}_q_target"], atol=1e-9):
             raise ResultMismatchError(f"{side}_q_target does not match the stored keyframes")
-    with ParallelEvaluator(prep.scene.model, 1) as ev:
-        start, _ = initial_state(prep, ev)
-        rec = replay(prep, ev, start, keyframes, record_contacts=False)
-    stored = arrays["object_pose_sim"]
-    if stored.shape != rec.object_pose.shape:
-        raise ResultMismatchError(f"object_pose_sim has shape {stored.shape}, re-simulation {rec.object_pose.shape}")
-    diff = np.linalg.norm(stored[:, :3] - rec.object_pose[:, :3], axis=1)
-    qdiff = np.abs(np.abs(np.sum(stored[:, 3:] * rec.object_pose[:, 3:], axis=1)) - 1.0)
+    return prep, keyframes
+
+
+def compare_object_trajectory(stored: FloatArray, simulated: FloatArray) -> float:
+    """The largest position difference (m) between two (F, 7) object trajectories; ``ResultMismatchError``
+    when they differ beyond ``VERIFY_TOLERANCE_M`` (or in rotation beyond rounding)."""
+    if stored.shape != simulated.shape:
+        raise ResultMismatchError(f"object_pose_sim has shape {stored.shape}, re-simulation {simulated.shape}")
+    diff = np.linalg.norm(stored[:, :3] - simulated[:, :3], axis=1)
+    qdiff = np.abs(np.abs(np.sum(stored[:, 3:] * simulated[:, 3:], axis=1)) - 1.0)
     worst = int(np.argmax(diff))
     if diff[worst] > VERIFY_TOLERANCE_M or qdiff.max() > 1e-9:
         raise ResultMismatchError(
             f"object trajectory differs from the re-simulation: {diff[worst] * 1000:.3f} mm at frame {worst} "
             f"({int((diff > VERIFY_TOLERANCE_M).sum())} of {len(diff)} frames beyond {VERIFY_TOLERANCE_M} m)"
         )
-    return {"frames": len(diff), "max_pos_diff_m": float(diff.max())}
+    return float(diff.max())
+
+
+def verify_result(blob: bytes, sequence: Sequence | None = None) -> dict[str, Any]:
+    """Re-simulate a result's stored keyframes from frame 0 and compare the object trajectory.
+
+    Raises ``ResultMismatchError`` when the object trajectory (or the stored per-frame controls) differ.
+    """
+    from worker.refine.evaluator import ParallelEvaluator
+    from worker.refine.prepare import initial_state
+    from worker.refine.run import replay
+
+    prep, keyframes = prepare_from_result(blob, sequence)
+    with ParallelEvaluator(prep.scene.model, 1) as ev:
+        start, _ = initial_state(prep, ev)
+        rec = replay(prep, ev, start, keyframes, record_contacts=False)
+    stored = read_arrays(blob)["object_pose_sim"]
+    worst = compare_object_trajectory(stored, rec.object_pose)
+    return {"frames": len(stored), "max_pos_diff_m": worst}

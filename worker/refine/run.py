@@ -65,8 +65,11 @@ class RefineOutcome:
 
 
 def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyframes: dict[str, FloatArray],
-           record_contacts: bool = True) -> ReplayRecord:
-    """Simulate frame 0 -> F-1 with the given keyframes, recording every frame (and contacts)."""
+           record_contacts: bool = True, on_step: Callable[[int, mujoco.MjData], None] | None = None
+           ) -> ReplayRecord:
+    """Simulate frame 0 -> F-1 with the given keyframes, recording every frame (and contacts).
+
+    ``on_step(i, data)`` runs after physics step i as well (the visual tools record the full state per frame)."""
     from worker.contacts import ContactRecorder
 
     layout = prep.layout
@@ -82,6 +85,8 @@ def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyfra
             sensors[i // s] = d.sensordata
             if recorder is not None:
                 recorder.add(d, i // s)
+        if on_step is not None:
+            on_step(i, d)
 
     evaluator.step_python(start, control[0], hook)
     from worker.contacts import empty_contact_columns
