@@ -20,6 +20,7 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "service.submit.cli",
     "worker.cli_runtime",
     "service.cli",
+    "worker.visual.cli",
 )
 
 

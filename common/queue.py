@@ -18,6 +18,7 @@ import hashlib
 import json
 import secrets
 import uuid
+from collections.abc import Sequence
 from datetime import datetime, timedelta
 from typing import Any
 
@@ -32,8 +33,8 @@ from common.errors import (
     LimitExceededError,
 )
 from common.job_options import JobOptions
-from common.queue_base import QueueBase, inputs, jobs, results
-from common.queue_types import ClaimedJob, JobRecord
+from common.queue_base import QueueBase, artifacts, inputs, jobs, results
+from common.queue_types import Artifact, ClaimedJob, JobRecord
 
 
 def payload_hash(payload: bytes, options: JobOptions) -> str:
@@ -192,8 +193,12 @@ class JobQueue(QueueBase):
             .values(lease_token=None, lease_expires_at=None, updated_at=values.pop("now"), **values)
         )
 
-    def complete(self, job_id: str, lease_token: str, result: bytes, summary: dict[str, Any]) -> None:
-        """Store the result and mark SUCCEEDED (token-checked)."""
+    def complete(
+        self, job_id: str, lease_token: str, result: bytes, summary: dict[str, Any],
+        artifacts: Sequence[Artifact] = (),
+    ) -> None:
+        """Store the result (and its artifacts: preview video, plots, ...) and mark SUCCEEDED, all in one
+        token-checked transaction."""
         now = utcnow()
         with self._write() as conn:
             self._lease_row(conn, job_id, lease_token)
@@ -203,8 +208,23 @@ class JobQueue(QueueBase):
                     job_id=job_id, result=result, size_bytes=len(result), summary=summary, created_at=now
                 )
             )
+            self._store_artifacts(conn, job_id, artifacts, now)
             self._settle(conn, job_id, lease_token, now=now, state="SUCCEEDED", finished_at=now)
             self._event(conn, job_id, "succeeded", now, result_bytes=len(result))
+
+    @staticmethod
+    def _store_artifacts(conn: Connection, job_id: str, items: Sequence[Artifact], now: datetime) -> None:
+        names = [a.name for a in items]
+        if len(set(names)) != len(names):
+            raise ValueError(f"artifact names must be unique, got {names}")
+        conn.execute(sa.delete(artifacts).where(artifacts.c.job_id == job_id))
+        for a in items:
+            conn.execute(
+                sa.insert(artifacts).values(
+                    job_id=job_id, name=a.name, content_type=a.content_type, data=a.data, size_bytes=len(a.data),
+                    created_at=now,
+                )
+            )  # fmt: skip
 
     def fail(self, job_id: str, lease_token: str, error: str, retryable: bool = False) -> None:
         """Record an error; retryable errors requeue with backoff until ``max_attempts``, then FAILED."""
@@ -318,5 +338,6 @@ class JobQueue(QueueBase):
                 raise ConflictError(f"job {job_id} is {state}; cancel it first (only finished jobs can be deleted)")
             conn.execute(sa.delete(inputs).where(inputs.c.job_id == job_id))
             conn.execute(sa.delete(results).where(results.c.job_id == job_id))
+            conn.execute(sa.delete(artifacts).where(artifacts.c.job_id == job_id))
             conn.execute(sa.delete(jobs).where(jobs.c.id == job_id))
             self._event(conn, job_id, "deleted", now, state=state)

@@ -19,7 +19,7 @@ from sqlalchemy.engine import Connection, Engine, Row
 
 from common import api_keys
 from common.database import IMMEDIATE
-from common.db_models import ACTIVE_STATES, ApiKey, Job, JobEvent, JobInput, JobResult, utcnow
+from common.db_models import ACTIVE_STATES, ApiKey, Job, JobArtifact, JobEvent, JobInput, JobResult, utcnow
 from common.errors import (
     AuthenticationError,
     ConflictError,
@@ -27,7 +27,7 @@ from common.errors import (
     InvalidRequestError,
     NotFoundError,
 )
-from common.queue_types import ApiKeyRecord, JobEventRecord, JobRecord, QueueStats
+from common.queue_types import ApiKeyRecord, Artifact, JobEventRecord, JobRecord, QueueStats
 from common.settings import Settings, get_settings
 
 # Core tables of the mapped models: the queue speaks SQL expressions, never ORM sessions.
@@ -35,6 +35,7 @@ jobs = cast(sa.Table, Job.__table__)
 inputs = cast(sa.Table, JobInput.__table__)
 results = cast(sa.Table, JobResult.__table__)
 events = cast(sa.Table, JobEvent.__table__)
+artifacts = cast(sa.Table, JobArtifact.__table__)
 keys = cast(sa.Table, ApiKey.__table__)
 
 MAX_PAGE_SIZE = 500
@@ -108,6 +109,33 @@ class QueueBase:
         if job.state != "SUCCEEDED" or row is None:
             raise ConflictError(f"job {job_id} is {job.state}; a result exists only once it has SUCCEEDED")
         return bytes(row.result), dict(row.summary)
+
+    def list_artifacts(self, owner_key_id: str | None, job_id: str) -> builtins.list[Artifact]:
+        """Names, types and sizes (no data) of a job's artifacts, by name; empty before it SUCCEEDED."""
+        with self._read() as conn:
+            self._get(conn, job_id, owner_key_id)
+            rows = conn.execute(
+                sa.select(artifacts.c.name, artifacts.c.content_type, artifacts.c.size_bytes)
+                .where(artifacts.c.job_id == job_id)
+                .order_by(artifacts.c.name)
+            ).all()
+        return [Artifact(r.name, r.content_type, b"", r.size_bytes) for r in rows]
+
+    def get_artifact(self, owner_key_id: str | None, job_id: str, name: str) -> Artifact:
+        """One artifact with its data; ``ConflictError`` before the job SUCCEEDED, ``NotFoundError`` when the
+        job has no such artifact (e.g. it ran with ``preview_video`` off)."""
+        with self._read() as conn:
+            job = self._get(conn, job_id, owner_key_id)
+            row = conn.execute(
+                sa.select(artifacts.c.content_type, artifacts.c.data, artifacts.c.size_bytes).where(
+                    artifacts.c.job_id == job_id, artifacts.c.name == name
+                )
+            ).first()
+        if job.state != "SUCCEEDED":
+            raise ConflictError(f"job {job_id} is {job.state}; its files exist only once it has SUCCEEDED")
+        if row is None:
+            raise NotFoundError(f"job {job_id} has no {name!r} (the preview may have been skipped or failed)")
+        return Artifact(name, row.content_type, bytes(row.data), row.size_bytes)
 
     def get_payload(self, job_id: str) -> bytes:
         with self._read() as conn:

@@ -21,7 +21,7 @@ from common.queue import JobQueue
 from common.settings import Settings, get_settings
 from service.metrics import make_registry
 from service.problems import install_problem_handlers, problem_response
-from service.routes import jobs, ops
+from service.routes import artifacts, dashboard, jobs, ops
 from service.schemas import JobCreate
 
 API_VERSION = "1.0.0"
@@ -71,7 +71,9 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None) -
     install_problem_handlers(app)
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_request_bytes)
     app.include_router(jobs.router)
+    app.include_router(artifacts.router)
     app.include_router(ops.router)
+    app.include_router(dashboard.router)
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app
 

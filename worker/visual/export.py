@@ -30,38 +30,43 @@ import numpy as np
 
 from common.result_format import CONTACT_KEYS
 from common.sequence import Sequence
-from worker.visual.playback import resimulate
+from worker.visual.playback import Playback, resimulate
 
 FILES: tuple[str, ...] = ("scene.xml", "controls.npz", "trajectories.npz", "contacts.npz", "export.json", "replay.py")
 
 
 def export_result(blob: bytes, out_dir: Path | str, sequence: Sequence | None = None) -> Path:
     """Write the export folder of a refinement result; returns its path (see the module docstring)."""
+    return export_playback(resimulate(blob, sequence, which=("refined",), record_controls=True), out_dir)
+
+
+def export_playback(pb: Playback, out_dir: Path | str) -> Path:
+    """``export_result`` from a playback re-simulated with ``record_controls=True``."""
     from worker.object_model import OBJECT_BODY
 
+    if pb.controls is None:
+        raise ValueError("the playback holds no controls: resimulate(..., record_controls=True)")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    pb = resimulate(blob, sequence, which=("refined",), record_controls=True)
-    assert pb.controls is not None
     scene, arrays, model = pb.scene, pb.arrays, pb.scene.model
     (out / "scene.xml").write_text(scene.xml)
     obj = pb.sequence.object
     if obj.mesh_vertices is not None and obj.mesh_faces is not None:
         _write_obj(out / "object.obj", obj.mesh_vertices, obj.mesh_faces)
     per_frame = {f"{s}_{k}": arrays[f"{s}_{k}"] for s in scene.hands for k in ("q_target", "wrist_pos", "wrist_quat")}
-    np.savez_compressed(
-        out / "controls.npz",
-        ctrl=pb.controls.ctrl,
-        mocap_pos=pb.controls.mocap_pos,
-        mocap_quat=pb.controls.mocap_quat,
-        start_state=pb.controls.start_physics,
-        start_warmstart=pb.controls.start_warmstart,
+    controls: dict[str, Any] = {
+        "ctrl": pb.controls.ctrl,
+        "mocap_pos": pb.controls.mocap_pos,
+        "mocap_quat": pb.controls.mocap_quat,
+        "start_state": pb.controls.start_physics,
+        "start_warmstart": pb.controls.start_warmstart,
         **per_frame,
-    )
+    }
+    _savez(out / "controls.npz", controls)
     traj_keys = ["object_pose_sim", "object_pose_ref", "raw_object_pose_sim", "object_vel_sim"]
     traj_keys += [f"{s}_{k}" for s in scene.hands for k in ("keypoints_sim", "keypoints_ref", "valid")]
-    np.savez_compressed(out / "trajectories.npz", **{k: arrays[k] for k in traj_keys if k in arrays})
-    np.savez_compressed(out / "contacts.npz", **{k: arrays[k] for k in CONTACT_KEYS})
+    _savez(out / "trajectories.npz", {k: arrays[k] for k in traj_keys if k in arrays})
+    _savez(out / "contacts.npz", {k: arrays[k] for k in CONTACT_KEYS})
     (out / "export.json").write_text(json.dumps(_meta(pb, model, OBJECT_BODY), indent=1, sort_keys=True))
     from worker.visual import standalone_replay
 
@@ -94,6 +99,10 @@ def _meta(pb: Any, model: mujoco.MjModel, object_body: str) -> dict[str, Any]:
         "versions": pb.summary.get("versions"),
         "mujoco_used_for_export": mujoco.__version__,
     }
+
+
+def _savez(path: Path, arrays: dict[str, Any]) -> None:
+    np.savez_compressed(path, allow_pickle=False, **arrays)
 
 
 def _write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:

@@ -53,7 +53,8 @@ def auto_camera(playback: Playback, azimuth: float = 135.0, elevation: float = -
     centre = (lo + hi) / 2
     radius = max(float(np.linalg.norm(hi - lo)) / 2, 0.08)
     # 45 deg vertical field of view (MuJoCo's default): a sphere of ``radius`` fits at radius / sin(22.5 deg).
-    return CameraSpec(tuple(float(c) for c in centre), 0.95 * radius / np.sin(np.radians(22.5)), azimuth, elevation)
+    lookat = (float(centre[0]), float(centre[1]), float(centre[2]))
+    return CameraSpec(lookat, 0.95 * radius / np.sin(np.radians(22.5)), azimuth, elevation)
 
 
 def parse_camera(text: str, playback: Playback) -> CameraSpec:

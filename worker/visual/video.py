@@ -5,8 +5,9 @@ H.264 in yuv420p with the index at the front (``+faststart``), so browsers play 
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -22,7 +23,7 @@ def write_mp4(frames: Iterable[Frame], path: Path | str, fps: float, quality: in
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    writer: Iterator[None] | None = None
+    writer: Any = None  # imageio-ffmpeg's generator: send(frame), close()
     count = 0
     try:
         for frame in frames:
