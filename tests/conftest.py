@@ -35,4 +35,4 @@ def dexycb_dev_files(shared_data: Path) -> list[Path]:
 
 
 # Queue/API/migration fixtures (database per test on SQLite and PostgreSQL), see tests/queue_fixtures.py.
-pytest_plugins = ["tests.queue_fixtures"]
+pytest_plugins = ["tests.queue_fixtures", "tests.visual_fixtures"]
