@@ -47,8 +47,8 @@ def register(subparsers: Any) -> None:
         description=(
             "By default: start `hoi-refine up --workers 2` (API + local Ray + 2 workers, SQLite under var/), "
             "submit the built-in grasp-and-lift over HTTP, follow its progress, print raw vs refined metrics and "
-            "save the result and contacts under --out-dir, then stop the deployment. --local refines in this "
-            "process instead (no server); --raw only replays the observation without optimisation."
+            "save the result, contacts, preview video and plots under --out-dir, then stop the deployment. --local "
+            "refines in this process instead (no server); --raw only replays the observation without optimisation."
         ),
     )
     mode = d.add_mutually_exclusive_group()
@@ -56,7 +56,8 @@ def register(subparsers: Any) -> None:
     mode.add_argument("--raw", action="store_true", help="only the raw replay, no refinement")
     d.add_argument("--api", default=None, help="use this running service instead of starting one (with --key)")
     d.add_argument("--key", default=None, help="API key for --api")
-    d.add_argument("--out-dir", type=Path, default=Path("var/demo"), help="where the service demo saves files")
+    d.add_argument("--out-dir", type=Path, default=Path("var/demo"),
+                   help="where the demo saves the result, contacts, video and plots (default var/demo)")  # fmt: skip
     d.add_argument("--out", type=Path, default=None, help="with --raw: also write the raw-replay result (.npz)")
     d.set_defaults(func=cmd_demo)
 
@@ -195,7 +196,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if args.local:
         from worker.cli_refine import run_demo as run_local_demo
 
-        return int(run_local_demo())
+        return int(run_local_demo(out_dir=args.out_dir))
     if not args.raw:
         from worker.runtime.demo_client import run_demo as run_service_demo
 

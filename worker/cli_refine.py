@@ -138,14 +138,24 @@ def format_metrics_table(summary: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def run_demo(threads: int = 2, short: bool = False) -> int:
-    """Refine the built-in example and print raw vs refined (``make demo``)."""
+def run_demo(threads: int = 2, short: bool = False, out_dir: Path | str = Path("var/demo")) -> int:
+    """Refine the built-in example in this process, print raw vs refined, and save the result, its video and
+    its plots under ``out_dir`` (``hoi-refine demo --local``)."""
     from worker.example import example_sequence, short_example_sequence
     from worker.refine.run import refine_sequence
+    from worker.visual import render_video, resimulate, write_plots
 
     seq = short_example_sequence() if short else example_sequence()
     outcome = refine_sequence(seq, JobOptions(), threads=threads, progress=_ProgressBar())
     print(file=sys.stderr)
     print(f"refined the built-in example {seq.name!r} ({seq.num_frames} frames)")
     print(format_metrics_table(outcome.summary))
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    blob = outcome.to_npz_bytes()
+    result, video = out / f"{seq.name}.result.npz", out / f"{seq.name}.mp4"
+    result.write_bytes(blob)
+    render_video(resimulate(blob), str(video))
+    plots = write_plots(blob, out / f"{seq.name}_plots")
+    print(f"result: {result}\nvideo: {video}\nplots: {', '.join(str(p) for p in plots)}")
     return 0

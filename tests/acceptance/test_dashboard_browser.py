@@ -166,7 +166,8 @@ def test_dashboard_shows_a_job_to_its_key_only(chromium: str, deployment: Deploy
                     if (v.readyState < 2) await new Promise((ok) => v.addEventListener('loadeddata', ok, {once: true}));
                     await v.play();
                     await new Promise((ok) => setTimeout(ok, 1000));
-                    return {time: v.currentTime, width: v.videoWidth, height: v.videoHeight, error: v.error && v.error.code};
+                    return {time: v.currentTime, width: v.videoWidth, height: v.videoHeight,
+                            error: v.error && v.error.code};
                 }"""
             )
             assert played["error"] is None and played["time"] > 0, played

@@ -27,6 +27,8 @@ OBJECT_RGBA = (0.95, 0.6, 0.2, 1.0)
 HAND_RGBA = (0.85, 0.72, 0.62, 1.0)
 TABLE_RGBA = (0.55, 0.6, 0.68, 1.0)
 ARROW_RGBA = (0.95, 0.15, 0.1, 1.0)
+#: Hand keypoints farther than this from the recorded object do not steer the automatic camera.
+NEAR_OBJECT_M = 0.15
 PANEL_TITLES = {"raw": "raw replay", "refined": "refined"}
 
 
@@ -43,18 +45,23 @@ class CameraSpec:
 
 
 def auto_camera(playback: Playback, azimuth: float = 135.0, elevation: float = -25.0) -> CameraSpec:
-    """Frame the recorded object and hand and the simulated objects over the whole sequence."""
-    points = [playback.object_pose_ref[:, :3]]
-    points += [k.reshape(-1, 3) for k in playback.keypoints_ref.values()]
-    points += [t.object_pose[:, :3] for t in playback.trajectories.values()]
+    """Frame the interaction over the whole sequence: the recorded and simulated object, and the recorded hand
+    where it is within ``NEAR_OBJECT_M`` of the object (a hand still far away would shrink everything)."""
+    ref = playback.object_pose_ref[:, :3]
+    points = [ref, *(t.object_pose[:, :3] for t in playback.trajectories.values())]
+    for kp in playback.keypoints_ref.values():
+        near = np.linalg.norm(kp - ref[:, None, :], axis=2) <= NEAR_OBJECT_M
+        points.append(kp[near])
     cloud = np.concatenate(points)
     cloud = cloud[np.isfinite(cloud).all(axis=1)]
-    lo, hi = np.percentile(cloud, 2, axis=0), np.percentile(cloud, 98, axis=0)
+    lo, hi = np.percentile(cloud, 1, axis=0), np.percentile(cloud, 99, axis=0)
     centre = (lo + hi) / 2
     radius = max(float(np.linalg.norm(hi - lo)) / 2, 0.08)
     # 45 deg vertical field of view (MuJoCo's default): a sphere of ``radius`` fits at radius / sin(22.5 deg).
-    lookat = (float(centre[0]), float(centre[1]), float(centre[2]))
-    return CameraSpec(lookat, 0.95 * radius / np.sin(np.radians(22.5)), azimuth, elevation)
+    # Looking a little higher moves the scene down, clear of the caption band at the top.
+    distance = 1.2 * radius / np.sin(np.radians(22.5))
+    lookat = (float(centre[0]), float(centre[1]), float(centre[2] + 0.08 * distance))
+    return CameraSpec(lookat, distance, azimuth, elevation)
 
 
 def parse_camera(text: str, playback: Playback) -> CameraSpec:
