@@ -150,6 +150,11 @@ def test_dashboard_shows_a_job_to_its_key_only(chromium: str, deployment: Deploy
             deployment.start_worker()
             expect(state).to_have_text("SUCCEEDED", timeout=300_000)
 
+            page.select_option("#state-filter", "FAILED")  # the filter asks the API for that state only
+            expect(page.locator(f'tr[data-job-id="{job_id}"]')).to_have_count(0, timeout=10_000)
+            page.select_option("#state-filter", "SUCCEEDED")
+            expect(state).to_have_text("SUCCEEDED", timeout=10_000)
+
             page.click(f'tr[data-job-id="{job_id}"] a')
             expect(page.locator("#job-state")).to_have_text("SUCCEEDED")
             metrics = client.http.get(f"/v1/jobs/{job_id}/metrics").json()["metrics"]

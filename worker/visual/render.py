@@ -1,10 +1,10 @@
 """Offscreen frames of a re-simulated result (issue #18 item 1) with ``mujoco.Renderer``.
 
 Each panel shows one trajectory (raw replay or refined) at one frame: the simulated hand and object, the
-recorded object pose as a translucent green ghost, every hand-object contact as a red arrow along its force
-(``FORCE_ARROW_M_PER_N`` metres per newton, capped), and a caption with the panel's name, the frame number and
-that frame's E_t / E_r. Panels sit side by side. The default camera looks at the middle of everything the
-sequence shows (recorded object and hand, simulated object) from a distance that keeps it all in view.
+recorded object pose as a translucent green ghost, every hand-object contact as a red arrow of the hand's force
+on the object, its head at the contact point (``FORCE_ARROW_M_PER_N`` metres per newton, capped), and a caption
+with the panel's name, the frame number and that frame's E_t / E_r. Panels sit side by side. The default camera
+(``auto_camera``) frames the recorded and simulated object and the hand near it over the whole sequence.
 """
 
 from __future__ import annotations
@@ -183,14 +183,17 @@ class PanelRenderer:
             mag = float(np.linalg.norm(force))
             if mag < 1e-6:
                 continue
-            start = np.asarray(c["contact_pos_world"][row], dtype=np.float64)
-            end = start + force / mag * min(mag * FORCE_ARROW_M_PER_N, FORCE_ARROW_MAX_M)
+            # The hand's force on the object, drawn pushing on it: the head at the contact point, the tail outside
+            # (drawn from the point outwards, it would lie inside the object).
+            end = np.asarray(c["contact_pos_world"][row], dtype=np.float64)
+            start = end - force / mag * min(mag * FORCE_ARROW_M_PER_N, FORCE_ARROW_MAX_M)
             g = self._free_geom(scn)
             if g is None:
                 return
             mujoco.mjv_initGeom(g, mujoco.mjtGeom.mjGEOM_ARROW, np.zeros(3), np.zeros(3), np.eye(3).ravel(),
                                 np.asarray(ARROW_RGBA))  # fmt: skip
-            mujoco.mjv_connector(g, mujoco.mjtGeom.mjGEOM_ARROW, 0.003, start, end)
+            mujoco.mjv_connector(g, mujoco.mjtGeom.mjGEOM_ARROW, 0.004, start, end)
+            g.category = mujoco.mjtCatBit.mjCAT_DECOR  # mjv_initGeom leaves it unset: unset ones may not be drawn
 
 
 def _quat_mat(quat: FloatArray) -> FloatArray:

@@ -6,7 +6,8 @@ Entities (timeline ``frame``, one tick per video frame):
   ``refined``): every geom as a mesh logged once (static) and its pose per frame (``Transform3D``);
 * ``world/recorded/object/<geom>``: the object at its recorded pose (translucent green), and
   ``world/recorded/hand_<side>``: the recorded hand keypoints and skeleton;
-* ``world/<run>/contacts``: contact points, and ``world/<run>/forces``: force arrows (0.01 m per newton);
+* ``world/<run>/contacts``: contact points, and ``world/<run>/forces``: the hand's force on the object as
+  arrows ending at the contact (0.01 m per newton);
 * ``metrics/E_t/<run>``, ``metrics/E_r/<run>``: per-frame object errors; ``forces/<run>/<finger>``: summed
   contact force per finger.
 """
@@ -140,8 +141,9 @@ def _log_contacts(rec: Any, run: str, contacts: dict[str, np.ndarray], frame: in
     pos = np.asarray(contacts["contact_pos_world"], dtype=np.float64).reshape(-1, 3)[rows]
     force = np.asarray(contacts["contact_force"], dtype=np.float64).reshape(-1, 3)[rows]
     rec.log(f"world/{run}/contacts", rr.Points3D(pos, radii=0.003, colors=[_COLOURS[run][:3]]))
-    rec.log(f"world/{run}/forces", rr.Arrows3D(vectors=force * FORCE_ARROW_M_PER_N, origins=pos,
-                                                colors=[_COLOURS[run][:3]]))
+    # The hand's force on the object, its head at the contact point (as in the video).
+    vectors = force * FORCE_ARROW_M_PER_N
+    rec.log(f"world/{run}/forces", rr.Arrows3D(vectors=vectors, origins=pos - vectors, colors=[_COLOURS[run][:3]]))
 
 
 def read_recording(path: Path | str) -> dict[str, int]:
