@@ -127,6 +127,7 @@ def _use_key(page: Any, key: str) -> None:
     page.click("#use-key")
 
 
+@pytest.mark.usefixtures("offscreen_gl")  # the worker renders the preview video
 def test_dashboard_shows_a_job_to_its_key_only(chromium: str, deployment: Deployment) -> None:
     from playwright.sync_api import expect, sync_playwright
 
@@ -136,7 +137,9 @@ def test_dashboard_shows_a_job_to_its_key_only(chromium: str, deployment: Deploy
     _, key_a = deployment.queue.create_api_key("browser A")
     _, key_b = deployment.queue.create_api_key("browser B")
     with sync_playwright() as pw:
-        args = ["--no-sandbox", "--autoplay-policy=no-user-gesture-required"]  # root in a container: no sandbox
+        # Root in a container: no sandbox. No network here: nothing in the background may try to reach one.
+        args = ["--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
+                "--disable-component-update", "--disable-sync", "--autoplay-policy=no-user-gesture-required"]
         browser = pw.chromium.launch(executable_path=chromium, args=args)
         try:
             page = browser.new_page(viewport={"width": 1100, "height": 900})

@@ -20,13 +20,13 @@ from common.cli import main as cli_main
 from common.errors import UnsupportedFormatError
 from common.result_format import read_arrays, read_summary
 from worker.metrics import rotation_error_deg
-from worker.visual import read_mp4, read_recording, read_scalars, render_video, resimulate, write_recording
+from worker.visual import Playback, read_mp4, read_recording, read_scalars, render_video, resimulate, write_recording
 from worker.visual.render import OBJECT_RGBA
 from worker.visual.standalone_replay import TOLERANCE_DEG, TOLERANCE_MM
 
 
 @pytest.fixture(scope="module")
-def playback(short_refine_result: bytes):  # type: ignore[no-untyped-def]
+def playback(short_refine_result: bytes) -> Playback:
     return resimulate(short_refine_result, record_controls=True)
 
 
@@ -40,7 +40,7 @@ def object_pixels(panel: np.ndarray) -> np.ndarray:
     return np.argwhere(mask)
 
 
-def test_resimulation_reproduces_the_stored_refined_trajectory(playback, short_refine_result: bytes) -> None:  # type: ignore[no-untyped-def]
+def test_resimulation_reproduces_the_stored_refined_trajectory(playback: Playback, short_refine_result: bytes) -> None:
     stored = read_arrays(short_refine_result)
     refined = playback.trajectories["refined"]
     assert np.allclose(refined.object_pose, stored["object_pose_sim"], atol=1e-9)
@@ -50,7 +50,8 @@ def test_resimulation_reproduces_the_stored_refined_trajectory(playback, short_r
     assert playback.trajectories["raw"].qpos.shape == (playback.num_frames, playback.scene.model.nq)
 
 
-def test_video_has_every_frame_is_not_blank_and_shows_the_lift(playback, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+@pytest.mark.usefixtures("offscreen_gl")
+def test_video_has_every_frame_is_not_blank_and_shows_the_lift(playback: Playback, tmp_path: Path) -> None:
     out = tmp_path / "preview.mp4"
     assert render_video(playback, str(out), ("raw", "refined"), 320, 240) == playback.num_frames
     frames, fps = read_mp4(out)
@@ -71,7 +72,7 @@ def test_video_has_every_frame_is_not_blank_and_shows_the_lift(playback, tmp_pat
     assert abs(raw[0][:, 0].mean() - raw[1][:, 0].mean()) < rise_px / 3
 
 
-def test_rerun_recording_is_written_and_read_back(playback, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+def test_rerun_recording_is_written_and_read_back(playback: Playback, tmp_path: Path) -> None:
     out = write_recording(playback, tmp_path / "run.rrd")
     assert out is not None and out.stat().st_size > 10_000
     entities = read_recording(out)
@@ -101,7 +102,7 @@ def _only_mujoco_and_numpy(tmp_path: Path) -> Path:
     return sandbox
 
 
-def test_export_replays_in_a_fresh_process_with_only_mujoco_and_numpy(playback, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+def test_export_replays_in_a_fresh_process_with_only_mujoco_and_numpy(playback: Playback, tmp_path: Path) -> None:
     from worker.visual import export_playback
 
     folder = export_playback(playback, tmp_path / "export")
@@ -127,6 +128,7 @@ def test_export_replays_in_a_fresh_process_with_only_mujoco_and_numpy(playback, 
     assert replayed[-1, 2] - replayed[0, 2] > 0.1  # the lift itself is replayed
 
 
+@pytest.mark.usefixtures("offscreen_gl")
 def test_plots_and_the_cli(short_refine_result: bytes, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     result = tmp_path / "short.npz"
     result.write_bytes(short_refine_result)
@@ -141,6 +143,11 @@ def test_plots_and_the_cli(short_refine_result: bytes, tmp_path: Path, capsys: p
     assert cli_main(["render", str(result), "--size", "161x120"]) == 2
     assert "--size" in capsys.readouterr().err
     assert cli_main(["render", str(result), "--camera", "nowhere"]) == 2
+    assert cli_main(["view", str(result)]) == 0
+    assert "/world/refined/object/object_0" in read_recording(tmp_path / "short.rrd")
+    assert cli_main(["export", str(result)]) == 0
+    assert (tmp_path / "short_export" / "replay.py").is_file() and (tmp_path / "short_export" / "scene.xml").is_file()
+    assert cli_main(["render", str(tmp_path / "missing.npz")]) == 2
 
 
 def test_a_file_that_is_not_a_refinement_is_refused(tmp_path: Path) -> None:
