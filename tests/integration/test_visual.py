@@ -150,11 +150,35 @@ def test_plots_and_the_cli(short_refine_result: bytes, tmp_path: Path, capsys: p
     assert cli_main(["render", str(tmp_path / "missing.npz")]) == 2
 
 
+@pytest.mark.usefixtures("offscreen_gl")
+def test_a_raw_replay_result_with_its_sequence(tmp_path: Path) -> None:
+    from common.sequence_io import sequence_to_npz_bytes
+    from worker.example import short_example_sequence
+    from worker.replay import raw_replay, replay_result_bytes
+
+    seq = short_example_sequence()
+    raw = raw_replay(seq)
+    result, sequence = tmp_path / "raw.npz", tmp_path / "seq.npz"
+    result.write_bytes(replay_result_bytes(raw))
+    sequence.write_bytes(sequence_to_npz_bytes(seq))
+    with pytest.raises(UnsupportedFormatError, match="--sequence"):
+        resimulate(result.read_bytes())
+    pb = resimulate(result.read_bytes(), seq)  # checked against the stored raw replay inside
+    assert list(pb.trajectories) == ["raw"]
+    assert np.array_equal(pb.trajectories["raw"].object_pose, raw.record.object_pose)
+    with pytest.raises(UnsupportedFormatError, match="trajectories"):
+        resimulate(result.read_bytes(), seq, which=("refined",))
+    assert cli_main(["render", str(result), "--sequence", str(sequence), "--size", "64x48"]) == 0
+    assert read_mp4(tmp_path / "raw.mp4")[0].shape == (seq.num_frames, 48, 64, 3)
+    assert cli_main(["export", str(result), "--sequence", str(sequence)]) == 0
+    assert json.loads((tmp_path / "raw_export" / "export.json").read_text())["trajectory"] == "raw"
+
+
 def test_a_file_that_is_not_a_refinement_is_refused(tmp_path: Path) -> None:
     from tests.queue_fixtures import fake_result
 
     blob, _ = fake_result()
-    with pytest.raises(UnsupportedFormatError, match="not a refinement result"):
+    with pytest.raises(UnsupportedFormatError, match="not a refinement or raw-replay result"):
         resimulate(blob)
     with pytest.raises(UnsupportedFormatError, match="no such result file"):
         from worker.visual import load_result

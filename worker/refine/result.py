@@ -143,6 +143,19 @@ def build_summary(
     }
 
 
+def sim_config_from_summary(stored: dict[str, Any]) -> Any:
+    """The ``worker.scene.SimConfig`` a result was simulated with, from its summary's JSON form."""
+    from worker.scene import SimConfig
+
+    sim: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in stored.items()}
+    # Results made before the pivot was recorded turned the hand about the wrist; before the wrist lead was
+    # recorded, the mocap followed the wrist track itself; before the rest pose, the object started from frame 0.
+    sim.setdefault("wrist_lead_s", 0.0)
+    sim.setdefault("rest_approach_m", 0.0)
+    sim.setdefault("finger_lead_s", 0.0)
+    return SimConfig(**sim)
+
+
 def prepare_from_result(blob: bytes, sequence: Sequence | None = None) -> tuple[Prepared, dict[str, FloatArray]]:
     """Rebuild a refinement result's scene and controls: the ``Prepared`` problem (same sequence, options and
     simulation settings as the run) and the stored keyframes per hand side, checked against the stored
@@ -158,15 +171,8 @@ def prepare_from_result(blob: bytes, sequence: Sequence | None = None) -> tuple[
             raise UnsupportedFormatError("the result embeds no sequence; pass --sequence")
         sequence = sequence_from_npz_bytes(arrays["sequence_npz"].tobytes())
     options = JobOptions.model_validate(summary["options"])
-    from worker.scene import SimConfig
-
-    sim: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in summary["config"]["sim"].items()}
-    # Results made before the pivot was recorded turned the hand about the wrist; before the wrist lead was
-    # recorded, the mocap followed the wrist track itself; before the rest pose, the object started from frame 0.
-    sim.setdefault("wrist_lead_s", 0.0)
-    sim.setdefault("rest_approach_m", 0.0)
-    sim.setdefault("finger_lead_s", 0.0)
-    prep = prepare(sequence, options, SimConfig(**sim), rotation_pivot=summary["config"].get("rotation_pivot", "wrist"))
+    sim = sim_config_from_summary(summary["config"]["sim"])
+    prep = prepare(sequence, options, sim, rotation_pivot=summary["config"].get("rotation_pivot", "wrist"))
     keyframes = {}
     for side, space in prep.spaces.items():
         key = f"{side}_keyframes"

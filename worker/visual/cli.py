@@ -10,8 +10,9 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-RESULT_HELP = "result file written by `hoi-refine refine` or downloaded from the service (.npz)"
-SEQUENCE_HELP = "sequence file (default: the one the result embeds)"
+RESULT_HELP = ("result file written by `hoi-refine refine` or downloaded from the service (.npz); a raw replay "
+               "from `hoi-refine replay` works too, with --sequence")
+SEQUENCE_HELP = "the sequence file the result was made from (default: the one a refinement result embeds)"
 
 
 def register(subparsers: Any) -> None:
@@ -26,7 +27,7 @@ def register(subparsers: Any) -> None:
     r.add_argument("result", type=Path, help=RESULT_HELP)
     r.add_argument("--out", type=Path, default=None, help="video file to write (default: RESULT.mp4 beside it)")
     r.add_argument("--which", choices=("both", "raw", "refined"), default="both",
-                   help="panels: both side by side (default), or one")  # fmt: skip
+                   help="panels: both side by side (default; a raw replay has only raw), or one")  # fmt: skip
     r.add_argument("--size", default="320x240", help="size of one panel, WIDTHxHEIGHT (default 320x240)")
     r.add_argument(
         "--camera", default="auto",
@@ -56,7 +57,7 @@ def register(subparsers: Any) -> None:
         "finger) and, for refinements, loss_history.png (best loss per CMA-ES generation per window). Reads the "
         "result file only: no simulation.",
     )
-    p.add_argument("result", type=Path, help=RESULT_HELP + "; a raw replay from `hoi-refine replay` works too")
+    p.add_argument("result", type=Path, help=RESULT_HELP.replace(", with --sequence", ""))
     p.add_argument("--out", type=Path, default=None, help="folder to write into (default: RESULT_plots/ beside it)")
     p.set_defaults(func=_plot)
 
@@ -108,15 +109,16 @@ def _render(args: argparse.Namespace) -> int:
         width, height = parse_size(args.size)
     except argparse.ArgumentTypeError as exc:
         raise InvalidRequestError.single("size", str(exc)) from None
-    which = ("raw", "refined") if args.which == "both" else (args.which,)
+    which = None if args.which == "both" else (args.which,)
     pb = resimulate(load_result(args.result), _sequence(args), which=which)
+    panels = list(pb.trajectories)
     try:
         camera = parse_camera(args.camera, pb)
     except ValueError as exc:
         raise InvalidRequestError.single("camera", str(exc)) from None
     out = args.out or _beside(args.result, ".mp4")
-    n = render_video(pb, str(out), which, width, height, camera)
-    print(f"wrote {out} ({n} frames, {width * len(which)}x{height}, {pb.fps:g} fps)")
+    n = render_video(pb, str(out), panels, width, height, camera)
+    print(f"wrote {out} ({n} frames, {' | '.join(panels)}, {width * len(panels)}x{height}, {pb.fps:g} fps)")
     return 0
 
 

@@ -28,16 +28,17 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from common.result_format import CONTACT_KEYS
+from common.result_format import CONTACT_KEYS, read_summary
 from common.sequence import Sequence
-from worker.visual.playback import Playback, resimulate
+from worker.visual.playback import Playback, main_trajectory, resimulate
 
 FILES: tuple[str, ...] = ("scene.xml", "controls.npz", "trajectories.npz", "contacts.npz", "export.json", "replay.py")
 
 
 def export_result(blob: bytes, out_dir: Path | str, sequence: Sequence | None = None) -> Path:
-    """Write the export folder of a refinement result; returns its path (see the module docstring)."""
-    return export_playback(resimulate(blob, sequence, which=("refined",), record_controls=True), out_dir)
+    """Write the export folder of a result (the refined trajectory, or a raw replay's); returns its path."""
+    main = main_trajectory(read_summary(blob))
+    return export_playback(resimulate(blob, sequence, which=(main,), record_controls=True), out_dir)
 
 
 def export_playback(pb: Playback, out_dir: Path | str) -> Path:
@@ -83,6 +84,7 @@ def _meta(pb: Any, model: mujoco.MjModel, object_body: str) -> dict[str, Any]:
     mocap_bodies.sort(key=lambda b: int(model.body_mocapid[b]))
     return {
         "sequence": pb.summary.get("sequence"),
+        "trajectory": main_trajectory(pb.summary),  # whose controls: the refined hand, or a raw replay's
         "fps": pb.fps,
         "frames": pb.num_frames,
         "substeps_per_frame": int(pb.scene.substeps_per_frame),

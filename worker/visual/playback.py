@@ -1,12 +1,13 @@
-"""Re-simulate a refinement result to see it: the full simulation state per frame, raw replay and refined.
+"""Re-simulate a result to see it: the full simulation state per frame, raw replay and refined.
 
 A result file stores the object trajectory, the hand keypoints and the controls, not the full MuJoCo state
 (hinge angles, palm pose) that drawing the hand needs. ``resimulate`` rebuilds the scene exactly as
 ``hoi-refine verify`` does (``worker.refine.result.prepare_from_result``) and replays the stored keyframes
 from frame 0 with ``worker.refine.run.replay`` — the same code that made the result — recording ``qpos`` at
-every frame; the raw replay is the same replay with zero offsets, as ``refine_sequence`` made it. The refined
-re-simulation is checked against the stored object trajectory (``compare_object_trajectory``), so what is
-drawn is what the file holds.
+every frame; the raw replay is the same replay with zero offsets, as ``refine_sequence`` made it. A raw-replay
+result (``hoi-refine replay``, which does not embed its sequence: pass it) is that zero-offset replay of the
+same scene. The stored trajectory's re-simulation is checked against the file (``compare_object_trajectory``),
+so what is drawn is what the file holds.
 """
 
 from __future__ import annotations
@@ -85,26 +86,55 @@ def load_result(path_or_blob: Any) -> bytes:
     return path.read_bytes()
 
 
+def main_trajectory(summary: dict[str, Any]) -> str:
+    """The trajectory a result file stores (``object_pose_sim``, contacts): refined, or raw for a raw replay."""
+    return "raw" if summary.get("kind") == "replay" else "refined"
+
+
+def _prepare(blob: bytes, summary: dict[str, Any], sequence: Sequence | None) -> tuple[Any, dict[str, FloatArray]]:
+    """The ``Prepared`` problem and the keyframes of the stored trajectory (zero offsets for a raw replay)."""
+    from worker.refine.result import RESULT_KIND, prepare_from_result, sim_config_from_summary
+
+    kind = summary.get("kind")
+    if kind == RESULT_KIND:
+        return prepare_from_result(blob, sequence)
+    if kind != "replay":
+        raise UnsupportedFormatError(f"not a refinement or raw-replay result (kind {kind!r})")
+    if sequence is None:
+        raise UnsupportedFormatError("a raw-replay result embeds no sequence; pass --sequence (the replayed file)")
+    from common.job_options import JobOptions
+    from worker.refine.prepare import prepare
+
+    # The refinement's zero-offset replay is the raw replay (same controls, same start): checked below.
+    prep = prepare(sequence, JobOptions(), sim_config_from_summary(summary["config"]))
+    return prep, {side: sp.zero_keyframes() for side, sp in prep.spaces.items()}
+
+
 def resimulate(
     blob: bytes,
     sequence: Sequence | None = None,
-    which: Seq[str] = TRAJECTORIES,
+    which: Seq[str] | None = None,
     record_controls: bool = False,
 ) -> Playback:
-    """Rebuild a refinement result's scene and re-simulate the trajectories named in ``which`` (see the module
-    docstring). ``record_controls`` also keeps the refined run's per-step controls (``Playback.controls``)."""
+    """Rebuild a result's scene and re-simulate the trajectories named in ``which`` (default: all it has — raw
+    and refined for a refinement, raw for a raw replay; see the module docstring). ``record_controls`` also keeps
+    the stored trajectory's per-step controls (``Playback.controls``, for ``export``). ``sequence``: the input,
+    when the result does not embed it (raw replays)."""
     from worker.metrics import rotation_error_deg
     from worker.refine.evaluator import CONTROL_SPEC, ParallelEvaluator
     from worker.refine.prepare import initial_state
-    from worker.refine.result import compare_object_trajectory, prepare_from_result
+    from worker.refine.result import compare_object_trajectory
     from worker.refine.run import replay
 
-    unknown = [w for w in which if w not in TRAJECTORIES]
-    if unknown or not which:
-        raise ValueError(f"which must name some of {TRAJECTORIES}, got {list(which)}")
     summary = read_summary(blob)
     arrays = read_arrays(blob)
-    prep, keyframes = prepare_from_result(blob, sequence)
+    main = main_trajectory(summary)
+    available = TRAJECTORIES if main == "refined" else ("raw",)
+    which = available if which is None else tuple(which)
+    unknown = [w for w in which if w not in available]
+    if unknown or not which:
+        raise UnsupportedFormatError(f"this result has the trajectories {list(available)}, not {list(which)}")
+    prep, keyframes = _prepare(blob, summary, sequence)
     ref_pose = prep.obj_targets_pose()
     out = Playback(
         scene=prep.scene,
@@ -125,7 +155,7 @@ def resimulate(
             start.restore(model, ev.step_data)
             qpos[0] = ev.step_data.qpos
             steps: list[FloatArray] = []
-            keep_controls = record_controls and name == "refined"
+            keep_controls = record_controls and name == main
 
             def on_step(i: int, d: mujoco.MjData, qpos: FloatArray = qpos, steps: list[FloatArray] = steps,
                         keep: bool = keep_controls) -> None:
@@ -138,7 +168,7 @@ def resimulate(
                     steps.append(c)
 
             rec = replay(prep, ev, start, offsets, record_contacts=True, on_step=on_step)
-            if name == "refined":
+            if name == main:  # what is drawn is what the file holds
                 compare_object_trajectory(arrays["object_pose_sim"], rec.object_pose)
             out.trajectories[name] = Trajectory(
                 name=name,

@@ -219,14 +219,15 @@ def caption(image: Frame, lines: Sequence[str]) -> Frame:
 
 def render_frames(
     playback: Playback,
-    which: Sequence[str] = ("raw", "refined"),
+    which: Sequence[str] | None = None,
     width: int = 320,
     height: int = 240,
     camera: CameraSpec | None = None,
     frames: Sequence[int] | None = None,
 ) -> Iterator[Frame]:
-    """(height, width * len(which), 3) frames, the panels of ``which`` side by side, for every frame (or
-    ``frames``)."""
+    """(height, width * len(which), 3) frames, the panels of ``which`` (default: every re-simulated trajectory)
+    side by side, for every frame (or ``frames``)."""
+    which = list(playback.trajectories) if which is None else which
     missing = [w for w in which if w not in playback.trajectories]
     if missing or not which:
         raise ValueError(f"trajectories {missing or list(which)} were not re-simulated "
@@ -240,7 +241,7 @@ def render_frames(
 def render_video(
     playback: Playback,
     out: str,
-    which: Sequence[str] = ("raw", "refined"),
+    which: Sequence[str] | None = None,
     width: int = 320,
     height: int = 240,
     camera: CameraSpec | None = None,
