@@ -21,8 +21,8 @@ def register(subparsers: Any) -> None:
         help="render a result to an MP4: raw replay and refined side by side",
         description="Re-simulates the result's raw replay and refined controls (as `verify` does) and renders "
         "every frame offscreen with MuJoCo (EGL; set MUJOCO_GL=osmesa where EGL is missing): the simulated hand "
-        "and object, the recorded object as a translucent green ghost, contact force arrows (1 cm per newton) and "
-        "the frame number with that frame's E_t / E_r.",
+        "and object, the recorded object as a translucent green ghost, red arrows of the hand's force on the object "
+        "at each contact (1 cm per newton, at most 8 cm) and the frame number with that frame's E_t / E_r.",
     )
     r.add_argument("result", type=Path, help=RESULT_HELP)
     r.add_argument("--out", type=Path, default=None, help="video file to write (default: RESULT.mp4 beside it)")

@@ -60,12 +60,17 @@ def write_recording(playback: Playback, out: Path | str | None = None, spawn: bo
     import rerun as rr
 
     rec = rr.RecordingStream("hoi-refine", recording_id=f"hoi-refine-{playback.summary.get('sequence', '')}")
+    sinks: list[Any] = []
     if out is not None:
         out = Path(out)
         out.parent.mkdir(parents=True, exist_ok=True)
-        rec.save(str(out))
+        sinks.append(rr.FileSink(str(out)))
     if spawn:
-        rec.spawn(connect=True)
+        rec.spawn(connect=False)  # the viewer process; it listens on the default port the GrpcSink sends to
+        sinks.append(rr.GrpcSink())
+    if not sinks:
+        raise ValueError("write_recording needs a file to write (out) or a viewer to spawn")
+    rec.set_sinks(*sinks)
     try:
         _log(rec, playback)
     finally:
