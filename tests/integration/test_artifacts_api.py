@@ -136,7 +136,12 @@ def test_the_worker_loop_stores_the_preview_or_records_why_not(queue: JobQueue, 
     assert loop.run_once() == "succeeded"  # a failed preview does not fail the job
     assert "no OpenGL here" in queue.get(owner, broken.id).summary["preview"]["error"]  # type: ignore[index]
     assert queue.list_artifacts(owner, broken.id) == []
-    assert [o.seed for o in calls] == [0, 1]
+    skipped, _ = queue.submit(owner, tiny_payload(2), JobOptions(seed=2, max_generations=1, preview_video=False),
+                              None, "no preview", 5)  # fmt: skip
+    assert loop.run_once() == "succeeded"
+    assert queue.list_artifacts(owner, skipped.id) == []
+    assert "preview" not in queue.get(owner, skipped.id).summary  # type: ignore[operator]
+    assert [o.seed for o in calls] == [0, 1]  # the job that asked for no preview never reached the renderer
 
 
 def test_preview_option_and_job_kinds() -> None:

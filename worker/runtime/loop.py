@@ -219,7 +219,7 @@ class WorkerLoop:
             error = _error_text(exc)
             return self._write(job, "failed", lambda: self.queue.fail(job.job_id, job.lease_token, error, retryable))
         log.info("job %s computed in %.1f s", job.job_id, time.monotonic() - t0)
-        artifacts = self._artifacts(job, result, summary)
+        artifacts = self._artifacts(job, result, summary, hb)
         if artifacts:
             return self._write(job, "succeeded", lambda: self.queue.complete(
                 job.job_id, job.lease_token, result, summary, artifacts=artifacts))  # fmt: skip
@@ -227,11 +227,12 @@ class WorkerLoop:
             job, "succeeded", lambda: self.queue.complete(job.job_id, job.lease_token, result, summary)
         )
 
-    def _artifacts(self, job: ClaimedJobLike, result: bytes, summary: dict[str, Any]) -> list[Any]:
+    def _artifacts(self, job: ClaimedJobLike, result: bytes, summary: dict[str, Any], hb: Heartbeat) -> list[Any]:
         """The preview files of a successful job, still under its lease (the heartbeat runs). A preview that
         fails does not fail the job: the error goes into the summary's ``preview`` entry."""
-        if self.artifact_fn is None:
+        if self.artifact_fn is None or not job.options.preview_video:
             return []
+        hb.update({"stage": "preview"})  # shown while the video renders
         t0 = time.monotonic()
         try:
             items = self.artifact_fn(result, job.options)
