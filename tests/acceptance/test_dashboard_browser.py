@@ -30,7 +30,7 @@ from common.job_options import JobOptions
 from common.queue import JobQueue
 from common.sequence_io import sequence_to_npz_bytes
 from common.settings import Settings
-from tests.visual_fixtures import DOCS, update_docs
+from tests.support.visual import DOCS, update_docs
 
 pytestmark = pytest.mark.slow
 

@@ -12,7 +12,7 @@ from common.errors import ConflictError, LeaseLostError, NotFoundError
 from common.job_options import JobOptions
 from common.queue import JobQueue
 from common.queue_types import Artifact
-from tests.queue_fixtures import BACKENDS, ApiHarness, fake_result, submit_tiny, tiny_payload
+from tests.support.queue_fixtures import BACKENDS, ApiHarness, fake_result, submit_tiny, tiny_payload
 from worker.runtime.jobs import SelfTestJob, make_artifact_function, refine_preview
 from worker.runtime.loop import WorkerLoop
 

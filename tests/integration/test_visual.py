@@ -18,8 +18,8 @@ import pytest
 
 from common.cli import main as cli_main
 from common.errors import UnsupportedFormatError
+from common.geometry import rotation_error_deg
 from common.result_format import read_arrays, read_summary
-from worker.metrics import rotation_error_deg
 from worker.visual import Playback, read_mp4, read_recording, read_scalars, render_video, resimulate, write_recording
 from worker.visual.render import OBJECT_RGBA
 from worker.visual.standalone_replay import TOLERANCE_DEG, TOLERANCE_MM
@@ -154,7 +154,7 @@ def test_plots_and_the_cli(short_refine_result: bytes, tmp_path: Path, capsys: p
 def test_a_raw_replay_result_with_its_sequence(tmp_path: Path) -> None:
     from common.sequence_io import sequence_to_npz_bytes
     from worker.example import short_example_sequence
-    from worker.replay import raw_replay, replay_result_bytes
+    from worker.simulation.replay import raw_replay, replay_result_bytes
 
     seq = short_example_sequence()
     raw = raw_replay(seq)
@@ -175,7 +175,7 @@ def test_a_raw_replay_result_with_its_sequence(tmp_path: Path) -> None:
 
 
 def test_a_file_that_is_not_a_refinement_is_refused(tmp_path: Path) -> None:
-    from tests.queue_fixtures import fake_result
+    from tests.support.queue_fixtures import fake_result
 
     blob, _ = fake_result()
     with pytest.raises(UnsupportedFormatError, match="not a refinement or raw-replay result"):

@@ -16,21 +16,25 @@ deterministic counters; the wall-clock figures are stored in the ``timings_json`
 from __future__ import annotations
 
 from dataclasses import asdict
-from typing import TYPE_CHECKING, Any
+from pathlib import Path
+from typing import Any
 
+import cma
 import numpy as np
 
 from common.errors import ResultMismatchError, UnsupportedFormatError
+from common.geometry import FloatArray
 from common.job_options import JobOptions
 from common.result_format import read_arrays, read_summary
 from common.sequence import Sequence
 from common.sequence_io import sequence_from_npz_bytes, sequence_to_npz_bytes
-from worker.refine.spline import FloatArray
+from worker.hand.mano.pose import mano_result_arrays
+from worker.refine.evaluator import ParallelEvaluator
+from worker.refine.prepare import Prepared, prepare, settled_start
+from worker.refine.replay import ReplayRecord, replay
 from worker.refine.windowed import CmaSettings, WindowLog
-
-if TYPE_CHECKING:
-    from worker.refine.prepare import Prepared
-    from worker.refine.run import ReplayRecord
+from worker.simulation.config import SimConfig
+from worker.simulation.replay import versions as replay_versions
 
 RESULT_KIND = "refine"
 #: verify tolerance on object positions (m): a re-simulation on the same build reproduces bit for bit; the
@@ -40,10 +44,6 @@ VERIFY_TOLERANCE_M = 1e-6
 
 def versions() -> dict[str, str]:
     """The raw replay's package versions plus the optimiser's."""
-    import cma
-
-    from worker.replay import versions as replay_versions
-
     return {**replay_versions(), "cma": str(cma.__version__).split()[0]}
 
 
@@ -75,11 +75,9 @@ def build_arrays(
         arrays[f"{s}_valid"] = ref.valid
         if getattr(ref, "from_mano", False):
             # The refined hand as MANO parameters (issue #6): exact because the scene used the MANO geometry.
-            from worker.mano.pose import mano_result_arrays
-
             hand = prep.seq.hand(s)
             assert hand is not None
-            arrays.update(mano_result_arrays(prep.seq, hand, p, r, q))
+            arrays.update(mano_result_arrays(prep.seq, hand, p, r, q, prep.mano_dir))
     for name, m in (("raw", m_raw), ("refined", m_ref)):
         for key, val in m["per_frame"].items():
             arrays[f"metrics_{name}_{key}"] = val
@@ -143,10 +141,8 @@ def build_summary(
     }
 
 
-def sim_config_from_summary(stored: dict[str, Any]) -> Any:
-    """The ``worker.scene.SimConfig`` a result was simulated with, from its summary's JSON form."""
-    from worker.scene import SimConfig
-
+def sim_config_from_summary(stored: dict[str, Any]) -> SimConfig:
+    """The ``SimConfig`` a result was simulated with, from its summary's JSON form."""
     sim: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in stored.items()}
     # Results made before the pivot was recorded turned the hand about the wrist; before the wrist lead was
     # recorded, the mocap followed the wrist track itself; before the rest pose, the object started from frame 0.
@@ -156,12 +152,12 @@ def sim_config_from_summary(stored: dict[str, Any]) -> Any:
     return SimConfig(**sim)
 
 
-def prepare_from_result(blob: bytes, sequence: Sequence | None = None) -> tuple[Prepared, dict[str, FloatArray]]:
-    """Rebuild a refinement result's scene and controls: the ``Prepared`` problem (same sequence, options and
-    simulation settings as the run) and the stored keyframes per hand side, checked against the stored
-    per-frame controls. Shared by ``verify_result`` and the visual tools (``worker.visual``)."""
-    from worker.refine.prepare import prepare
-
+def prepare_from_result(
+    blob: bytes, sequence: Sequence | None = None, *, cache_dir: Path | None = None, mano_dir: Path | None = None
+) -> tuple[Prepared, dict[str, FloatArray]]:
+    """Rebuild a refinement result's problem (same sequence, options and simulation settings as the run) and its
+    stored keyframes per hand side, checked against the stored per-frame controls (``cache_dir`` and
+    ``mano_dir`` as for ``prepare``). Shared by ``verify_result`` and the visual tools (``worker.visual``)."""
     summary = read_summary(blob)
     if summary.get("kind") != RESULT_KIND:
         raise UnsupportedFormatError(f"not a refinement result (kind {summary.get('kind')!r})")
@@ -171,8 +167,9 @@ def prepare_from_result(blob: bytes, sequence: Sequence | None = None) -> tuple[
             raise UnsupportedFormatError("the result embeds no sequence; pass --sequence")
         sequence = sequence_from_npz_bytes(arrays["sequence_npz"].tobytes())
     options = JobOptions.model_validate(summary["options"])
-    sim = sim_config_from_summary(summary["config"]["sim"])
-    prep = prepare(sequence, options, sim, rotation_pivot=summary["config"].get("rotation_pivot", "wrist"))
+    prep = prepare(sequence, options, sim_config_from_summary(summary["config"]["sim"]),
+                   rotation_pivot=summary["config"].get("rotation_pivot", "wrist"), cache_dir=cache_dir,
+                   mano_dir=mano_dir)  # fmt: skip
     keyframes = {}
     for side, space in prep.spaces.items():
         key = f"{side}_keyframes"
@@ -201,19 +198,17 @@ def compare_object_trajectory(stored: FloatArray, simulated: FloatArray) -> floa
     return float(diff.max())
 
 
-def verify_result(blob: bytes, sequence: Sequence | None = None) -> dict[str, Any]:
-    """Re-simulate a result's stored keyframes from frame 0 and compare the object trajectory.
+def verify_result(
+    blob: bytes, sequence: Sequence | None = None, *, cache_dir: Path | None = None, mano_dir: Path | None = None
+) -> dict[str, Any]:
+    """Re-simulate a result's stored keyframes from frame 0 and compare the object trajectory (``cache_dir`` and
+    ``mano_dir`` as for ``prepare``).
 
     Raises ``ResultMismatchError`` when the object trajectory (or the stored per-frame controls) differ.
     """
-    from worker.refine.evaluator import ParallelEvaluator
-    from worker.refine.prepare import initial_state
-    from worker.refine.run import replay
-
-    prep, keyframes = prepare_from_result(blob, sequence)
+    prep, keyframes = prepare_from_result(blob, sequence, cache_dir=cache_dir, mano_dir=mano_dir)
     with ParallelEvaluator(prep.scene.model, 1) as ev:
-        start, _ = initial_state(prep, ev)
+        start, _ = settled_start(prep, ev)
         rec = replay(prep, ev, start, keyframes, record_contacts=False)
     stored = read_arrays(blob)["object_pose_sim"]
-    worst = compare_object_trajectory(stored, rec.object_pose)
-    return {"frames": len(stored), "max_pos_diff_m": worst}
+    return {"frames": len(stored), "max_pos_diff_m": compare_object_trajectory(stored, rec.object_pose)}

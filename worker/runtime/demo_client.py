@@ -190,8 +190,8 @@ def run_demo(
         raise ConfigurationError("an API key is needed with a base URL (HOI_REFINE_API_KEY)")
     from common.result_format import read_summary
     from common.sequence_io import sequence_to_npz_bytes
-    from worker.cli_refine import format_metrics_table
-    from worker.example import example_sequence, short_example_sequence
+    from worker.commands.refine import print_refine_metrics
+    from worker.example.sequences import example_sequence, short_example_sequence
 
     seq = short_example_sequence() if short else example_sequence()
     client = ApiClient(base_url, api_key)
@@ -208,7 +208,7 @@ def run_demo(
         result_path, contacts_path = out / f"{seq.name}.result.npz", out / f"{seq.name}.contacts.json"
         result_path.write_bytes(blob)
         contacts_path.write_text(json.dumps(contacts, indent=1))
-        print(format_metrics_table(read_summary(blob)))
+        print_refine_metrics(read_summary(blob))
         print(f"result: {result_path}\ncontacts ({contacts['count']}): {contacts_path}")
         save_visuals(client, job["id"], blob, out, seq.name)
     finally:
@@ -231,9 +231,10 @@ def save_visuals(client: ApiClient, job_id: str, blob: bytes, out: Path, name: s
         source = "rendered by the worker"
     except HoiRefineError as exc:
         print(f"no stored preview ({exc}); rendering it here", file=sys.stderr)
+        from common.settings import get_settings
         from worker.visual import render_video, resimulate, write_plots
 
-        render_video(resimulate(blob), str(video))
+        render_video(resimulate(blob, cache_dir=get_settings().resolved_cache_dir()), str(video))
         plots = write_plots(blob, plot_dir)
         source = "rendered locally"
     print(f"video ({source}): {video}\nplots: {', '.join(str(p) for p in plots)}")

@@ -68,7 +68,9 @@ class RefineJob:
         import mujoco
 
         from common.sequence_io import sequence_from_npz_bytes
-        from worker.refine.run import ParallelEvaluator, refine_sequence
+        from common.settings import get_settings
+        from worker.refine.evaluator import ParallelEvaluator
+        from worker.refine.run import refine_sequence
 
         seq = sequence_from_npz_bytes(payload)
         if self._evaluator is None:
@@ -81,6 +83,8 @@ class RefineJob:
             progress=lambda p: progress(_progress_dict(p)),
             should_stop=should_stop,
             evaluator=self._evaluator,
+            cache_dir=get_settings().resolved_cache_dir(),
+            mano_dir=get_settings().mano_dir,
         )
         return outcome.to_npz_bytes(), dict(outcome.summary)
 
@@ -114,9 +118,12 @@ def refine_preview(result: bytes, options: JobOptions) -> list[Artifact]:
     """The preview stored with a refinement's result (``worker.visual.preview``), unless ``preview_video`` is off."""
     if not options.preview_video:
         return []
+    from common.settings import get_settings
     from worker.visual.preview import preview_artifacts
 
-    return [Artifact(a.name, a.content_type, a.data, len(a.data)) for a in preview_artifacts(result)]
+    settings = get_settings()
+    made = preview_artifacts(result, cache_dir=settings.resolved_cache_dir(), mano_dir=settings.mano_dir)
+    return [Artifact(a.name, a.content_type, a.data, len(a.data)) for a in made]
 
 
 def make_artifact_function(kind: str) -> ArtifactFn | None:

@@ -1,7 +1,8 @@
 """``hoi-refine render | view | plot | export``: see, plot and take away a refinement result (issue #18).
 
-Heavy imports stay inside the handlers so ``hoi-refine --help`` stays fast; the render commands choose the
-offscreen OpenGL backend before MuJoCo is imported (``worker.visual.gl``).
+Each command is a ``hoi_refine.commands`` entry point (``register_render`` etc.; pyproject.toml). Heavy imports
+stay inside the handlers so ``hoi-refine --help`` stays fast; the render commands choose the offscreen OpenGL
+backend before MuJoCo is imported (``worker.visual.gl``).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ RESULT_HELP = ("result file written by `hoi-refine refine` or downloaded from th
 SEQUENCE_HELP = "the sequence file the result was made from (default: the one a refinement result embeds)"
 
 
-def register(subparsers: Any) -> None:
+def register_render(subparsers: Any) -> None:
     r = subparsers.add_parser(
         "render",
         help="render a result to an MP4: raw replay and refined side by side",
@@ -37,6 +38,8 @@ def register(subparsers: Any) -> None:
     r.add_argument("--sequence", type=Path, default=None, help=SEQUENCE_HELP)
     r.set_defaults(func=_render)
 
+
+def register_view(subparsers: Any) -> None:
     v = subparsers.add_parser(
         "view",
         help="write a Rerun recording (.rrd) of a result, or open it in the Rerun viewer",
@@ -50,6 +53,8 @@ def register(subparsers: Any) -> None:
     v.add_argument("--sequence", type=Path, default=None, help=SEQUENCE_HELP)
     v.set_defaults(func=_view)
 
+
+def register_plot(subparsers: Any) -> None:
     p = subparsers.add_parser(
         "plot",
         help="PNG plots of a result: errors per frame, contact force per finger, loss history",
@@ -61,6 +66,8 @@ def register(subparsers: Any) -> None:
     p.add_argument("--out", type=Path, default=None, help="folder to write into (default: RESULT_plots/ beside it)")
     p.set_defaults(func=_plot)
 
+
+def register_export(subparsers: Any) -> None:
     e = subparsers.add_parser(
         "export",
         help="a self-contained folder: MJCF scene, controls, trajectories and a replay script (mujoco + numpy)",
@@ -73,6 +80,14 @@ def register(subparsers: Any) -> None:
     e.add_argument("--out", type=Path, default=None, help="folder to write (default: RESULT_export/ beside it)")
     e.add_argument("--sequence", type=Path, default=None, help=SEQUENCE_HELP)
     e.set_defaults(func=_export)
+
+
+def _folders() -> dict[str, Any]:
+    """The configured convex-decomposition cache and MANO folder (``HOI_REFINE_*``), as ``verify`` passes them."""
+    from common.settings import get_settings
+
+    settings = get_settings()
+    return {"cache_dir": settings.resolved_cache_dir(), "mano_dir": settings.mano_dir}
 
 
 def _beside(result: Path, suffix: str) -> Path:
@@ -110,7 +125,7 @@ def _render(args: argparse.Namespace) -> int:
     except argparse.ArgumentTypeError as exc:
         raise InvalidRequestError.single("size", str(exc)) from None
     which = None if args.which == "both" else (args.which,)
-    pb = resimulate(load_result(args.result), _sequence(args), which=which)
+    pb = resimulate(load_result(args.result), _sequence(args), which=which, **_folders())
     panels = list(pb.trajectories)
     try:
         camera = parse_camera(args.camera, pb)
@@ -126,7 +141,7 @@ def _view(args: argparse.Namespace) -> int:
     from worker.visual.playback import load_result, resimulate
     from worker.visual.rerun_log import write_recording
 
-    pb = resimulate(load_result(args.result), _sequence(args))
+    pb = resimulate(load_result(args.result), _sequence(args), **_folders())
     out = args.out or _beside(args.result, ".rrd")
     write_recording(pb, out, spawn=args.spawn)
     print(f"wrote {out} (open it with `rerun {out}`)")
@@ -148,6 +163,6 @@ def _export(args: argparse.Namespace) -> int:
     from worker.visual.playback import load_result
 
     out = args.out or _beside(args.result, "_export")
-    export_result(load_result(args.result), out, _sequence(args))
+    export_result(load_result(args.result), out, _sequence(args), **_folders())
     print(f"wrote {out}/ (replay it anywhere with `python {out / 'replay.py'}`: needs only mujoco and numpy)")
     return 0

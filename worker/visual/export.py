@@ -35,15 +35,20 @@ from worker.visual.playback import Playback, main_trajectory, resimulate
 FILES: tuple[str, ...] = ("scene.xml", "controls.npz", "trajectories.npz", "contacts.npz", "export.json", "replay.py")
 
 
-def export_result(blob: bytes, out_dir: Path | str, sequence: Sequence | None = None) -> Path:
-    """Write the export folder of a result (the refined trajectory, or a raw replay's); returns its path."""
+def export_result(
+    blob: bytes, out_dir: Path | str, sequence: Sequence | None = None, *, cache_dir: Path | None = None,
+    mano_dir: Path | None = None,
+) -> Path:
+    """Write the export folder of a result (the refined trajectory, or a raw replay's); returns its path.
+    ``cache_dir``, ``mano_dir``: as for ``resimulate``."""
     main = main_trajectory(read_summary(blob))
-    return export_playback(resimulate(blob, sequence, which=(main,), record_controls=True), out_dir)
+    pb = resimulate(blob, sequence, which=(main,), record_controls=True, cache_dir=cache_dir, mano_dir=mano_dir)
+    return export_playback(pb, out_dir)
 
 
 def export_playback(pb: Playback, out_dir: Path | str) -> Path:
     """``export_result`` from a playback re-simulated with ``record_controls=True``."""
-    from worker.object_model import OBJECT_BODY
+    from worker.simulation.object_model import OBJECT_BODY
 
     if pb.controls is None:
         raise ValueError("the playback holds no controls: resimulate(..., record_controls=True)")

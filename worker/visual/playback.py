@@ -14,15 +14,16 @@ from __future__ import annotations
 
 from collections.abc import Sequence as Seq
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import mujoco
 import numpy as np
 
 from common.errors import UnsupportedFormatError
+from common.geometry import FloatArray
 from common.result_format import read_arrays, read_summary
 from common.sequence import Sequence
-from worker.hand_model import FloatArray
 
 TRAJECTORIES: tuple[str, ...] = ("raw", "refined")
 
@@ -78,8 +79,6 @@ def load_result(path_or_blob: Any) -> bytes:
     """Result bytes from a path or bytes, with a clear error for a file that is not a result."""
     if isinstance(path_or_blob, bytes | bytearray):
         return bytes(path_or_blob)
-    from pathlib import Path
-
     path = Path(path_or_blob)
     if not path.is_file():
         raise UnsupportedFormatError(f"{path}: no such result file")
@@ -91,13 +90,15 @@ def main_trajectory(summary: dict[str, Any]) -> str:
     return "raw" if summary.get("kind") == "replay" else "refined"
 
 
-def _prepare(blob: bytes, summary: dict[str, Any], sequence: Sequence | None) -> tuple[Any, dict[str, FloatArray]]:
+def _prepare(
+    blob: bytes, summary: dict[str, Any], sequence: Sequence | None, cache_dir: Path | None, mano_dir: Path | None
+) -> tuple[Any, dict[str, FloatArray]]:
     """The ``Prepared`` problem and the keyframes of the stored trajectory (zero offsets for a raw replay)."""
     from worker.refine.result import RESULT_KIND, prepare_from_result, sim_config_from_summary
 
     kind = summary.get("kind")
     if kind == RESULT_KIND:
-        return prepare_from_result(blob, sequence)
+        return prepare_from_result(blob, sequence, cache_dir=cache_dir, mano_dir=mano_dir)
     if kind != "replay":
         raise UnsupportedFormatError(f"not a refinement or raw-replay result (kind {kind!r})")
     if sequence is None:
@@ -106,7 +107,8 @@ def _prepare(blob: bytes, summary: dict[str, Any], sequence: Sequence | None) ->
     from worker.refine.prepare import prepare
 
     # The refinement's zero-offset replay is the raw replay (same controls, same start): checked below.
-    prep = prepare(sequence, JobOptions(), sim_config_from_summary(summary["config"]))
+    prep = prepare(sequence, JobOptions(), sim_config_from_summary(summary["config"]), cache_dir=cache_dir,
+                   mano_dir=mano_dir)  # fmt: skip
     return prep, {side: sp.zero_keyframes() for side, sp in prep.spaces.items()}
 
 
@@ -115,16 +117,20 @@ def resimulate(
     sequence: Sequence | None = None,
     which: Seq[str] | None = None,
     record_controls: bool = False,
+    *,
+    cache_dir: Path | None = None,
+    mano_dir: Path | None = None,
 ) -> Playback:
     """Rebuild a result's scene and re-simulate the trajectories named in ``which`` (default: all it has — raw
     and refined for a refinement, raw for a raw replay; see the module docstring). ``record_controls`` also keeps
     the stored trajectory's per-step controls (``Playback.controls``, for ``export``). ``sequence``: the input,
-    when the result does not embed it (raw replays)."""
-    from worker.metrics import rotation_error_deg
+    when the result does not embed it (raw replays). ``cache_dir`` (convex parts) and ``mano_dir`` (MANO
+    model): as for ``worker.refine.prepare.prepare``; the commands pass the configured folders."""
+    from common.geometry import rotation_error_deg
     from worker.refine.evaluator import CONTROL_SPEC, ParallelEvaluator
-    from worker.refine.prepare import initial_state
+    from worker.refine.prepare import settled_start
+    from worker.refine.replay import replay
     from worker.refine.result import compare_object_trajectory
-    from worker.refine.run import replay
 
     summary = read_summary(blob)
     arrays = read_arrays(blob)
@@ -134,7 +140,7 @@ def resimulate(
     unknown = [w for w in which if w not in available]
     if unknown or not which:
         raise UnsupportedFormatError(f"this result has the trajectories {list(available)}, not {list(which)}")
-    prep, keyframes = _prepare(blob, summary, sequence)
+    prep, keyframes = _prepare(blob, summary, sequence, cache_dir, mano_dir)
     ref_pose = prep.obj_targets_pose()
     out = Playback(
         scene=prep.scene,
@@ -148,7 +154,7 @@ def resimulate(
     s = prep.scene.substeps_per_frame
     n_frames = prep.num_frames
     with ParallelEvaluator(model, 1) as ev:
-        start, _ = initial_state(prep, ev)
+        start, _ = settled_start(prep, ev)
         for name in which:
             offsets = keyframes if name == "refined" else {k: sp.zero_keyframes() for k, sp in prep.spaces.items()}
             qpos = np.empty((n_frames, model.nq))
@@ -194,7 +200,7 @@ def resimulate(
 
 def finger_of_body(body: str) -> str:
     """The finger a hand body belongs to (``right_index2`` -> ``index``), ``palm`` for the palm."""
-    from worker.hand_model import FINGERS
+    from worker.hand.model import FINGERS
 
     name = body.split("_", 1)[-1]
     for finger in FINGERS:
@@ -205,7 +211,7 @@ def finger_of_body(body: str) -> str:
 
 def contact_force_per_finger(contacts: dict[str, np.ndarray], num_frames: int) -> dict[str, FloatArray]:
     """Summed contact force magnitude (N) per finger (and palm) per frame, over both hands."""
-    from worker.hand_model import FINGERS
+    from worker.hand.model import FINGERS
 
     out = {name: np.zeros(num_frames) for name in (*FINGERS, "palm")}
     frames = np.asarray(contacts["contact_frame"], dtype=np.int64)

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from common.result_format import read_arrays, read_summary
-from worker.metrics import SUCCESS_POSITION_CM, SUCCESS_ROTATION_DEG
+from worker.simulation.metrics import SUCCESS_POSITION_CM, SUCCESS_ROTATION_DEG
 from worker.visual.playback import contact_force_per_finger
 
 PLOT_NAMES: tuple[str, ...] = ("errors.png", "contact_forces.png", "loss_history.png")

@@ -32,8 +32,12 @@ def preview_artifacts(
     size: tuple[int, int] = PREVIEW_SIZE,
     recording: bool = True,
     export: bool = True,
+    *,
+    cache_dir: Path | None = None,
+    mano_dir: Path | None = None,
 ) -> list[PreviewArtifact]:
-    """The preview of a refinement result: video, plots and (optionally) recording and export."""
+    """The preview of a refinement result: video, plots and (optionally) recording and export. ``cache_dir``,
+    ``mano_dir``: as for ``resimulate``."""
     from worker.visual.gl import prefer_offscreen_backend
 
     prefer_offscreen_backend()
@@ -44,7 +48,7 @@ def preview_artifacts(
     from worker.visual.rerun_log import write_recording
 
     out: list[PreviewArtifact] = []
-    pb = resimulate(blob, record_controls=export)
+    pb = resimulate(blob, record_controls=export, cache_dir=cache_dir, mano_dir=mano_dir)
     with tempfile.TemporaryDirectory(prefix="hoi-refine-preview-") as tmp:
         root = Path(tmp)
         render_video(pb, str(root / VIDEO), ("raw", "refined"), size[0], size[1])

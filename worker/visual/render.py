@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from worker.hand_model import FloatArray
+from common.geometry import FloatArray
 from worker.visual.playback import Playback, Trajectory
 from worker.visual.video import Frame
 

@@ -20,7 +20,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from worker.hand_model import FloatArray
+from common.geometry import FloatArray
 from worker.visual.playback import Playback, contact_force_per_finger
 from worker.visual.render import FORCE_ARROW_M_PER_N
 

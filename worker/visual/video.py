@@ -50,10 +50,20 @@ def write_mp4(frames: Iterable[Frame], path: Path | str, fps: float, quality: in
 
 def read_mp4(path: Path | str) -> tuple[npt.NDArray[np.uint8], float]:
     """All frames of a video as (N, H, W, 3) uint8 and its frame rate (for checks and tests)."""
+    import subprocess
+
     import imageio_ffmpeg
 
+    # The size and rate from imageio-ffmpeg's header parsing; closing the generator at once stops its ffmpeg.
+    # The frames from one ffmpeg run whose pipes subprocess closes (imageio-ffmpeg's reader leaves a finished
+    # process's stdout open).
     reader = imageio_ffmpeg.read_frames(str(path))
-    meta = next(reader)
+    try:
+        meta = next(reader)
+    finally:
+        reader.close()
     w, h = meta["size"]
-    frames = [np.frombuffer(buf, dtype=np.uint8).reshape(h, w, 3) for buf in reader]
-    return np.asarray(frames), float(meta["fps"])
+    cmd = [imageio_ffmpeg.get_ffmpeg_exe(), "-v", "error", "-i", str(path), "-f", "rawvideo", "-pix_fmt", "rgb24", "-"]
+    raw = subprocess.run(cmd, capture_output=True, check=True).stdout
+    frames = np.frombuffer(raw, dtype=np.uint8).reshape(-1, h, w, 3)
+    return frames, float(meta["fps"])
