@@ -90,13 +90,16 @@ def _from_json(body: bytes, settings: Settings) -> tuple[Sequence, JobOptions]:
 
 async def _read_multipart(request: Request, settings: Settings) -> tuple[bytes, JobOptions]:
     form = await request.form(max_files=1, max_fields=10, max_part_size=1024 * 1024)
-    seq_part = form.get("sequence")
-    if seq_part is None:
-        raise _invalid([FieldProblem("sequence", "is required (a file part holding the sequence NPZ)")])
-    blob = await seq_part.read() if isinstance(seq_part, UploadFile) else seq_part.encode()
-    raw_options = form.get("options")
-    if isinstance(raw_options, UploadFile):
-        raw_options = (await raw_options.read()).decode(errors="replace")
+    try:
+        seq_part = form.get("sequence")
+        if seq_part is None:
+            raise _invalid([FieldProblem("sequence", "is required (a file part holding the sequence NPZ)")])
+        blob = await seq_part.read() if isinstance(seq_part, UploadFile) else seq_part.encode()
+        raw_options = form.get("options")
+        if isinstance(raw_options, UploadFile):
+            raw_options = (await raw_options.read()).decode(errors="replace")
+    finally:
+        await form.close()  # the uploaded parts' temporary files; nothing else closes a form read by hand
     try:
         options = JobOptions.model_validate_json(raw_options) if raw_options else JobOptions()
     except ValidationError as exc:
