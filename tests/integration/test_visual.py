@@ -150,6 +150,21 @@ def test_plots_and_the_cli(short_refine_result: bytes, tmp_path: Path, capsys: p
     assert cli_main(["render", str(tmp_path / "missing.npz")]) == 2
 
 
+@pytest.mark.usefixtures("osmesa_gl")
+def test_the_osmesa_fallback_renders_the_same_video(short_refine_result: bytes, tmp_path: Path) -> None:
+    """``MUJOCO_GL=osmesa`` (set before the process starts, as the help says) renders through Debian's OSMesa."""
+    result = tmp_path / "short.npz"
+    result.write_bytes(short_refine_result)
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "MUJOCO_GL": "osmesa", "PYOPENGL_PLATFORM": "osmesa", "PYTHONPATH": str(root)}
+    code = f"import sys; from common.cli import main; sys.exit(main(['render', {str(result)!r}, '--size', '96x64']))"
+    run = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    frames, _ = read_mp4(tmp_path / "short.mp4")
+    assert frames.shape == (read_summary(short_refine_result)["frames"], 64, 192, 3)
+    assert frames.std() > 10
+
+
 @pytest.mark.usefixtures("offscreen_gl")
 def test_a_raw_replay_result_with_its_sequence(tmp_path: Path) -> None:
     from common.sequence_io import sequence_to_npz_bytes

@@ -39,11 +39,24 @@ assert renderer.render().shape == (32, 32, 3)
 """
 
 
-def _gl_works() -> tuple[bool, str]:
-    root = ROOT
-    run = subprocess.run([sys.executable, "-c", _PROBE], cwd=root, capture_output=True, text=True, timeout=120,
-                         env={**os.environ, "PYTHONPATH": str(root)})  # fmt: skip
+def _gl_works(backend: str | None = None) -> tuple[bool, str]:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    if backend is not None:
+        env.update(MUJOCO_GL=backend, PYOPENGL_PLATFORM=backend)
+    run = subprocess.run([sys.executable, "-c", _PROBE], cwd=ROOT, capture_output=True, text=True, timeout=120,
+                         env=env)  # fmt: skip
     return run.returncode == 0, run.stderr.strip()[-500:]
+
+
+def apt_install(*packages: str) -> None:
+    """``apt-get install`` (after ``apt-get update`` when the first try fails) when running as root; else nothing."""
+    if not (hasattr(os, "geteuid") and os.geteuid() == 0 and shutil.which("apt-get")):
+        return
+    env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
+    cmd = ["apt-get", "install", "-y", "-q", "--no-install-recommends", *packages]
+    if subprocess.run(cmd, env=env, capture_output=True, timeout=900).returncode != 0:
+        subprocess.run(["apt-get", "update", "-q"], env=env, capture_output=True, timeout=600)
+        subprocess.run(cmd, env=env, capture_output=True, timeout=900)
 
 
 @pytest.fixture(scope="session")
@@ -51,15 +64,22 @@ def offscreen_gl() -> None:
     """Offscreen OpenGL for MuJoCo (EGL, or ``MUJOCO_GL=osmesa``), probed in a subprocess; installs Mesa's EGL with
     apt when it is missing and this runs as root; otherwise the rendering tests skip."""
     ok, why = _gl_works()
-    if not ok and hasattr(os, "geteuid") and os.geteuid() == 0 and shutil.which("apt-get"):
-        env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
-        cmd = ["apt-get", "install", "-y", "-q", "--no-install-recommends", *GL_PACKAGES]
-        if subprocess.run(cmd, env=env, capture_output=True, timeout=900).returncode != 0:
-            subprocess.run(["apt-get", "update", "-q"], env=env, capture_output=True, timeout=600)
-            subprocess.run(cmd, env=env, capture_output=True, timeout=900)
+    if not ok:
+        apt_install(*GL_PACKAGES)
         ok, why = _gl_works()
     if not ok:
         pytest.skip(f"no offscreen OpenGL for MuJoCo here: {why}")
+
+
+@pytest.fixture(scope="session")
+def osmesa_gl() -> None:
+    """The OSMesa fallback (Debian's ``libosmesa6``, installed with apt as root when missing), or a skip."""
+    ok, why = _gl_works("osmesa")
+    if not ok:
+        apt_install("libosmesa6")
+        ok, why = _gl_works("osmesa")
+    if not ok:
+        pytest.skip(f"OSMesa is not available here: {why}")
 
 
 @pytest.fixture(scope="session")
