@@ -237,6 +237,15 @@ class ApiClient:
         """``GET /v1/jobs/{id}/result?format=npz``: the result file (``common.result_format``)."""
         return self.request("GET", f"/v1/jobs/{job_id}/result", params={"format": "npz"}).content
 
+    def file(self, job_id: str, name: str) -> bytes:
+        """A file stored beside the result: ``video``, ``recording``, ``export`` or ``plots/NAME.png``."""
+        return self.request("GET", f"/v1/jobs/{job_id}/{name}").content
+
+    def plots(self, job_id: str) -> list[dict[str, Any]]:
+        """``GET /v1/jobs/{id}/plots``: the names (and sizes) of the job's plots."""
+        plots = self.request("GET", f"/v1/jobs/{job_id}/plots").json().get("plots", [])
+        return [p for p in plots if isinstance(p, dict)]
+
     def contacts(self, job_id: str, start: int | None = None, end: int | None = None) -> Any:
         params = {k: v for k, v in (("start", start), ("end", end)) if v is not None}
         return self.request("GET", f"/v1/jobs/{job_id}/contacts", params=params).json()

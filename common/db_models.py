@@ -137,6 +137,22 @@ class JobResult(Base):
     created_at: Mapped[datetime]
 
 
+class JobArtifact(Base):
+    """A file made beside a job's result (``name`` e.g. ``video.mp4``, ``plots/errors.png``): written with the
+    result in the same transaction, deleted with the job."""
+
+    __tablename__ = "job_artifacts"
+
+    job_id: Mapped[str] = mapped_column(
+        sa.String(32), sa.ForeignKey("jobs.id", ondelete="CASCADE"), primary_key=True
+    )
+    name: Mapped[str] = mapped_column(sa.String(100), primary_key=True)
+    content_type: Mapped[str] = mapped_column(sa.String(100))
+    data: Mapped[bytes] = mapped_column(sa.LargeBinary)
+    size_bytes: Mapped[int] = mapped_column(sa.Integer)
+    created_at: Mapped[datetime]
+
+
 class JobEvent(Base):
     """Append-only log of state changes. No foreign key: a deleted job's history stays readable."""
 

@@ -42,6 +42,12 @@ class JobOptions(BaseModel):
         "within 3 cm / 30 deg); the best attempt is kept",
     )  # fmt: skip
     priority: int = Field(default=0, ge=-100, le=100, description="Higher runs first (queue only)")
+    preview_video: bool = Field(
+        default=True,
+        description="After the job succeeds, the worker also renders a preview video (320x240 per panel, raw vs "
+        "refined), plots, a Rerun recording and a plain-MuJoCo export, served under /v1/jobs/{id}/video etc. "
+        "(the service only; no effect on the result)",
+    )
 
     def model_post_init(self, __context: object) -> None:
         for name, weight in self.loss_weights.items():

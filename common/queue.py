@@ -24,7 +24,7 @@ import json
 import re
 import secrets
 import uuid
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from datetime import datetime, timedelta
 from typing import Any, cast
@@ -33,7 +33,7 @@ import sqlalchemy as sa
 from sqlalchemy.engine import Connection, Engine, Row
 
 from common.database import IMMEDIATE
-from common.db_models import Job, JobEvent, JobInput, JobResult, utcnow
+from common.db_models import Job, JobArtifact, JobEvent, JobInput, JobResult, utcnow
 from common.errors import (
     ConflictError,
     FieldProblem,
@@ -45,7 +45,7 @@ from common.errors import (
 )
 from common.job_options import JobOptions
 from common.job_state import ACTIVE, JobState
-from common.queue_types import ClaimedJob, JobEventRecord, JobRecord, QueueStats
+from common.queue_types import Artifact, ClaimedJob, JobEventRecord, JobRecord, QueueStats
 from common.safe_text import shown
 from common.settings import Settings, get_settings
 
@@ -54,6 +54,7 @@ jobs = cast(sa.Table, Job.__table__)
 inputs = cast(sa.Table, JobInput.__table__)
 results = cast(sa.Table, JobResult.__table__)
 events = cast(sa.Table, JobEvent.__table__)
+artifacts = cast(sa.Table, JobArtifact.__table__)
 
 MAX_PAGE_SIZE = 500
 
@@ -202,6 +203,33 @@ class JobQueue:
             raise ConflictError(f"job {job_id} is {job.state}; a result exists only once it has SUCCEEDED")
         return bytes(row.result), dict(row.summary)
 
+    def list_artifacts(self, owner_key_id: str | None, job_id: str) -> builtins.list[Artifact]:
+        """Names, types and sizes (no data) of a job's artifacts, by name; empty before it SUCCEEDED."""
+        with self._read() as conn:
+            self._get(conn, job_id, owner_key_id)
+            rows = conn.execute(
+                sa.select(artifacts.c.name, artifacts.c.content_type, artifacts.c.size_bytes)
+                .where(artifacts.c.job_id == job_id)
+                .order_by(artifacts.c.name)
+            ).all()
+        return [Artifact(r.name, r.content_type, b"", r.size_bytes) for r in rows]
+
+    def get_artifact(self, owner_key_id: str | None, job_id: str, name: str) -> Artifact:
+        """One artifact with its data; ``ConflictError`` before the job SUCCEEDED, ``NotFoundError`` when the
+        job has no such artifact (e.g. it ran with ``preview_video`` off)."""
+        with self._read() as conn:
+            job = self._get(conn, job_id, owner_key_id)
+            row = conn.execute(
+                sa.select(artifacts.c.content_type, artifacts.c.data, artifacts.c.size_bytes).where(
+                    artifacts.c.job_id == job_id, artifacts.c.name == name
+                )
+            ).first()
+        if job.state != JobState.SUCCEEDED:
+            raise ConflictError(f"job {job_id} is {job.state}; its files exist only once it has SUCCEEDED")
+        if row is None:
+            raise NotFoundError(f"job {job_id} has no {name!r} (the preview may have been skipped or failed)")
+        return Artifact(name, row.content_type, bytes(row.data), row.size_bytes)
+
     def get_payload(self, job_id: str) -> bytes:
         _require_plain_id(job_id)
         with self._read() as conn:
@@ -320,8 +348,12 @@ class JobQueue:
             .values(lease_token=None, lease_expires_at=None, updated_at=values.pop("now"), **values)
         )
 
-    def complete(self, job_id: str, lease_token: str, result: bytes, summary: dict[str, Any]) -> None:
-        """Store the result and mark SUCCEEDED (token-checked)."""
+    def complete(
+        self, job_id: str, lease_token: str, result: bytes, summary: dict[str, Any],
+        artifacts: Sequence[Artifact] = (),
+    ) -> None:
+        """Store the result (and its artifacts: preview video, plots, ...) and mark SUCCEEDED, all in one
+        token-checked transaction."""
         now = utcnow()
         with self._write() as conn:
             self._lease_row(conn, job_id, lease_token)
@@ -331,8 +363,23 @@ class JobQueue:
                     job_id=job_id, result=result, size_bytes=len(result), summary=summary, created_at=now
                 )
             )
+            self._store_artifacts(conn, job_id, artifacts, now)
             self._settle(conn, job_id, lease_token, now=now, state=JobState.SUCCEEDED, finished_at=now)
             self._event(conn, job_id, "succeeded", now, result_bytes=len(result))
+
+    @staticmethod
+    def _store_artifacts(conn: Connection, job_id: str, items: Sequence[Artifact], now: datetime) -> None:
+        names = [a.name for a in items]
+        if len(set(names)) != len(names):
+            raise ValueError(f"artifact names must be unique, got {names}")
+        conn.execute(sa.delete(artifacts).where(artifacts.c.job_id == job_id))
+        for a in items:
+            conn.execute(
+                sa.insert(artifacts).values(
+                    job_id=job_id, name=a.name, content_type=a.content_type, data=a.data, size_bytes=len(a.data),
+                    created_at=now,
+                )
+            )  # fmt: skip
 
     def fail(self, job_id: str, lease_token: str, error: str, retryable: bool = False) -> None:
         """Record an error; retryable errors requeue with backoff until ``max_attempts``, then FAILED."""
@@ -498,6 +545,7 @@ class JobQueue:
                 raise ConflictError(f"job {job_id} is {state}; cancel it first (only finished jobs can be deleted)")
             conn.execute(sa.delete(inputs).where(inputs.c.job_id == job_id))
             conn.execute(sa.delete(results).where(results.c.job_id == job_id))
+            conn.execute(sa.delete(artifacts).where(artifacts.c.job_id == job_id))
             conn.execute(sa.delete(jobs).where(jobs.c.id == job_id))
             self._event(conn, job_id, "deleted", now, state=state)
 

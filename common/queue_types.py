@@ -45,6 +45,16 @@ class JobRecord:
 
 
 @dataclass(frozen=True)
+class Artifact:
+    """A file stored beside a job's result (``common.db_models.JobArtifact``); ``data`` empty in listings."""
+
+    name: str
+    content_type: str
+    data: bytes = b""
+    size_bytes: int = 0
+
+
+@dataclass(frozen=True)
 class ClaimedJob:
     """What a worker gets from ``claim``: everything needed to run the job and to prove its lease."""
 

@@ -22,7 +22,7 @@ from common.settings import Settings, get_settings
 from service.metrics import make_registry
 from service.middleware import BodySizeLimit, CatchAll
 from service.problems import install_problem_handlers
-from service.routes import jobs, ops
+from service.routes import artifacts, dashboard, jobs, ops
 from service.schemas import JobCreate
 
 API_VERSION = "1.0.0"
@@ -56,7 +56,9 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None) -
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_request_bytes)
     app.add_middleware(CatchAll)  # added last: the outermost of ours, so it sees every escaped exception
     app.include_router(jobs.router)
+    app.include_router(artifacts.router)
     app.include_router(ops.router)
+    app.include_router(dashboard.router)
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app
 

@@ -192,6 +192,17 @@ class MetricsPublic(BaseModel):
     metrics: dict[str, Any] = Field(description="``raw`` (reference replay) and ``refined`` metrics, DESIGN §1.8")
 
 
+class PlotPublic(BaseModel):
+    name: str = Field(description="file name, e.g. errors.png")
+    url: str = Field(description="where to GET the PNG (same API key)")
+    size_bytes: int
+
+
+class PlotsPublic(BaseModel):
+    job_id: str
+    plots: list[PlotPublic]
+
+
 class ResultJson(BaseModel):
     job_id: str
     summary: dict[str, Any]

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from common.api_client import ApiClient
-from common.errors import ConfigurationError
+from common.errors import ConfigurationError, HoiRefineError
 from common.job_options import JobOptions
 from common.job_state import JobState
 
@@ -150,11 +150,37 @@ def run_demo(
             return 1
         blob = client.result(job["id"])
         contacts = client.contacts(job["id"])
+        result_path, contacts_path = out / f"{seq.name}.result.npz", out / f"{seq.name}.contacts.json"
+        result_path.write_bytes(blob)
+        contacts_path.write_text(json.dumps(contacts, indent=1))
+        print_refine_metrics(read_summary(blob))
+        print(f"result: {result_path}\ncontacts ({contacts['count']}): {contacts_path}")
+        save_visuals(client, job["id"], blob, out, seq.name)
     finally:
         client.close()
-    result_path, contacts_path = out / f"{seq.name}.result.npz", out / f"{seq.name}.contacts.json"
-    result_path.write_bytes(blob)
-    contacts_path.write_text(json.dumps(contacts, indent=1))
-    print_refine_metrics(read_summary(blob))
-    print(f"result: {result_path}\ncontacts ({contacts['count']}): {contacts_path}")
     return 0
+
+
+def save_visuals(client: ApiClient, job_id: str, blob: bytes, out: Path, name: str) -> tuple[Path, list[Path]]:
+    """Save the preview video and plots the worker stored with the job (``GET /v1/jobs/{id}/video``, ``/plots``);
+    when the job has none (``preview_video`` off, or no OpenGL on the worker) make them here from the result."""
+    video, plot_dir = out / f"{name}.mp4", out / f"{name}_plots"
+    plot_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        video.write_bytes(client.file(job_id, "video"))
+        plots = []
+        for plot in client.plots(job_id):
+            path = plot_dir / plot["name"]
+            path.write_bytes(client.file(job_id, f"plots/{plot['name']}"))
+            plots.append(path)
+        source = "rendered by the worker"
+    except HoiRefineError as exc:
+        print(f"no stored preview ({exc}); rendering it here", file=sys.stderr)
+        from common.settings import get_settings
+        from worker.visual import render_video, resimulate, write_plots
+
+        render_video(resimulate(blob, cache_dir=get_settings().resolved_cache_dir()), str(video))
+        plots = write_plots(blob, plot_dir)
+        source = "rendered locally"
+    print(f"video ({source}): {video}\nplots: {', '.join(str(p) for p in plots)}")
+    return video, plots

@@ -228,7 +228,7 @@ def _run(
             # The lines a user (and the acceptance test) reads: where the API is and how to call it.
             pool_cfg = config.pool
             print(f"workers: {pool_cfg.workers} x {pool_cfg.threads_per_worker} thread(s); Ctrl-C stops", flush=True)
-            print(f"hoi-refine API: {base_url}  (docs: {base_url}/docs)", flush=True)
+            print(f"hoi-refine API: {base_url}  (docs: {base_url}/docs, dashboard: {base_url}/ui)", flush=True)
             print(f"development API key: {key}", flush=True)
             print(f"  export HOI_REFINE_API_URL={base_url} HOI_REFINE_API_KEY={key}", flush=True)
             # ray.init installs its own fatal-signal handler for SIGTERM (it aborts the process); ours again.
