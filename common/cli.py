@@ -19,7 +19,10 @@ from common.errors import ConfigurationError, HoiRefineError
 #: The entry-point group that names every subcommand.
 COMMAND_GROUP = "hoi_refine.commands"
 #: The order subcommands are listed in ``--help``: the science a user starts with, then the service.
-HELP_ORDER = ("inspect", "replay", "refine", "verify", "demo", "submit", "up", "serve", "worker", "ray-head", "keys")
+HELP_ORDER = (
+    "inspect", "replay", "refine", "verify", "render", "view", "plot", "export", "demo", "submit", "up", "serve",
+    "worker", "ray-head", "keys",
+)  # fmt: skip
 
 
 def build_parser() -> argparse.ArgumentParser:

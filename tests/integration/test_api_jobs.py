@@ -182,7 +182,8 @@ def test_health_readiness_and_prometheus_metrics(api: ApiHarness) -> None:
     lease = api.queue.claim("w")
     assert lease is not None
     api.queue.complete(lease.job_id, lease.lease_token, *fake_result())
-    text = api.client.get("/metrics").text
+    assert api.client.get("/metrics").status_code == 401  # deployment-wide totals: a key is needed
+    text = api.client.get("/metrics", headers=api.headers).text
     assert 'hoi_refine_jobs{state="SUCCEEDED"} 1.0' in text and 'hoi_refine_jobs{state="QUEUED"} 0.0' in text
     assert "hoi_refine_claims_total 1.0" in text
     assert "hoi_refine_queue_wait_seconds_count 1.0" in text and "hoi_refine_run_seconds_count 1.0" in text

@@ -24,6 +24,8 @@ import sqlalchemy as sa
 import uvicorn
 from rich.console import Console
 
+from common.api_client import ApiClient
+from common.api_key_store import ApiKeyStore
 from common.database import create_engine_for
 from common.errors import InputError
 from common.job_options import JobOptions
@@ -33,7 +35,6 @@ from common.sequence_io import save_sequence, sequence_from_npz_bytes
 from common.settings import Settings
 from service.app import create_app
 from service.submit import cli as submit_cli
-from service.submit.client import ApiClient
 from service.submit.manifest import Manifest
 from service.submit.runner import SubmitConfig, SubmitOutcome, run_submit
 from tests.support.queue_fixtures import tiny_sequence
@@ -70,7 +71,7 @@ class Deployment:
         self.api_engine = create_engine_for(db_url)
         self.worker_engine = create_engine_for(db_url)
         self.queue = JobQueue(self.worker_engine, self.settings)
-        self.key_id, self.key = self.queue.create_api_key("bulk")
+        self.key_id, self.key = ApiKeyStore(self.worker_engine).create("bulk")
         self.throttled = 0  # 429 answers the tool met
         sock = socket.socket()
         sock.bind(("127.0.0.1", 0))

@@ -13,10 +13,10 @@ from pathlib import Path
 import pytest
 from rich.console import Console
 
+from common.api_client import ApiClient, RetryPolicy
 from common.database import create_engine_for
 from common.queue import JobQueue
 from common.sequence_io import save_sequence
-from service.submit.client import ApiClient, RetryPolicy
 from service.submit.manifest import Manifest
 from service.submit.runner import SubmitConfig, SubmitOutcome, run_submit
 from tests.support.queue_fixtures import ApiHarness, fake_result, tiny_sequence

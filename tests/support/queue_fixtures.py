@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 import sqlalchemy as sa
 
+from common.api_key_store import ApiKeyStore
 from common.database import create_engine_for, upgrade_to_head
 from common.job_options import JobOptions
 from common.queue import JobQueue
@@ -119,8 +120,13 @@ def queue(db_url: str, queue_settings: Settings) -> Iterator[JobQueue]:
 
 
 @pytest.fixture
-def owner(queue: JobQueue) -> str:
-    return queue.create_api_key("tests")[0]
+def keys(queue: JobQueue) -> ApiKeyStore:
+    return ApiKeyStore(queue.engine)
+
+
+@pytest.fixture
+def owner(keys: ApiKeyStore) -> str:
+    return keys.create("tests")[0]
 
 
 def submit_tiny(queue: JobQueue, owner: str, seed: int = 0, key: str | None = None, priority: int = 0) -> str:
@@ -135,11 +141,12 @@ class ApiHarness:
 
     client: Any
     queue: JobQueue
+    keys: ApiKeyStore
     key_id: str
     headers: dict[str, str]
 
     def other_key_headers(self) -> dict[str, str]:
-        _, plaintext = self.queue.create_api_key("another client")
+        _, plaintext = self.keys.create("another client")
         return {"Authorization": f"Bearer {plaintext}"}
 
 
@@ -157,7 +164,8 @@ def api(db_url: str, api_settings: Settings) -> Iterator[ApiHarness]:
     engine = create_engine_for(db_url)
     app = create_app(api_settings, engine)
     queue: JobQueue = app.state.queue
-    key_id, plaintext = queue.create_api_key("tests")
+    keys: ApiKeyStore = app.state.api_keys
+    key_id, plaintext = keys.create("tests")
     with TestClient(app) as client:
-        yield ApiHarness(client, queue, key_id, {"Authorization": f"Bearer {plaintext}"})
+        yield ApiHarness(client, queue, keys, key_id, {"Authorization": f"Bearer {plaintext}"})
     engine.dispose()

@@ -17,9 +17,9 @@ import httpx
 import pytest
 from rich.console import Console
 
+from common.api_client import ApiClient, RetryPolicy, Stopped, parse_retry_after
 from common.errors import ApiError
 from common.job_options import JobOptions
-from service.submit.client import ApiClient, RetryPolicy, Stopped, parse_retry_after
 
 
 class RecordingStop(threading.Event):

@@ -13,7 +13,7 @@ import mujoco
 import numpy as np
 
 from common.geometry import FloatArray
-from worker.refine.evaluator import ParallelEvaluator, SimState
+from worker.refine.evaluator import ParallelEvaluator, SimState, StepHook
 from worker.refine.losses import resolve_weights
 from worker.refine.prepare import Prepared
 from worker.refine.problem import SimWindowProblem
@@ -36,8 +36,10 @@ class ReplayRecord:
 
 
 def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyframes: dict[str, FloatArray],
-           record_contacts: bool = True) -> ReplayRecord:
-    """Simulate frame 0 -> F-1 with the given keyframes, recording every frame (and contacts)."""
+           record_contacts: bool = True, on_step: StepHook | None = None) -> ReplayRecord:
+    """Simulate frame 0 -> F-1 with the given keyframes, recording every frame (and contacts).
+
+    ``on_step(i, data)`` also runs after physics step i (the visual tools record the full state per frame)."""
     layout = prep.layout
     s = layout.substeps
     problem = window_problem(prep, evaluator, start, {})
@@ -51,6 +53,8 @@ def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyfra
             sensors[i // s] = d.sensordata
             if recorder is not None:
                 recorder.add(d, i // s)
+        if on_step is not None:
+            on_step(i, d)
 
     evaluator.step_python(start, control[0], hook)
     pos, quat, vel = layout.object_from_sensors(sensors)

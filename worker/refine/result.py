@@ -141,14 +141,23 @@ def build_summary(
     }
 
 
-def verify_result(
-    blob: bytes, sequence: Sequence | None = None, *, cache_dir: Path | None = None, mano_dir: Path | None = None
-) -> dict[str, Any]:
-    """Re-simulate a result's stored keyframes from frame 0 and compare the object trajectory (``cache_dir`` and
-    ``mano_dir`` as for ``prepare``).
+def sim_config_from_summary(stored: dict[str, Any]) -> SimConfig:
+    """The ``SimConfig`` a result was simulated with, from its summary's JSON form."""
+    sim: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in stored.items()}
+    # Results made before the pivot was recorded turned the hand about the wrist; before the wrist lead was
+    # recorded, the mocap followed the wrist track itself; before the rest pose, the object started from frame 0.
+    sim.setdefault("wrist_lead_s", 0.0)
+    sim.setdefault("rest_approach_m", 0.0)
+    sim.setdefault("finger_lead_s", 0.0)
+    return SimConfig(**sim)
 
-    Raises ``ResultMismatchError`` when the object trajectory (or the stored per-frame controls) differ.
-    """
+
+def prepare_from_result(
+    blob: bytes, sequence: Sequence | None = None, *, cache_dir: Path | None = None, mano_dir: Path | None = None
+) -> tuple[Prepared, dict[str, FloatArray]]:
+    """Rebuild a refinement result's problem (same sequence, options and simulation settings as the run) and its
+    stored keyframes per hand side, checked against the stored per-frame controls (``cache_dir`` and
+    ``mano_dir`` as for ``prepare``). Shared by ``verify_result`` and the visual tools (``worker.visual``)."""
     summary = read_summary(blob)
     if summary.get("kind") != RESULT_KIND:
         raise UnsupportedFormatError(f"not a refinement result (kind {summary.get('kind')!r})")
@@ -158,14 +167,9 @@ def verify_result(
             raise UnsupportedFormatError("the result embeds no sequence; pass --sequence")
         sequence = sequence_from_npz_bytes(arrays["sequence_npz"].tobytes())
     options = JobOptions.model_validate(summary["options"])
-    sim: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in summary["config"]["sim"].items()}
-    # Results made before the pivot was recorded turned the hand about the wrist; before the wrist lead was
-    # recorded, the mocap followed the wrist track itself; before the rest pose, the object started from frame 0.
-    sim.setdefault("wrist_lead_s", 0.0)
-    sim.setdefault("rest_approach_m", 0.0)
-    sim.setdefault("finger_lead_s", 0.0)
-    prep = prepare(sequence, options, SimConfig(**sim), rotation_pivot=summary["config"].get("rotation_pivot", "wrist"),
-                   cache_dir=cache_dir, mano_dir=mano_dir)
+    prep = prepare(sequence, options, sim_config_from_summary(summary["config"]["sim"]),
+                   rotation_pivot=summary["config"].get("rotation_pivot", "wrist"), cache_dir=cache_dir,
+                   mano_dir=mano_dir)  # fmt: skip
     keyframes = {}
     for side, space in prep.spaces.items():
         key = f"{side}_keyframes"
@@ -175,18 +179,36 @@ def verify_result(
         q, _, _ = space.frame_controls(arrays[key])
         if not np.allclose(q, arrays[f"{side}_q_target"], atol=1e-9):
             raise ResultMismatchError(f"{side}_q_target does not match the stored keyframes")
-    with ParallelEvaluator(prep.scene.model, 1) as ev:
-        start, _ = settled_start(prep, ev)
-        rec = replay(prep, ev, start, keyframes, record_contacts=False)
-    stored = arrays["object_pose_sim"]
-    if stored.shape != rec.object_pose.shape:
-        raise ResultMismatchError(f"object_pose_sim has shape {stored.shape}, re-simulation {rec.object_pose.shape}")
-    diff = np.linalg.norm(stored[:, :3] - rec.object_pose[:, :3], axis=1)
-    qdiff = np.abs(np.abs(np.sum(stored[:, 3:] * rec.object_pose[:, 3:], axis=1)) - 1.0)
+    return prep, keyframes
+
+
+def compare_object_trajectory(stored: FloatArray, simulated: FloatArray) -> float:
+    """The largest position difference (m) between two (F, 7) object trajectories; ``ResultMismatchError``
+    when they differ beyond ``VERIFY_TOLERANCE_M`` (or in rotation beyond rounding)."""
+    if stored.shape != simulated.shape:
+        raise ResultMismatchError(f"object_pose_sim has shape {stored.shape}, re-simulation {simulated.shape}")
+    diff = np.linalg.norm(stored[:, :3] - simulated[:, :3], axis=1)
+    qdiff = np.abs(np.abs(np.sum(stored[:, 3:] * simulated[:, 3:], axis=1)) - 1.0)
     worst = int(np.argmax(diff))
     if diff[worst] > VERIFY_TOLERANCE_M or qdiff.max() > 1e-9:
         raise ResultMismatchError(
             f"object trajectory differs from the re-simulation: {diff[worst] * 1000:.3f} mm at frame {worst} "
             f"({int((diff > VERIFY_TOLERANCE_M).sum())} of {len(diff)} frames beyond {VERIFY_TOLERANCE_M} m)"
         )
-    return {"frames": len(diff), "max_pos_diff_m": float(diff.max())}
+    return float(diff.max())
+
+
+def verify_result(
+    blob: bytes, sequence: Sequence | None = None, *, cache_dir: Path | None = None, mano_dir: Path | None = None
+) -> dict[str, Any]:
+    """Re-simulate a result's stored keyframes from frame 0 and compare the object trajectory (``cache_dir`` and
+    ``mano_dir`` as for ``prepare``).
+
+    Raises ``ResultMismatchError`` when the object trajectory (or the stored per-frame controls) differ.
+    """
+    prep, keyframes = prepare_from_result(blob, sequence, cache_dir=cache_dir, mano_dir=mano_dir)
+    with ParallelEvaluator(prep.scene.model, 1) as ev:
+        start, _ = settled_start(prep, ev)
+        rec = replay(prep, ev, start, keyframes, record_contacts=False)
+    stored = read_arrays(blob)["object_pose_sim"]
+    return {"frames": len(stored), "max_pos_diff_m": compare_object_trajectory(stored, rec.object_pose)}

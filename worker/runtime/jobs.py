@@ -21,7 +21,8 @@ import numpy as np
 
 from common.errors import ConfigurationError, JobCancelledError
 from common.job_options import JobOptions
-from worker.runtime.loop import JobFunction, ProgressFn, StopFn
+from common.queue_types import Artifact
+from worker.runtime.loop import ArtifactFn, JobFunction, ProgressFn, StopFn
 
 #: Seconds per self-test "generation" (environment, so tests can set it for Ray actors too).
 SELFTEST_GENERATION_ENV = "HOI_REFINE_SELFTEST_GENERATION_SECONDS"
@@ -111,6 +112,23 @@ class SelfTestJob:
         np.savez(buf, values=values)
         summary = {"kind": "selftest", "generations": generations, "wall_s": time.monotonic() - t0}
         return buf.getvalue(), summary
+
+
+def refine_preview(result: bytes, options: JobOptions) -> list[Artifact]:
+    """The preview stored with a refinement's result (``worker.visual.preview``), unless ``preview_video`` is off."""
+    if not options.preview_video:
+        return []
+    from common.settings import get_settings
+    from worker.visual.preview import preview_artifacts
+
+    settings = get_settings()
+    made = preview_artifacts(result, cache_dir=settings.resolved_cache_dir(), mano_dir=settings.mano_dir)
+    return [Artifact(a.name, a.content_type, a.data, len(a.data)) for a in made]
+
+
+def make_artifact_function(kind: str) -> ArtifactFn | None:
+    """What a worker of ``kind`` stores beside a result: the refinement's preview; nothing for the self-test."""
+    return refine_preview if kind == "refine" else None
 
 
 def make_job_function(kind: str, threads: int) -> JobFunction:

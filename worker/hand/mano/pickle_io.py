@@ -44,20 +44,57 @@ class _ChumpyStandIn:
         )
 
 
+#: The only globals a MANO pickle may name (issue #16): a pickle can otherwise call any function on load.
+#: NumPy arrays and dtypes, scipy's sparse matrices, and what Python 2 pickles reconstruct objects with.
+ALLOWED_GLOBALS = {
+    ("numpy", "ndarray"), ("numpy", "dtype"), ("numpy.core.multiarray", "_reconstruct"),
+    ("numpy._core.multiarray", "_reconstruct"), ("numpy.core.multiarray", "scalar"),
+    ("numpy._core.multiarray", "scalar"), ("numpy.core.numeric", "_frombuffer"), ("numpy._core.numeric", "_frombuffer"),
+    ("scipy.sparse", "csc_matrix"), ("scipy.sparse", "csr_matrix"), ("scipy.sparse", "coo_matrix"),
+    ("copyreg", "_reconstructor"), ("copy_reg", "_reconstructor"), ("_codecs", "encode"),
+    ("builtins", "object"), ("__builtin__", "object"),
+}  # fmt: skip
+
+#: Per key: (dimensions, of which None = any size); checked after loading (all float64 but the integer ones).
+EXPECTED_DIMS: dict[str, int] = {
+    "v_template": 2, "shapedirs": 3, "posedirs": 3, "J_regressor": 2, "weights": 2, "kintree_table": 2,
+    "f": 2, "hands_components": 2, "hands_mean": 1,
+}  # fmt: skip
+MAX_ARRAY_ELEMENTS = 50_000_000
+
+
 class _NoChumpyUnpickler(pickle.Unpickler):
     def find_class(self, module: str, name: str) -> Any:
         if module == "chumpy" or module.startswith("chumpy."):
             return _ChumpyStandIn
         if module.startswith("scipy.sparse.") and module.rsplit(".", 1)[-1] in ("csc", "csr", "coo", "_csc", "_csr"):
             module = "scipy.sparse"
+        if (module, name) not in ALLOWED_GLOBALS:
+            raise pickle.UnpicklingError(f"a MANO file may not reference {module}.{name}")
         return super().find_class(module, name)
+
+
+def _check_member(path: Path, key: str, value: Any) -> None:
+    """Shapes and finiteness of the keys the hand model reads (the sparse J_regressor is checked densely)."""
+    arr = value.toarray() if hasattr(value, "toarray") else value
+    if not isinstance(arr, np.ndarray) or arr.dtype.kind not in "biuf":
+        raise ConfigurationError(f"{path.name}: {key} must be a numeric array, got {type(value).__name__}")
+    if arr.ndim != EXPECTED_DIMS[key] or arr.size > MAX_ARRAY_ELEMENTS:
+        raise ConfigurationError(f"{path.name}: {key} must have {EXPECTED_DIMS[key]} dimensions, got {arr.shape}")
+    if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
+        raise ConfigurationError(f"{path.name}: {key} contains NaN or Inf")
 
 
 def load_mano_pickle(path: Path | str) -> dict[str, Any]:
     """Read a MANO-format pickle into plain NumPy (chumpy values -> arrays; sparse J_regressor stays sparse)."""
     path = Path(path)
-    with path.open("rb") as fh:
-        raw = _NoChumpyUnpickler(fh, encoding="latin1").load()
+    try:
+        with path.open("rb") as fh:
+            raw = _NoChumpyUnpickler(fh, encoding="latin1").load()
+    except ConfigurationError:
+        raise
+    except Exception as exc:  # truncated or hostile pickles raise many kinds of errors
+        raise ConfigurationError(f"{path.name} is not a readable MANO model file: {exc}") from exc
     if not isinstance(raw, dict):
         raise ConfigurationError(f"{path} is not a MANO model file (expected a pickled dict)")
     out: dict[str, Any] = {}
@@ -70,6 +107,11 @@ def load_mano_pickle(path: Path | str) -> dict[str, Any]:
     missing = [k for k in REQUIRED_KEYS if k not in out]
     if missing:
         raise ConfigurationError(f"{path} is not a MANO model file: missing {', '.join(missing)}")
+    for key in REQUIRED_KEYS:
+        _check_member(path, key, out[key])
+    v_count = out["v_template"].shape[0]
+    if out["v_template"].shape[1] != 3 or out["weights"].shape[0] != v_count or out["f"].max() >= v_count:
+        raise ConfigurationError(f"{path.name}: v_template, weights and f disagree on the number of vertices")
     return out
 
 

@@ -18,8 +18,8 @@ def register(subparsers: Any) -> None:
         description=(
             "By default: start `hoi-refine up --workers 2` (API + local Ray + 2 workers, SQLite under var/), "
             "submit the built-in grasp-and-lift over HTTP, follow its progress, print raw vs refined metrics and "
-            "save the result and contacts under --out-dir, then stop the deployment. --local refines in this "
-            "process instead (no server); --raw only replays the observation without optimisation."
+            "save the result, contacts, preview video and plots under --out-dir, then stop the deployment. --local "
+            "refines in this process instead (no server); --raw only replays the observation without optimisation."
         ),
     )
     mode = d.add_mutually_exclusive_group()
@@ -27,7 +27,8 @@ def register(subparsers: Any) -> None:
     mode.add_argument("--raw", action="store_true", help="only the raw replay, no refinement")
     d.add_argument("--api", default=None, help="use this running service instead of starting one (with --key)")
     d.add_argument("--key", default=None, help="API key for --api")
-    d.add_argument("--out-dir", type=Path, default=Path("var/demo"), help="where the service demo saves files")
+    d.add_argument("--out-dir", type=Path, default=Path("var/demo"),
+                   help="where the demo saves the result, contacts, video and plots (default var/demo)")  # fmt: skip
     d.add_argument("--out", type=Path, default=None, help="with --raw: also write the raw-replay result (.npz)")
     d.set_defaults(func=cmd_demo)
 
@@ -43,7 +44,7 @@ def _free_port() -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     if args.local:
-        return run_local_demo()
+        return run_local_demo(out_dir=args.out_dir)
     if not args.raw:
         from worker.runtime.demo_client import run_demo as run_service_demo
 
@@ -66,20 +67,30 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def run_local_demo(threads: int = 2, short: bool = False) -> int:
-    """Refine the built-in example and print raw vs refined (``make demo``)."""
+def run_local_demo(threads: int = 2, short: bool = False, out_dir: Path | str = Path("var/demo")) -> int:
+    """Refine the built-in example in this process, print raw vs refined, and save the result, its video and
+    its plots under ``out_dir`` (``hoi-refine demo --local``)."""
     from common.job_options import JobOptions
     from common.settings import get_settings
     from worker.commands.progress import ProgressBar
     from worker.commands.refine import print_refine_metrics
     from worker.example import example_sequence, short_example_sequence
     from worker.refine.run import refine_sequence
+    from worker.visual import render_video, resimulate, write_plots
 
     seq = short_example_sequence() if short else example_sequence()
     bar = ProgressBar()
-    outcome = refine_sequence(seq, JobOptions(), threads=threads, progress=bar,
-                              cache_dir=get_settings().resolved_cache_dir())
+    cache_dir = get_settings().resolved_cache_dir()
+    outcome = refine_sequence(seq, JobOptions(), threads=threads, progress=bar, cache_dir=cache_dir)
     bar.finish()
     print(f"refined the built-in example {seq.name!r} ({seq.num_frames} frames)")
     print_refine_metrics(outcome.summary)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    blob = outcome.to_npz_bytes()
+    result, video = out / f"{seq.name}.result.npz", out / f"{seq.name}.mp4"
+    result.write_bytes(blob)
+    render_video(resimulate(blob, cache_dir=cache_dir), str(video))
+    plots = write_plots(blob, out / f"{seq.name}_plots")
+    print(f"result: {result}\nvideo: {video}\nplots: {', '.join(str(p) for p in plots)}")
     return 0

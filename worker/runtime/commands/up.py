@@ -15,8 +15,10 @@ def register(subparsers: Any) -> None:
         help="API + local Ray + N workers on this machine (SQLite by default), one command",
         description=(
             "Start the HTTP API (migrating the database), a local Ray instance and N worker actors; print "
-            "the URL and a development API key. Ctrl-C stops the workers (their jobs go back to QUEUED), "
-            "then the API."
+            "the URL and a development API key (kept in VAR_DIR/up-dev-key and reused while valid). Ctrl-C "
+            "stops the workers (their jobs go back to QUEUED), then the API. The API is restarted if it "
+            "crashes and dies with this command; one `up` per var dir, and one found dead there (killed) is "
+            "cleared: its API stopped, its RUNNING jobs requeued."
         ),
     )
     add_pool_arguments(u, default_workers=2)

@@ -1,4 +1,5 @@
-"""A small synchronous client of the hoi-refine REST API (``/v1``), with the retry policy of bulk submission.
+"""The one client of the hoi-refine REST API (``/v1``): used by ``hoi-refine submit``, the demo and the tests
+that talk to a live server. Synchronous (httpx), with the retry policy of bulk submission:
 
 * Connection errors, timeouts and 5xx answers are retried with capped exponential backoff and jitter (safe
   for ``POST /v1/jobs`` too: it carries an Idempotency-Key, so a repeated request names the same job).
@@ -13,9 +14,12 @@ One ``httpx.Client`` is shared by all worker threads (it is thread-safe and pool
 from __future__ import annotations
 
 import email.utils
+import json
 import random
 import threading
 import time
+import uuid
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -23,10 +27,15 @@ import httpx
 
 from common.errors import ApiError, HoiRefineError
 from common.job_options import JobOptions
-from service.submit.payload import options_json
+from common.job_state import FINISHED
 
 #: Longest wait honoured from one ``Retry-After`` (a server asking for more is asked again after this).
 MAX_RETRY_AFTER_S = 300.0
+
+
+def options_json(options: JobOptions) -> str:
+    """Canonical JSON of the options: every field (defaults included), sorted keys, no spaces."""
+    return json.dumps(options.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
 
 
 class Stopped(HoiRefineError):
@@ -62,6 +71,41 @@ def parse_retry_after(value: str | None) -> float | None:
     return max(0.0, when.timestamp() - time.time())
 
 
+def wait_until_ready(
+    base_url: str,
+    timeout_s: float,
+    *,
+    alive: Callable[[], bool] | None = None,
+    stop: threading.Event | None = None,
+    paths: tuple[str, ...] = ("/readyz",),
+    interval_s: float = 0.3,
+) -> httpx.Response | None:
+    """Poll a starting server until one of ``paths`` answers 200, and return that answer.
+
+    ``None`` when ``stop`` is set first. ``ApiError`` when ``alive()`` turns False (the server's process
+    ended) or after ``timeout_s``. Needs no API key: the health endpoints are public.
+    """
+    deadline = time.monotonic() + timeout_s
+    with httpx.Client(base_url=base_url.rstrip("/"), timeout=2.0) as http:
+        while stop is None or not stop.is_set():
+            if alive is not None and not alive():
+                raise ApiError(f"the API at {base_url} exited before it was ready")
+            for path in paths:
+                try:
+                    resp = http.get(path)
+                except httpx.HTTPError:
+                    break  # not listening yet
+                if resp.status_code == 200:
+                    return resp
+            if time.monotonic() >= deadline:
+                raise ApiError(f"the API did not answer at {base_url} within {timeout_s:.0f} s")
+            if stop is not None:
+                stop.wait(interval_s)
+            else:
+                time.sleep(interval_s)
+    return None
+
+
 def _problem(resp: httpx.Response) -> dict[str, Any]:
     try:
         doc = resp.json()
@@ -83,6 +127,7 @@ class ApiClient:
         stop: threading.Event | None = None,
         transport: httpx.BaseTransport | None = None,
         pool_size: int = 8,
+        user_agent: str = "hoi-refine-client/1",
     ) -> None:
         self.retry = retry or RetryPolicy()
         self.stop = stop or threading.Event()
@@ -90,7 +135,7 @@ class ApiClient:
         self.throttled = 0
         self._http = httpx.Client(
             base_url=base_url.rstrip("/"),
-            headers={"Authorization": f"Bearer {api_key}", "User-Agent": "hoi-refine-submit/1"},
+            headers={"Authorization": f"Bearer {api_key}", "User-Agent": user_agent},
             timeout=timeout_s,
             transport=transport,
             limits=httpx.Limits(max_connections=pool_size, max_keepalive_connections=pool_size),
@@ -151,12 +196,16 @@ class ApiClient:
         return ApiError(f"{method} {url}: HTTP {resp.status_code}: {what}{suffix}", resp.status_code, problem)
 
     # ------------------------------------------------------------------ endpoints
-    def submit(self, payload: bytes, filename: str, options: JobOptions, key: str) -> dict[str, Any]:
-        """``POST /v1/jobs`` (multipart: native NPZ + options JSON). Returns the job document (has ``id``)."""
+    def submit(self, payload: bytes, filename: str, options: JobOptions, key: str | None = None) -> dict[str, Any]:
+        """``POST /v1/jobs`` (multipart: native NPZ + options JSON). Returns the job document (has ``id``).
+
+        ``key`` is the Idempotency-Key; without one a fresh key is made, so that a retried POST (after a
+        timeout or a 5xx) still names one job and never submits it twice.
+        """
         resp = self.request(
             "POST",
             "/v1/jobs",
-            headers={"Idempotency-Key": key},
+            headers={"Idempotency-Key": key or uuid.uuid4().hex},
             files={"sequence": (filename, payload, "application/octet-stream")},
             data={"options": options_json(options)},
         )
@@ -178,13 +227,52 @@ class ApiClient:
 
     def retry_job(self, job_id: str) -> dict[str, Any]:
         """``POST /v1/jobs/{id}:retry``: requeue a FAILED job (409 when it is not FAILED). Returns the job."""
-        doc = self.request("POST", f"/v1/jobs/{job_id}:retry").json()
-        return doc if isinstance(doc, dict) else {}
+        return self._document(self.request("POST", f"/v1/jobs/{job_id}:retry"))
+
+    def cancel(self, job_id: str) -> dict[str, Any]:
+        """``POST /v1/jobs/{id}:cancel``: QUEUED jobs end at once, RUNNING ones at the worker's next heartbeat."""
+        return self._document(self.request("POST", f"/v1/jobs/{job_id}:cancel"))
 
     def result(self, job_id: str) -> bytes:
         """``GET /v1/jobs/{id}/result?format=npz``: the result file (``common.result_format``)."""
         return self.request("GET", f"/v1/jobs/{job_id}/result", params={"format": "npz"}).content
 
+    def file(self, job_id: str, name: str) -> bytes:
+        """A file stored beside the result: ``video``, ``recording``, ``export`` or ``plots/NAME.png``."""
+        return self.request("GET", f"/v1/jobs/{job_id}/{name}").content
+
+    def plots(self, job_id: str) -> list[dict[str, Any]]:
+        """``GET /v1/jobs/{id}/plots``: the names (and sizes) of the job's plots."""
+        plots = self.request("GET", f"/v1/jobs/{job_id}/plots").json().get("plots", [])
+        return [p for p in plots if isinstance(p, dict)]
+
     def contacts(self, job_id: str, start: int | None = None, end: int | None = None) -> Any:
         params = {k: v for k, v in (("start", start), ("end", end)) if v is not None}
         return self.request("GET", f"/v1/jobs/{job_id}/contacts", params=params).json()
+
+    def wait(
+        self,
+        job_id: str,
+        timeout_s: float,
+        on_poll: Callable[[dict[str, Any]], None] | None = None,
+        interval_s: float = 0.5,
+    ) -> dict[str, Any]:
+        """Poll ``GET /v1/jobs/{id}`` every ``interval_s`` until the job is finished; returns its document.
+
+        ``on_poll`` sees every document (a progress bar); ``HoiRefineError`` after ``timeout_s``.
+        """
+        deadline = time.monotonic() + timeout_s
+        while True:
+            job, _ = self.job(job_id)
+            if on_poll is not None:
+                on_poll(job)
+            if job["state"] in FINISHED:
+                return job
+            if time.monotonic() > deadline:
+                raise HoiRefineError(f"job {job_id} still {job['state']} after {timeout_s:.0f} s")
+            self._wait(interval_s)
+
+    @staticmethod
+    def _document(resp: httpx.Response) -> dict[str, Any]:
+        doc = resp.json()
+        return doc if isinstance(doc, dict) else {}
