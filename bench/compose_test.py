@@ -47,13 +47,13 @@ from bench.compose_stack import (  # noqa: E402
     image_size_mb,
     run,
 )
+from common.api_client import ApiClient  # noqa: E402
 from common.database import create_engine_for  # noqa: E402
 from common.job_options import JobOptions  # noqa: E402
 from common.queue import JobQueue  # noqa: E402
 from common.result_format import read_summary  # noqa: E402
 from common.sequence_io import sequence_to_npz_bytes  # noqa: E402
 from worker.example.sequences import short_example_sequence  # noqa: E402
-from worker.runtime.demo_client import ApiClient  # noqa: E402
 
 API_URL = "http://127.0.0.1:18000"  # docker-compose.test.yml
 WORKERS = ("worker-1", "worker-2")
@@ -100,7 +100,7 @@ def _database_url(admin_url: str, name: str) -> str:
 def _wait(client: ApiClient, ids: list[str], pred: Any, timeout: float, what: str) -> list[dict[str, Any]]:
     deadline = time.monotonic() + timeout
     while True:
-        jobs = [client.job(i) for i in ids]
+        jobs = [client.job(i)[0] for i in ids]
         if pred(jobs):
             return jobs
         if time.monotonic() > deadline:
@@ -134,7 +134,9 @@ def scenario(stack: Stack, db_url: str, n_jobs: int, timeout: float, fig: Figure
     queue = JobQueue(create_engine_for(db_url))
     try:
         payloads = [sequence_to_npz_bytes(short_example_sequence(seed=i)) for i in range(n_jobs)]
-        ids = [client.submit_npz(p, SHORT.model_copy(update={"seed": i}))["id"] for i, p in enumerate(payloads)]
+        ids = [
+            client.submit(p, f"seq{i}.npz", SHORT.model_copy(update={"seed": i}))["id"] for i, p in enumerate(payloads)
+        ]
         t_submit = time.monotonic()
         print(f"submitted {n_jobs} jobs", flush=True)
 
@@ -177,7 +179,7 @@ def _check(fig: Figures, client: ApiClient, queue: JobQueue, done: list[dict[str
     assert finisher in worker_ids["worker-2"], (finisher, worker_ids)
     fig.checks.append("the killed job was finished by worker-2's actor (its worker id in the database)")
     for job_id in ids:
-        summary = read_summary(client.result_npz(job_id))
+        summary = read_summary(client.result(job_id))
         assert summary, job_id
     fig.checks.append("every result downloads as NPZ and its summary reads back (API)")
 
