@@ -32,8 +32,10 @@ from common.errors import (
     LimitExceededError,
 )
 from common.job_options import JobOptions
-from common.queue_base import QueueBase, inputs, jobs, results
+from common.queue_base import inputs, jobs, results
+from common.queue_batches import BatchQueries
 from common.queue_types import ClaimedJob, JobRecord
+from common.queue_webhooks import WebhookQueries
 
 
 def payload_hash(payload: bytes, options: JobOptions) -> str:
@@ -42,9 +44,10 @@ def payload_hash(payload: bytes, options: JobOptions) -> str:
     return hashlib.sha256(payload + b"\x00" + options_json.encode()).hexdigest()
 
 
-class JobQueue(QueueBase):
+class JobQueue(BatchQueries, WebhookQueries):
     """Submit, claim, heartbeat, complete, fail, cancel, retry, requeue; owner-scoped reads and API keys
-    (inherited from ``QueueBase``)."""
+    (inherited from ``QueueBase``), batches and event streams (``BatchQueries``) and webhooks
+    (``WebhookQueries``)."""
 
     # ------------------------------------------------------------------ submission
     def submit(
@@ -55,8 +58,10 @@ class JobQueue(QueueBase):
         idempotency_key: str | None,
         name: str,
         num_frames: int,
+        batch_id: str | None = None,
     ) -> tuple[JobRecord, bool]:
-        """Queue a job; returns (job, created). Same Idempotency-Key + same payload -> the first job."""
+        """Queue a job, into ``batch_id`` when given (a batch of the same key); returns (job, created).
+        Same Idempotency-Key + same payload -> the first job (adopted into ``batch_id`` if it had no batch)."""
         digest = payload_hash(payload, options)
         try:
             with self._write() as conn:
@@ -64,10 +69,13 @@ class JobQueue(QueueBase):
                     # Serialise one owner's submissions: the idempotency lookup and the active-jobs limit
                     # below then see every committed sibling (SQLite's BEGIN IMMEDIATE already does this).
                     conn.execute(sa.select(sa.func.pg_advisory_xact_lock(sa.func.hashtext(owner_key_id))))
+                if batch_id is not None:
+                    self._owned_batch(conn, owner_key_id, batch_id)
                 if idempotency_key is not None:
                     existing = self._by_idempotency_key(conn, owner_key_id, idempotency_key)
                     if existing is not None:
-                        return self._idempotent_match(existing, digest), False
+                        match = self._idempotent_match(existing, digest)
+                        return self._into_batch(conn, match, batch_id), False
                 active = conn.execute(
                     sa.select(sa.func.count())
                     .select_from(jobs)
@@ -83,7 +91,7 @@ class JobQueue(QueueBase):
                 job_id = uuid.uuid4().hex
                 conn.execute(
                     sa.insert(jobs).values(
-                        id=job_id, owner_key_id=owner_key_id, name=name[:200], state="QUEUED",
+                        id=job_id, owner_key_id=owner_key_id, batch_id=batch_id, name=name[:200], state="QUEUED",
                         priority=options.priority, attempt=1, idempotency_key=idempotency_key,
                         payload_hash=digest, options=options.model_dump(mode="json"), num_frames=num_frames,
                         cancel_requested=False, errors=[], created_at=now, queued_at=now, updated_at=now,
@@ -101,7 +109,21 @@ class JobQueue(QueueBase):
                 existing = self._by_idempotency_key(conn, owner_key_id, idempotency_key)
             if existing is None:
                 raise
+            if existing.batch_id != batch_id:
+                raise
             return self._idempotent_match(existing, digest), False
+
+    def _into_batch(self, conn: Connection, job: JobRecord, batch_id: str | None) -> JobRecord:
+        """A job found by its Idempotency-Key, re-sent with ``batch_id``: adopt it when it has no batch yet
+        (a manifest written before batches existed), refuse when it belongs to another batch."""
+        if batch_id is None or job.batch_id == batch_id:
+            return job
+        if job.batch_id is not None:
+            raise ConflictError(f"Idempotency-Key names job {job.id}, which is in batch {job.batch_id}, not {batch_id}")
+        now = utcnow()
+        conn.execute(sa.update(jobs).where(jobs.c.id == job.id).values(batch_id=batch_id, updated_at=now))
+        self._event(conn, job.id, "batched", now, batch_id=batch_id)
+        return self._get(conn, job.id, None)
 
     def _by_idempotency_key(self, conn: Connection, owner_key_id: str, key: str) -> JobRecord | None:
         row = conn.execute(
@@ -161,13 +183,17 @@ class JobQueue(QueueBase):
         values: dict[str, Any] = {"lease_expires_at": now + lease, "updated_at": now}
         if progress is not None:
             values["progress"] = progress
+        held = (jobs.c.id == job_id, jobs.c.lease_token == lease_token, jobs.c.state == "RUNNING")
         with self._write() as conn:
-            flag = conn.execute(
-                sa.update(jobs)
-                .where(jobs.c.id == job_id, jobs.c.lease_token == lease_token, jobs.c.state == "RUNNING")
-                .values(**values)
-                .returning(jobs.c.cancel_requested)
-            ).scalar()
+            before = None
+            if progress is not None:
+                before = conn.execute(self._locked(sa.select(jobs.c.progress).where(*held))).first()
+            update = sa.update(jobs).where(*held).values(**values)
+            flag = conn.execute(update.returning(jobs.c.cancel_requested)).scalar()
+            if flag is not None and before is not None and before.progress != progress:
+                # Progress that moved is an event too (the event streams send it with an id, so a client
+                # resumes after it); an unchanged renewal writes none, which bounds the log's growth.
+                self._event(conn, job_id, "progress", now, progress=progress)
         if flag is None:
             raise LeaseLostError(f"job {job_id}: lease token no longer holds the job")
         return bool(flag)

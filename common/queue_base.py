@@ -79,7 +79,12 @@ class QueueBase:
             return self._get(conn, job_id, owner_key_id)
 
     def list(
-        self, owner_key_id: str | None, state: str | None = None, page_size: int = 50, page_token: str | None = None
+        self,
+        owner_key_id: str | None,
+        state: str | None = None,
+        page_size: int = 50,
+        page_token: str | None = None,
+        batch_id: str | None = None,
     ) -> tuple[builtins.list[JobRecord], str | None]:
         """Newest first, keyset-paginated on (created_at, id); returns (jobs, next_page_token)."""
         page_size = max(1, min(page_size, MAX_PAGE_SIZE))
@@ -88,6 +93,8 @@ class QueueBase:
             query = query.where(jobs.c.owner_key_id == owner_key_id)
         if state is not None:
             query = query.where(jobs.c.state == state)
+        if batch_id is not None:
+            query = query.where(jobs.c.batch_id == batch_id)
         if page_token is not None:
             created, last_id = _decode_page_token(page_token)
             query = query.where(
@@ -248,7 +255,7 @@ class QueueBase:
             errors=list(m["errors"]), idempotency_key=m["idempotency_key"], payload_hash=m["payload_hash"],
             worker_id=m["worker_id"], lease_expires_at=m["lease_expires_at"], not_before=m["not_before"],
             created_at=m["created_at"], queued_at=m["queued_at"], started_at=m["started_at"],
-            finished_at=m["finished_at"], updated_at=m["updated_at"], summary=m["summary"],
+            finished_at=m["finished_at"], updated_at=m["updated_at"], summary=m["summary"], batch_id=m["batch_id"],
         )  # fmt: skip
 
 

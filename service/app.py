@@ -7,6 +7,7 @@ engine)`` in tests. The database must already be at the migration head (``serve`
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Any
@@ -21,8 +22,9 @@ from common.queue import JobQueue
 from common.settings import Settings, get_settings
 from service.metrics import make_registry
 from service.problems import install_problem_handlers, problem_response
-from service.routes import jobs, ops
+from service.routes import batches, jobs, ops, webhooks
 from service.schemas import JobCreate
+from service.webhook_dispatcher import WebhookDispatcher
 
 API_VERSION = "1.0.0"
 
@@ -53,9 +55,17 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None) -
 
     @asynccontextmanager
     async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
-        yield
-        if owns_engine:
-            engine.dispose()
+        dispatcher = WebhookDispatcher(queue) if settings.webhook_dispatcher else None
+        task = asyncio.create_task(dispatcher.run()) if dispatcher is not None else None
+        _app.state.webhook_dispatcher = dispatcher
+        try:
+            yield
+        finally:
+            if dispatcher is not None and task is not None:
+                dispatcher.stop()
+                await task
+            if owns_engine:
+                engine.dispose()
 
     app = FastAPI(
         title="hoi-refine",
@@ -71,6 +81,8 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None) -
     install_problem_handlers(app)
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_request_bytes)
     app.include_router(jobs.router)
+    app.include_router(batches.router)
+    app.include_router(webhooks.router)
     app.include_router(ops.router)
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app

@@ -35,6 +35,7 @@ MULTIPART_SCHEMA: dict[str, Any] = {
     "properties": {
         "sequence": {"type": "string", "format": "binary", "description": "native or DexYCB development NPZ"},
         "options": {"type": "string", "description": "JobOptions as JSON"},
+        "batch_id": {"type": "string", "description": "submit into this batch (POST /v1/batches)"},
     },
     "required": ["sequence"],
 }
@@ -46,6 +47,8 @@ class Submission:
     options: JobOptions
     #: The sequence as native NPZ bytes: what the queue stores and the worker reads.
     payload: bytes
+    #: The batch to submit into, or None.
+    batch_id: str | None = None
 
 
 def _invalid(problems: list[FieldProblem]) -> InvalidRequestError:
@@ -63,19 +66,19 @@ async def read_submission(request: Request, settings: Settings) -> Submission:
         raise PayloadTooLargeError(f"request body is {len(body)} bytes, over the limit of {settings.max_request_bytes}")
     content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if content_type == "application/json":
-        seq, options = await run_in_threadpool(_from_json, body, settings)
+        seq, options, batch_id = await run_in_threadpool(_from_json, body, settings)
     elif content_type == "multipart/form-data":
-        blob, options = await _read_multipart(request, settings)
+        blob, options, batch_id = await _read_multipart(request, settings)
         seq = await run_in_threadpool(_from_npz, blob, settings)
     else:
         raise UnsupportedFormatError(
             f"Content-Type {content_type or '(none)'} is not accepted: send application/json or multipart/form-data"
         )
     payload = await run_in_threadpool(sequence_to_npz_bytes, seq)
-    return Submission(seq, options, payload)
+    return Submission(seq, options, payload, batch_id)
 
 
-def _from_json(body: bytes, settings: Settings) -> tuple[Sequence, JobOptions]:
+def _from_json(body: bytes, settings: Settings) -> tuple[Sequence, JobOptions, str | None]:
     try:
         doc = json.loads(body)
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
@@ -84,11 +87,11 @@ def _from_json(body: bytes, settings: Settings) -> tuple[Sequence, JobOptions]:
         parsed = JobCreate.model_validate(doc)
     except ValidationError as exc:
         raise _invalid(validation_problems(exc.errors())) from exc
-    seq_doc = parsed.model_dump(exclude={"options"}, exclude_none=True)
-    return sequence_from_json_dict(seq_doc, max_frames=settings.max_frames), parsed.options
+    seq_doc = parsed.model_dump(exclude={"options", "batch_id"}, exclude_none=True)
+    return sequence_from_json_dict(seq_doc, max_frames=settings.max_frames), parsed.options, parsed.batch_id
 
 
-async def _read_multipart(request: Request, settings: Settings) -> tuple[bytes, JobOptions]:
+async def _read_multipart(request: Request, settings: Settings) -> tuple[bytes, JobOptions, str | None]:
     form = await request.form(max_files=1, max_fields=10, max_part_size=1024 * 1024)
     seq_part = form.get("sequence")
     if seq_part is None:
@@ -101,7 +104,10 @@ async def _read_multipart(request: Request, settings: Settings) -> tuple[bytes, 
         options = JobOptions.model_validate_json(raw_options) if raw_options else JobOptions()
     except ValidationError as exc:
         raise _invalid(_prefixed(exc, "options")) from exc
-    return blob, options
+    batch_id = form.get("batch_id")
+    if batch_id is not None and (not isinstance(batch_id, str) or not 0 < len(batch_id) <= 32):
+        raise _invalid([FieldProblem("batch_id", "must be a batch id (text, at most 32 characters)")])
+    return blob, options, batch_id
 
 
 def _from_npz(blob: bytes, settings: Settings) -> Sequence:
