@@ -38,6 +38,7 @@ events = cast(sa.Table, JobEvent.__table__)
 keys = cast(sa.Table, ApiKey.__table__)
 
 MAX_PAGE_SIZE = 500
+_VERSION_SQL = sa.text("SELECT owner_key_id, updated_at FROM jobs WHERE id = :job_id")
 #: Shortest key prefix ``revoke_api_key`` accepts: ``hoi_`` and two characters of the random part.
 MIN_REVOKE_PREFIX = len(api_keys.KEY_PREFIX) + 2
 
@@ -77,6 +78,19 @@ class QueueBase:
         """The job with its summary; ``NotFoundError`` when missing or owned by another key (None = any)."""
         with self._read() as conn:
             return self._get(conn, job_id, owner_key_id)
+
+    def version(self, owner_key_id: str | None, job_id: str) -> str:
+        """An opaque version of the job: its ``updated_at`` as the driver returns it. Every write to a job sets
+        ``updated_at``, so this versions the whole representation (the status poll's ETag and cache key).
+        ``NotFoundError`` as ``get``.
+
+        The status poll's hot path: one indexed single-row SELECT in autocommit (no BEGIN / ROLLBACK round
+        trips), as plain SQL (no type processing: the value is only compared, never interpreted)."""
+        with self.engine.connect().execution_options(isolation_level="AUTOCOMMIT") as conn:
+            row = conn.execute(_VERSION_SQL, {"job_id": job_id}).first()
+        if row is None or (owner_key_id is not None and row[0] != owner_key_id):
+            raise NotFoundError(f"no job {job_id}")
+        return str(row[1])
 
     def list(
         self,

@@ -22,7 +22,7 @@ from common.queue import JobQueue
 from common.settings import Settings, get_settings
 from service.metrics import make_registry
 from service.problems import install_problem_handlers, problem_response
-from service.routes import batches, jobs, ops, webhooks
+from service.routes import batches, job_status, jobs, ops, webhooks
 from service.schemas import JobCreate
 from service.webhook_dispatcher import WebhookDispatcher
 
@@ -50,7 +50,10 @@ class BodySizeLimit:
 def create_app(settings: Settings | None = None, engine: Engine | None = None) -> FastAPI:
     settings = settings if settings is not None else get_settings()
     owns_engine = engine is None
-    engine = engine if engine is not None else create_engine_for(settings.resolved_database_url())
+    # No pre-ping on the API's pool: it would add a round trip to every request (the status poll is one
+    # short read). After a database restart the first request on a dead connection answers 503 and the
+    # pool drops its connections, so the next one reconnects.
+    engine = engine if engine is not None else create_engine_for(settings.resolved_database_url(), pool_pre_ping=False)
     queue = JobQueue(engine, settings)
 
     @asynccontextmanager
@@ -77,9 +80,11 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None) -
     app.state.engine = engine
     app.state.queue = queue
     app.state.key_cache = {}
+    app.state.job_cache = job_status.RepresentationCache()
     app.state.metrics_registry = make_registry(queue)
     install_problem_handlers(app)
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_request_bytes)
+    app.include_router(job_status.router)
     app.include_router(jobs.router)
     app.include_router(batches.router)
     app.include_router(webhooks.router)

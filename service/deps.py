@@ -47,13 +47,26 @@ async def current_key(
     """The id of the caller's API key; 401 when the header is missing or the key unknown or revoked."""
     if credentials is None or not credentials.credentials:
         raise AuthenticationError("send an API key as 'Authorization: Bearer <key>'")
-    digest = hash_key(credentials.credentials)
+    return await key_id_for(request, queue, credentials.credentials)
+
+
+def bearer_token(request: Request) -> str:
+    """The Bearer token of a request read by hand (the status poll skips FastAPI's dependency machinery)."""
+    scheme, _, token = request.headers.get("authorization", "").partition(" ")
+    if scheme.lower() != "bearer" or not token.strip():
+        raise AuthenticationError("send an API key as 'Authorization: Bearer <key>'")
+    return token.strip()
+
+
+async def key_id_for(request: Request, queue: JobQueue, plaintext: str) -> str:
+    """Key lookup through the in-process cache; only a miss goes to the database (in a thread)."""
+    digest = hash_key(plaintext)
     cache: dict[str, tuple[str, float]] = request.app.state.key_cache
     hit = cache.get(digest)
     now = time.monotonic()
     if hit is not None and hit[1] > now:
         return hit[0]
-    key_id = await run_in_threadpool(queue.authenticate, credentials.credentials)
+    key_id = await run_in_threadpool(queue.authenticate, plaintext)
     if len(cache) > 10_000:  # bounded: a flood of distinct keys cannot grow it without limit
         cache.clear()
     cache[digest] = (key_id, now + KEY_CACHE_SECONDS)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -91,31 +90,6 @@ def list_jobs(
 ) -> JobsPublic:
     jobs, token = queue.list(key_id, state=state, page_size=page_size, page_token=page_token, batch_id=batch_id)
     return JobsPublic(data=[JobPublic.from_record(j) for j in jobs], count=len(jobs), next_page_token=token)
-
-
-@router.get(
-    "/{job_id}",
-    response_model=JobPublic,
-    summary="A job's state, attempt, progress and (when done) summary metrics",
-    responses={304: {"description": "Not modified (If-None-Match matched the ETag)"}},
-)
-def get_job(
-    job_id: str,
-    response: Response,
-    queue: QueueDep,
-    settings: SettingsDep,
-    key_id: KeyDep,
-    if_none_match: Annotated[str | None, Header()] = None,
-) -> Any:
-    job = JobPublic.from_record(queue.get(key_id, job_id))
-    body = job.model_dump_json().encode()
-    etag = f'"{hashlib.sha256(body).hexdigest()[:32]}"'
-    headers = {"ETag": etag}
-    if job.state in ("QUEUED", "RUNNING"):
-        headers["Retry-After"] = str(settings.poll_retry_after_seconds)
-    if if_none_match is not None and etag in [t.strip() for t in if_none_match.split(",")]:
-        return Response(status_code=304, headers=headers)
-    return Response(body, media_type="application/json", headers=headers)
 
 
 @router.post("/{job_id}:cancel", response_model=JobPublic, summary="Cancel (QUEUED at once, RUNNING by flag)",
