@@ -26,6 +26,7 @@ from rich.console import Console
 from common.errors import ApiError, HoiRefineError
 from common.job_options import JobOptions
 from common.result_format import read_summary
+from service.submit.batch import ensure_batch, print_batch
 from service.submit.client import ApiClient, Stopped
 from service.submit.discovery import Source, SourceFormat, discover, load_source
 from service.submit.manifest import FAILED_STATES, TERMINAL_JOB_STATES, Entry, Manifest, write_atomic
@@ -84,6 +85,8 @@ def _fingerprint(src: Source, options: JobOptions) -> str:
 class _Run:
     def __init__(self, cfg: SubmitConfig, client: ApiClient, manifest: Manifest, stop: threading.Event) -> None:
         self.cfg, self.client, self.manifest, self.stop = cfg, client, manifest, stop
+        #: The run's batch on the server (``service.submit.batch``); None for a server without batches.
+        self.batch_id: str | None = None
         self.results_dir = cfg.out_dir / RESULTS_DIR
         #: Why the run stopped early, when the service kept failing after all retries.
         self.unreachable: str | None = None
@@ -113,7 +116,7 @@ class _Run:
         if self.stop.is_set():
             return "stopped"
         try:
-            doc = self.client.submit(payload, f"{src.label}.npz", self.cfg.options, key)
+            doc = self.client.submit(payload, f"{src.label}.npz", self.cfg.options, key, self.batch_id)
         except ApiError as exc:
             if exc.status is not None and 400 <= exc.status < 500:
                 self.manifest.update(entry, state="REJECTED", error=str(exc), posts=entry.posts + 1)
@@ -251,6 +254,10 @@ def run_submit(
     client = client or ApiClient(cfg.api_url, cfg.api_key, stop=stop, pool_size=2 * cfg.concurrency)
     client.stop = stop
     run = _Run(cfg, client, manifest, stop)
+    try:
+        run.batch_id = ensure_batch(client, manifest, cfg.api_url, cfg.out_dir.resolve().name, console)
+    except ApiError as exc:  # the service is down: nothing can be submitted now
+        run.give_up(str(exc))
 
     fp_cache = {e.source: _fingerprint(s, cfg.options) for e, s in entries}
     to_submit = [
@@ -351,12 +358,18 @@ def run_submit(
         stop.set()  # ends every retry wait; requests in flight complete and are recorded
         submit_pool.shutdown(wait=True, cancel_futures=True)
         poll_pool.shutdown(wait=True, cancel_futures=True)
-        if own_client:
-            client.close()
         manifest.save()
 
     print_summary(console, visible, retried=len(retried), retry_hint=not cfg.retry_failed)
-    write_atomic(cfg.out_dir / SUMMARY_NAME, json.dumps(summary_document(visible, len(retried)), indent=1).encode())
+    document = summary_document(visible, len(retried))
+    try:
+        if run.batch_id is not None and run.unreachable is None:
+            client.stop = threading.Event()  # the run's stop is set by now; this one last read may go out
+            document["batch"] = print_batch(console, client, cfg.api_url, run.batch_id)
+    finally:
+        if own_client:
+            client.close()
+    write_atomic(cfg.out_dir / SUMMARY_NAME, json.dumps(document, indent=1).encode())
     if run.unreachable is not None:
         console.print(
             f"[red]Stopped: the service keeps failing[/red] ({run.unreachable}). The manifest ({manifest.path}) is up "
