@@ -185,6 +185,10 @@ class WebhookQueries(QueueBase):
         so nobody else sends it meanwhile and a dispatcher that died mid-send leaves it due again."""
         now = now or utcnow()
         lease = timedelta(seconds=self.settings.webhook_timeout_seconds * 2 + 5)
+        due = sa.select(deliveries.c.id).where(deliveries.c.state == "PENDING", deliveries.c.next_attempt_at <= now)
+        with self._read() as conn:
+            if conn.execute(due.limit(1)).first() is None:
+                return []  # the common case: no write transaction (on SQLite it would queue behind workers)
         with self._write() as conn:
             rows = conn.execute(
                 self._locked(
