@@ -9,6 +9,7 @@ A batch of another key answers exactly like a missing one (404), as jobs do.
 from __future__ import annotations
 
 import builtins
+import dataclasses
 import uuid
 from datetime import datetime
 from typing import Any, cast
@@ -53,7 +54,7 @@ class BatchQueries(QueueBase):
             ).scalars()
             metrics = aggregate(summaries)
             record = self._batch_record(conn, row)
-        return BatchRecord(**{**record.__dict__, "metrics": metrics})
+        return dataclasses.replace(record, metrics=metrics)
 
     def list_batches(
         self, owner_key_id: str, page_size: int = 50, page_token: str | None = None
