@@ -87,6 +87,10 @@ async def reject_unknown_query_parameters(request: Request) -> None:
     if unknown:
         raise InvalidRequestError([FieldProblem(name or "(empty name)", "is not a parameter of this endpoint")
                                    for name in unknown])  # fmt: skip
+    # Every parameter takes one value: FastAPI would silently keep the last of ?a=1&a=2.
+    repeated = sorted({name for name in request.query_params if len(request.query_params.getlist(name)) > 1})
+    if repeated:
+        raise InvalidRequestError([FieldProblem(name, "is given more than once") for name in repeated])
 
 
 def _query_names(dependant: Any) -> set[str]:

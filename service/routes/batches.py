@@ -28,7 +28,8 @@ router = APIRouter(
 REPORT_TYPES = {"csv": "text/csv", "parquet": "application/vnd.apache.parquet"}
 
 
-@router.post("", status_code=201, response_model=BatchPublic, summary="Create a batch to submit jobs into")
+@router.post("", status_code=201, response_model=BatchPublic, summary="Create a batch to submit jobs into",
+             responses={400: PROBLEM})  # fmt: skip
 def create_batch(body: BatchCreate, response: Response, queue: QueueDep, key_id: KeyDep) -> BatchPublic:
     batch = queue.create_batch(key_id, body.name, body.meta)
     response.headers["Location"] = f"/v1/batches/{batch.id}"

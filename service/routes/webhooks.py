@@ -11,7 +11,7 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, Query, Response
 
 from service.deps import KeyDep, QueueDep, reject_unknown_query_parameters
-from service.routes.jobs import COMMON_ERRORS
+from service.routes.jobs import COMMON_ERRORS, PROBLEM
 from service.schemas_batches import (
     DeliveriesPublic,
     DeliveryPublic,
@@ -29,7 +29,7 @@ router = APIRouter(
 )
 
 
-@router.post("", status_code=201, response_model=WebhookCreated,
+@router.post("", status_code=201, response_model=WebhookCreated, responses={400: PROBLEM},
              summary="Register an endpoint; the answer holds its signing secret (shown only once)")  # fmt: skip
 def create_webhook(body: WebhookCreate, response: Response, queue: QueueDep, key_id: KeyDep) -> WebhookCreated:
     hook, secret = queue.create_webhook(key_id, str(body.url), [str(t) for t in body.event_types])
