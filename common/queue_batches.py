@@ -11,7 +11,7 @@ from __future__ import annotations
 import builtins
 import dataclasses
 import uuid
-from datetime import datetime
+from datetime import datetime, timedelta
 from typing import Any, cast
 
 import sqlalchemy as sa
@@ -27,6 +27,9 @@ batches = cast(sa.Table, Batch.__table__)
 
 #: Events one stream read returns at most (the stream asks again at once while a read comes back full).
 EVENTS_PER_READ = 200
+#: How old an event must be before a stream over several jobs (or the webhook fan-out) passes it on
+#: PostgreSQL: by then every transaction that took a smaller id has committed.
+EVENT_LAG = timedelta(seconds=2)
 
 
 class BatchQueries(QueueBase):
@@ -155,8 +158,12 @@ class BatchQueries(QueueBase):
 
     def batch_events_after(
         self, owner_key_id: str | None, batch_id: str, after_id: int = 0, limit: int = EVENTS_PER_READ
-    ) -> tuple[BatchRecord, builtins.list[JobEventRecord]]:
-        """The batch (counts) and the events of its jobs with id > ``after_id``, oldest first."""
+    ) -> tuple[BatchRecord, builtins.list[JobEventRecord], bool]:
+        """The batch (counts), the events of its jobs with id > ``after_id`` (oldest first), and whether that is
+        all of them. Events of different jobs are not ordered by one lock: on PostgreSQL a transaction can
+        commit after a later id is visible, so only the prefix older than ``EVENT_LAG`` is returned there
+        (a client resuming after the last id then misses nothing); SQLite commits in id order."""
+        now = utcnow()
         with self._read() as conn:
             record = self._batch_record(conn, self._owned_batch(conn, owner_key_id, batch_id))
             rows = conn.execute(
@@ -166,7 +173,12 @@ class BatchQueries(QueueBase):
                 .order_by(events.c.id)
                 .limit(limit)
             ).all()
-        return record, [_event_record(r) for r in rows]
+        out = [_event_record(r) for r in rows]
+        if self._postgres:
+            cutoff = now - EVENT_LAG
+            settled = next((i for i, e in enumerate(out) if e.at > cutoff), len(out))
+            return record, out[:settled], settled == len(out)
+        return record, out, True
 
     # ------------------------------------------------------------------ helpers
     def _owned_batch(self, conn: Connection, owner_key_id: str | None, batch_id: str) -> Row[Any]:

@@ -21,7 +21,7 @@ from sqlalchemy.engine import Connection, Row
 from common.db_models import EventCursor, Webhook, WebhookDelivery, utcnow
 from common.errors import NotFoundError
 from common.queue_base import QueueBase, events, jobs
-from common.queue_batches import batches
+from common.queue_batches import EVENT_LAG, batches
 from common.queue_types import BatchRecord, DeliveryRecord, DeliveryToSend, WebhookRecord
 from common.webhook_signing import new_secret
 
@@ -37,9 +37,6 @@ EVENT_TYPES: dict[str, str] = {
 }  # fmt: skip
 BATCH_EVENT_TYPES = ("batch.active", "batch.completed")
 ALL_EVENT_TYPES: tuple[str, ...] = (*sorted(set(EVENT_TYPES.values())), *BATCH_EVENT_TYPES)
-#: PostgreSQL hands out event ids at insert, so a transaction can commit after a later id is visible: the
-#: fan-out reads only events at least this old (SQLite commits one writer at a time, in id order).
-POSTGRES_LAG = timedelta(seconds=2)
 MAX_BACKOFF_S = 3600.0
 
 
@@ -98,7 +95,7 @@ class WebhookQueries(QueueBase):
             newest = conn.execute(sa.select(sa.func.max(events.c.id))).scalar() or 0
         if last is not None and newest <= last:
             return 0  # the common case: nothing happened since the last look, and no write transaction
-        cutoff = now - POSTGRES_LAG if self._postgres else now
+        cutoff = now - EVENT_LAG if self._postgres else now
         written = 0
         with self._write() as conn:
             last = conn.execute(

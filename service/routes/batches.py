@@ -92,9 +92,9 @@ async def batch_events(
     after = event_stream.last_event_id(request)
 
     def read(after_id: int) -> tuple[bool, list[JobEventRecord], dict[str, Any]]:
-        batch, events = queue.batch_events_after(key_id, batch_id, after_id)
+        batch, events, complete = queue.batch_events_after(key_id, batch_id, after_id)
         snapshot = {"batch_id": batch.id, "state": batch.state, "total": batch.total, "counts": batch.counts}
-        return batch.state == "COMPLETED", events, snapshot
+        return batch.state == "COMPLETED" and complete, events, snapshot
 
     await run_in_threadpool(read, after)  # 404 before the stream starts
     body = event_stream.stream(request, settings, read, after, "end")
