@@ -43,15 +43,15 @@ import sqlalchemy as sa
 #: Connections the open-loop client spreads its requests over.
 OPEN_LOOP_CONNECTIONS = 32
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))  # bench/ runs as a script; the claimer body lives in tests/queue_claimer.py
+sys.path.insert(0, str(ROOT))  # bench/ runs as a script; the claimer body lives in tests/support/queue_claimer.py
 
 from common.database import create_engine_for, upgrade_to_head  # noqa: E402
 from common.job_options import JobOptions  # noqa: E402
 from common.queue import JobQueue  # noqa: E402
 from common.sequence_io import sequence_to_json_dict, sequence_to_npz_bytes  # noqa: E402
 from common.settings import Settings  # noqa: E402
-from tests.queue_claimer import run_claimers  # noqa: E402
-from tests.queue_fixtures import tiny_payload, tiny_sequence  # noqa: E402
+from tests.support.queue_claimer import run_claimers  # noqa: E402
+from tests.support.queue_fixtures import tiny_payload, tiny_sequence  # noqa: E402
 from worker.example import example_sequence  # noqa: E402
 
 

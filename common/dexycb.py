@@ -16,8 +16,8 @@ from typing import Any, cast
 import numpy as np
 
 from common.errors import ConfigurationError, SequenceValidationError
+from common.mesh_io import load_mesh_file
 from common.sequence import HandTrack, ManoParams, ObjectSpec, Sequence
-from common.sequence_io import load_mesh_file
 from common.settings import get_settings
 
 DEXYCB_KEYS = ("fps", "side", "object_name", "hand_joints", "hand_valid", "object_pose", "world_from_camera")

@@ -21,7 +21,7 @@ of the table, table plane z = 0 (DESIGN §1 "gravity-aligned world frame").
 MANO parameters follow DexYCB's convention (``use_pca=True, ncomps=45, flat_hand_mean=False``); a frame
 whose ``pose_m`` row is all zeros has no hand. Keypoints come from the master camera's ``labels_*.npz``
 (``joint_3d``); without them the hands carry only MANO parameters, which needs a MANO model
-(``HOI_REFINE_MANO_DIR``; decoding is ``worker.mano.ensure_keypoints``).
+(``HOI_REFINE_MANO_DIR``; decoding is ``worker.hand.mano.ensure_keypoints``).
 """
 
 from __future__ import annotations
@@ -36,8 +36,9 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from common.errors import ManoModelMissingError, SequenceValidationError
-from common.sequence import NUM_JOINTS, FloatArray, HandTrack, ManoParams, ObjectSpec, Sequence
-from common.sequence_io import load_mesh_file
+from common.geometry import FloatArray
+from common.mesh_io import load_mesh_file
+from common.sequence import NUM_JOINTS, HandTrack, ManoParams, ObjectSpec, Sequence
 from common.settings import get_settings
 
 #: DexYCB records at 30 fps; meta.yml does not say so.

@@ -18,10 +18,9 @@ import numpy as np
 import numpy.typing as npt
 
 from common.errors import FieldProblem, SequenceValidationError
+from common.geometry import FloatArray, IntArray
 
-FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
-IntArray = npt.NDArray[np.int64]
 
 Side = Literal["right", "left"]
 PrimitiveKind = Literal["box", "cylinder", "sphere", "capsule"]

@@ -23,7 +23,10 @@ from typing import Any, cast
 
 import numpy as np
 
+from common.dexycb import sequence_from_dexycb_npz
+from common.dexycb_native import is_dexycb_sequence_dir, load_dexycb_native
 from common.errors import FieldProblem, SequenceValidationError, UnsupportedFormatError
+from common.mesh_io import load_mesh_file
 from common.npz_writer import deterministic_npz_bytes
 from common.sequence import (
     PRIMITIVE_SIZE_LEN,
@@ -35,32 +38,6 @@ from common.sequence import (
 
 FORMAT_NAME = "hoi-refine-sequence"
 FORMAT_VERSION = 1
-MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
-
-
-# ---------------------------------------------------------------------- meshes
-
-
-def load_mesh_file(path: Path, field: str = "object.mesh_file") -> tuple[np.ndarray, np.ndarray]:
-    """Read a triangle mesh (vertices, faces) with trimesh; scenes are merged into one mesh."""
-    import trimesh
-
-    if not path.is_file():
-        raise SequenceValidationError.single(field, f"mesh file {path} does not exist")
-    if path.suffix.lower() not in MESH_SUFFIXES:
-        raise SequenceValidationError.single(
-            field, f"unsupported mesh type {path.suffix!r}; use one of {', '.join(MESH_SUFFIXES)}"
-        )
-    try:
-        loaded = trimesh.load(path, force="mesh", process=False)
-    except Exception as exc:  # trimesh raises many types for corrupt files
-        raise SequenceValidationError.single(field, f"could not read mesh {path.name}: {exc}") from exc
-    mesh = cast(Any, loaded)
-    vertices = np.asarray(mesh.vertices, dtype=np.float64)
-    faces = np.asarray(mesh.faces, dtype=np.int64)
-    if vertices.size == 0 or faces.size == 0:
-        raise SequenceValidationError.single(field, f"mesh {path.name} is empty")
-    return vertices, faces
 
 
 # ---------------------------------------------------------------------- NPZ
@@ -136,8 +113,6 @@ def sequence_from_npz_bytes(
         raise UnsupportedFormatError(f"not a readable NPZ file: {exc}") from exc
     with data:
         if "hand_joints" in data.files and "object_name" in data.files and "format" not in data.files:
-            from common.dexycb import sequence_from_dexycb_npz
-
             return sequence_from_dexycb_npz(data, max_frames=max_frames, path=source_path)
         fmt = str(_npz_get(data, "format"))
         if fmt != FORMAT_NAME:
@@ -367,8 +342,6 @@ def load_sequence(path: Path | str, max_frames: int | None = None) -> Sequence:
     path = Path(path)
     if path.is_dir() or path.name == "meta.yml":
         # DexYCB native layout: <root>/<subject>/<sequence>/{meta.yml,pose.npz}
-        from common.dexycb_native import is_dexycb_sequence_dir, load_dexycb_native
-
         seq_dir = path if path.is_dir() else path.parent
         if is_dexycb_sequence_dir(seq_dir):
             return load_dexycb_native(seq_dir, max_frames=max_frames)

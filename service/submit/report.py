@@ -13,7 +13,7 @@ from rich.table import Table
 from service.submit.manifest import FAILED_STATES, Entry
 
 #: Metrics of DESIGN §1.8 in table order: (key in the result summary, label, format). Keys are
-#: ``worker.metrics.METRIC_KEYS``; unit-suffixed spellings (``E_t_cm``) of older results are read too.
+#: ``worker.simulation.metrics.METRIC_KEYS``; unit-suffixed spellings (``E_t_cm``) of older results are read too.
 METRICS: tuple[tuple[str, str, str], ...] = (
     ("E_t", "E_t (cm)", "{:.2f}"),
     ("E_r", "E_r (deg)", "{:.2f}"),

@@ -24,7 +24,7 @@ from common.job_options import JobOptions
 from common.queue import JobQueue
 from common.result_format import read_arrays
 from common.sequence_io import sequence_from_npz_bytes, sequence_to_npz_bytes
-from tests.queue_fixtures import BACKENDS
+from tests.support.queue_fixtures import BACKENDS
 from worker.runtime.demo_client import ApiClient, local_deployment
 
 pytestmark = pytest.mark.slow
@@ -70,7 +70,7 @@ def test_up_two_workers_crash_cancel_and_stop(db_url: str, tmp_path: Path) -> No
 
 
 def _scenario(db_url: str, tmp_path: Path, log: Path) -> None:
-    from worker.example import short_example_sequence
+    from worker.example.sequences import short_example_sequence
     from worker.refine.run import refine_sequence
 
     env = {

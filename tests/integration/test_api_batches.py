@@ -12,8 +12,8 @@ import pyarrow.parquet as pq
 import pytest
 
 from common.sequence_io import sequence_to_npz_bytes
-from tests.integration.test_api_jobs import json_body
-from tests.queue_fixtures import BACKENDS, ApiHarness, fake_result, tiny_sequence
+from tests.support.api import json_body
+from tests.support.queue_fixtures import BACKENDS, ApiHarness, fake_result, tiny_sequence
 
 pytestmark = pytest.mark.parametrize("empty_db_url", BACKENDS, indirect=True)
 

@@ -17,9 +17,9 @@ from common.database import create_engine_for
 from common.queue import JobQueue
 from common.settings import Settings
 from service.app import create_app
-from tests.integration.test_api_jobs import json_body
-from tests.live_server import serve_app
-from tests.queue_fixtures import BACKENDS, fake_result
+from tests.support.api import json_body
+from tests.support.live_server import serve_app
+from tests.support.queue_fixtures import BACKENDS, fake_result
 
 pytestmark = pytest.mark.parametrize("empty_db_url", BACKENDS, indirect=True)
 

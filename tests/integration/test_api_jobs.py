@@ -10,16 +10,9 @@ import numpy as np
 import pytest
 
 from common.result_format import read_summary
-from common.sequence_io import sequence_to_json_dict, sequence_to_npz_bytes
-from tests.queue_fixtures import ApiHarness, fake_result, tiny_sequence
-
-PROBLEM = "application/problem+json"
-
-
-def json_body(seed: int = 0, frames: int = 5, **options: object) -> dict[str, object]:
-    body = sequence_to_json_dict(tiny_sequence(seed, frames).validate())
-    body["options"] = {"seed": seed, **options}
-    return body
+from common.sequence_io import sequence_to_npz_bytes
+from tests.support.api import PROBLEM, json_body
+from tests.support.queue_fixtures import ApiHarness, fake_result, tiny_sequence
 
 
 def multipart(seed: int = 0, **options: object) -> dict[str, object]:

@@ -12,8 +12,8 @@ from common.errors import AuthenticationError, ConflictError, NotFoundError
 from common.queue import JobQueue
 from common.settings import get_settings
 from service import deps
-from tests.integration.test_api_jobs import PROBLEM, json_body
-from tests.queue_fixtures import BACKENDS, ApiHarness
+from tests.support.api import PROBLEM, json_body
+from tests.support.queue_fixtures import BACKENDS, ApiHarness
 
 pytestmark = pytest.mark.parametrize("empty_db_url", BACKENDS, indirect=True)
 

@@ -18,7 +18,7 @@ from common.errors import (
 )
 from common.job_options import JobOptions
 from common.queue import JobQueue
-from tests.queue_fixtures import BACKENDS, fake_result, submit_tiny, tiny_payload
+from tests.support.queue_fixtures import BACKENDS, fake_result, submit_tiny, tiny_payload
 
 pytestmark = pytest.mark.parametrize("empty_db_url", BACKENDS, indirect=True)
 

@@ -19,7 +19,7 @@ from common.database import create_engine_for
 from common.job_options import JobOptions
 from common.queue import JobQueue
 from common.settings import Settings
-from tests.queue_fixtures import BACKENDS
+from tests.support.queue_fixtures import BACKENDS
 from worker.runtime.backoff import Backoff, WorkerStopping, call_with_backoff
 from worker.runtime.jobs import SELFTEST_GENERATION_ENV, SelfTestJob
 from worker.runtime.loop import WorkerLoop

@@ -2,7 +2,7 @@
 
 The FastAPI app runs under uvicorn in a thread on 127.0.0.1 over a migrated SQLite file; two in-test
 workers (``worker.runtime.loop.WorkerLoop`` over ``common.queue.JobQueue``) complete the jobs with a real
-raw replay in MuJoCo (``worker.replay``). The per-key active-job limit is set to 2, so the tool also meets
+raw replay in MuJoCo (``worker.simulation.replay``). The per-key active-job limit is set to 2, so the tool also meets
 real 429 answers with ``Retry-After`` and has to wait them out.
 """
 
@@ -36,9 +36,9 @@ from service.submit import cli as submit_cli
 from service.submit.client import ApiClient
 from service.submit.manifest import Manifest
 from service.submit.runner import SubmitConfig, SubmitOutcome, run_submit
-from tests.queue_fixtures import tiny_sequence
-from worker.replay import raw_replay, replay_result_bytes, replay_summary
+from tests.support.queue_fixtures import tiny_sequence
 from worker.runtime.loop import WorkerLoop
+from worker.simulation.replay import raw_replay, replay_result_bytes, replay_summary
 
 SEQUENCES = 6
 

@@ -8,7 +8,7 @@ import sqlalchemy as sa
 from alembic import command
 
 from common.database import alembic_config, create_engine_for, database_ready, head_revision, upgrade_to_head
-from tests.queue_fixtures import BACKENDS
+from tests.support.queue_fixtures import BACKENDS
 
 pytestmark = pytest.mark.parametrize("empty_db_url", BACKENDS, indirect=True)
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from worker.metrics import compute_metrics, rotation_error_deg, scalar_metrics
+from common.geometry import rotation_error_deg
+from worker.simulation.metrics import compute_metrics, scalar_metrics
 
 
 def _poses(n: int) -> np.ndarray:

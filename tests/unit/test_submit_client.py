@@ -134,7 +134,7 @@ def test_parse_retry_after() -> None:
 def test_a_run_stops_once_retries_are_spent_instead_of_trying_every_sequence(tmp_path: Path) -> None:
     from common.sequence_io import save_sequence
     from service.submit.runner import SubmitConfig, run_submit
-    from tests.queue_fixtures import tiny_sequence
+    from tests.support.queue_fixtures import tiny_sequence
 
     for i in range(3):
         save_sequence(tiny_sequence(seed=i), tmp_path / f"s{i}.npz")

@@ -16,21 +16,25 @@ deterministic counters; the wall-clock figures are stored in the ``timings_json`
 from __future__ import annotations
 
 from dataclasses import asdict
-from typing import TYPE_CHECKING, Any
+from pathlib import Path
+from typing import Any
 
+import cma
 import numpy as np
 
 from common.errors import ResultMismatchError, UnsupportedFormatError
+from common.geometry import FloatArray
 from common.job_options import JobOptions
 from common.result_format import read_arrays, read_summary
 from common.sequence import Sequence
 from common.sequence_io import sequence_from_npz_bytes, sequence_to_npz_bytes
-from worker.refine.spline import FloatArray
+from worker.hand.mano.pose import mano_result_arrays
+from worker.refine.evaluator import ParallelEvaluator
+from worker.refine.prepare import Prepared, prepare, settled_start
+from worker.refine.replay import ReplayRecord, replay
 from worker.refine.windowed import CmaSettings, WindowLog
-
-if TYPE_CHECKING:
-    from worker.refine.prepare import Prepared
-    from worker.refine.run import ReplayRecord
+from worker.simulation.config import SimConfig
+from worker.simulation.replay import versions as replay_versions
 
 RESULT_KIND = "refine"
 #: verify tolerance on object positions (m): a re-simulation on the same build reproduces bit for bit; the
@@ -40,10 +44,6 @@ VERIFY_TOLERANCE_M = 1e-6
 
 def versions() -> dict[str, str]:
     """The raw replay's package versions plus the optimiser's."""
-    import cma
-
-    from worker.replay import versions as replay_versions
-
     return {**replay_versions(), "cma": str(cma.__version__).split()[0]}
 
 
@@ -75,11 +75,9 @@ def build_arrays(
         arrays[f"{s}_valid"] = ref.valid
         if getattr(ref, "from_mano", False):
             # The refined hand as MANO parameters (issue #6): exact because the scene used the MANO geometry.
-            from worker.mano.pose import mano_result_arrays
-
             hand = prep.seq.hand(s)
             assert hand is not None
-            arrays.update(mano_result_arrays(prep.seq, hand, p, r, q))
+            arrays.update(mano_result_arrays(prep.seq, hand, p, r, q, prep.mano_dir))
     for name, m in (("raw", m_raw), ("refined", m_ref)):
         for key, val in m["per_frame"].items():
             arrays[f"metrics_{name}_{key}"] = val
@@ -143,15 +141,14 @@ def build_summary(
     }
 
 
-def verify_result(blob: bytes, sequence: Sequence | None = None) -> dict[str, Any]:
-    """Re-simulate a result's stored keyframes from frame 0 and compare the object trajectory.
+def verify_result(
+    blob: bytes, sequence: Sequence | None = None, *, cache_dir: Path | None = None, mano_dir: Path | None = None
+) -> dict[str, Any]:
+    """Re-simulate a result's stored keyframes from frame 0 and compare the object trajectory (``cache_dir`` and
+    ``mano_dir`` as for ``prepare``).
 
     Raises ``ResultMismatchError`` when the object trajectory (or the stored per-frame controls) differ.
     """
-    from worker.refine.evaluator import ParallelEvaluator
-    from worker.refine.prepare import initial_state, prepare
-    from worker.refine.run import replay
-
     summary = read_summary(blob)
     if summary.get("kind") != RESULT_KIND:
         raise UnsupportedFormatError(f"not a refinement result (kind {summary.get('kind')!r})")
@@ -161,15 +158,14 @@ def verify_result(blob: bytes, sequence: Sequence | None = None) -> dict[str, An
             raise UnsupportedFormatError("the result embeds no sequence; pass --sequence")
         sequence = sequence_from_npz_bytes(arrays["sequence_npz"].tobytes())
     options = JobOptions.model_validate(summary["options"])
-    from worker.scene import SimConfig
-
     sim: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in summary["config"]["sim"].items()}
     # Results made before the pivot was recorded turned the hand about the wrist; before the wrist lead was
     # recorded, the mocap followed the wrist track itself; before the rest pose, the object started from frame 0.
     sim.setdefault("wrist_lead_s", 0.0)
     sim.setdefault("rest_approach_m", 0.0)
     sim.setdefault("finger_lead_s", 0.0)
-    prep = prepare(sequence, options, SimConfig(**sim), rotation_pivot=summary["config"].get("rotation_pivot", "wrist"))
+    prep = prepare(sequence, options, SimConfig(**sim), rotation_pivot=summary["config"].get("rotation_pivot", "wrist"),
+                   cache_dir=cache_dir, mano_dir=mano_dir)
     keyframes = {}
     for side, space in prep.spaces.items():
         key = f"{side}_keyframes"
@@ -180,7 +176,7 @@ def verify_result(blob: bytes, sequence: Sequence | None = None) -> dict[str, An
         if not np.allclose(q, arrays[f"{side}_q_target"], atol=1e-9):
             raise ResultMismatchError(f"{side}_q_target does not match the stored keyframes")
     with ParallelEvaluator(prep.scene.model, 1) as ev:
-        start, _ = initial_state(prep, ev)
+        start, _ = settled_start(prep, ev)
         rec = replay(prep, ev, start, keyframes, record_contacts=False)
     stored = arrays["object_pose_sim"]
     if stored.shape != rec.object_pose.shape:

@@ -182,8 +182,8 @@ def run_demo(
         raise ConfigurationError("an API key is needed with a base URL (HOI_REFINE_API_KEY)")
     from common.result_format import read_summary
     from common.sequence_io import sequence_to_npz_bytes
-    from worker.cli_refine import format_metrics_table
-    from worker.example import example_sequence, short_example_sequence
+    from worker.commands.refine import print_refine_metrics
+    from worker.example.sequences import example_sequence, short_example_sequence
 
     seq = short_example_sequence() if short else example_sequence()
     client = ApiClient(base_url, api_key)
@@ -202,6 +202,6 @@ def run_demo(
     result_path, contacts_path = out / f"{seq.name}.result.npz", out / f"{seq.name}.contacts.json"
     result_path.write_bytes(blob)
     contacts_path.write_text(json.dumps(contacts, indent=1))
-    print(format_metrics_table(read_summary(blob)))
+    print_refine_metrics(read_summary(blob))
     print(f"result: {result_path}\ncontacts ({contacts['count']}): {contacts_path}")
     return 0

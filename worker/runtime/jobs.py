@@ -67,7 +67,9 @@ class RefineJob:
         import mujoco
 
         from common.sequence_io import sequence_from_npz_bytes
-        from worker.refine.run import ParallelEvaluator, refine_sequence
+        from common.settings import get_settings
+        from worker.refine.evaluator import ParallelEvaluator
+        from worker.refine.run import refine_sequence
 
         seq = sequence_from_npz_bytes(payload)
         if self._evaluator is None:
@@ -80,6 +82,8 @@ class RefineJob:
             progress=lambda p: progress(_progress_dict(p)),
             should_stop=should_stop,
             evaluator=self._evaluator,
+            cache_dir=get_settings().resolved_cache_dir(),
+            mano_dir=get_settings().mano_dir,
         )
         return outcome.to_npz_bytes(), dict(outcome.summary)
 
