@@ -13,7 +13,7 @@ from typing import Any
 
 from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
-from starlette.datastructures import UploadFile
+from starlette.datastructures import FormData, UploadFile
 from starlette.requests import Request
 
 from common.errors import (
@@ -92,7 +92,12 @@ def _from_json(body: bytes, settings: Settings) -> tuple[Sequence, JobOptions, s
 
 
 async def _read_multipart(request: Request, settings: Settings) -> tuple[bytes, JobOptions, str | None]:
-    form = await request.form(max_files=1, max_fields=10, max_part_size=1024 * 1024)
+    # The context closes the spooled temporary files of the parts (else each request leaks one until GC).
+    async with request.form(max_files=1, max_fields=10, max_part_size=1024 * 1024) as form:
+        return await _read_form(form)
+
+
+async def _read_form(form: FormData) -> tuple[bytes, JobOptions, str | None]:
     seq_part = form.get("sequence")
     if seq_part is None:
         raise _invalid([FieldProblem("sequence", "is required (a file part holding the sequence NPZ)")])
