@@ -31,7 +31,15 @@ from service.submit.client import ApiClient, Stopped
 from service.submit.discovery import Source, SourceFormat, discover, load_source
 from service.submit.manifest import FAILED_STATES, TERMINAL_JOB_STATES, Entry, Manifest, write_atomic
 from service.submit.payload import idempotency_key, options_json, sequence_payload
-from service.submit.report import counts, describe, make_progress, print_summary, summary_document
+from service.submit.report import (
+    counts,
+    describe,
+    job_error,
+    job_metrics,
+    make_progress,
+    print_summary,
+    summary_document,
+)
 
 RESULTS_DIR = "results"
 #: Machine-readable form of the closing summary, rewritten at the end of every run.
@@ -150,8 +158,8 @@ class _Run:
             self.manifest.reset(entry, entry.key)
             return "lost", None
         state = str(doc.get("state", entry.state))
-        error = _job_error(doc) if state in ("FAILED", "CANCELLED") else None
-        metrics = _job_metrics(doc) or entry.metrics
+        error = job_error(doc) if state in ("FAILED", "CANCELLED") else None
+        metrics = job_metrics(doc) or entry.metrics
         self.manifest.update(entry, state=state, attempt=doc.get("attempt", entry.attempt), error=error,
                              metrics=metrics)
         if state == "SUCCEEDED" and download:
@@ -206,22 +214,6 @@ class _Run:
             and {"result", "contacts"} <= entry.files.keys()
             and all((self.cfg.out_dir / p).is_file() for p in entry.files.values())
         )
-
-
-def _job_error(doc: dict[str, Any]) -> str:
-    """The last error of a FAILED/CANCELLED job (``errors`` holds one entry per attempt)."""
-    errors = doc.get("errors")
-    if isinstance(errors, list) and errors:
-        last = errors[-1]
-        return str(last.get("error") if isinstance(last, dict) else last)
-    return str(doc.get("error") or doc.get("detail") or f"job {str(doc.get('state', 'failed')).lower()}")
-
-
-def _job_metrics(doc: dict[str, Any]) -> dict[str, Any] | None:
-    for holder in (doc.get("summary"), doc):
-        if isinstance(holder, dict) and isinstance(holder.get("metrics"), dict):
-            return dict(holder["metrics"])
-    return None
 
 
 def run_submit(
@@ -362,13 +354,11 @@ def run_submit(
 
     print_summary(console, visible, retried=len(retried), retry_hint=not cfg.retry_failed)
     document = summary_document(visible, len(retried))
-    try:
-        if run.batch_id is not None and run.unreachable is None:
-            client.stop = threading.Event()  # the run's stop is set by now; this one last read may go out
-            document["batch"] = print_batch(console, client, cfg.api_url, run.batch_id)
-    finally:
-        if own_client:
-            client.close()
+    if run.batch_id is not None and run.unreachable is None:
+        client.stop = threading.Event()  # the run's stop is set by now; this one last read may go out
+        document["batch"] = print_batch(console, client, cfg.api_url, run.batch_id)
+    if own_client:
+        client.close()
     write_atomic(cfg.out_dir / SUMMARY_NAME, json.dumps(document, indent=1).encode())
     if run.unreachable is not None:
         console.print(
