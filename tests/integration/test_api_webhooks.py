@@ -4,8 +4,10 @@ is announced once, and a receiver that hangs holds neither the queue nor deliver
 
 from __future__ import annotations
 
+import socket
 import time
 from collections.abc import Iterator
+from datetime import datetime
 from typing import Any
 
 import pytest
@@ -139,3 +141,25 @@ def test_webhook_input_is_validated(hooks_api: ApiHarness) -> None:
                           headers=api.headers)  # fmt: skip
     assert bad.status_code == 422
     assert {e["field"] for e in bad.json()["errors"]} == {"url", "event_types[0]"}
+
+
+def test_a_dead_receiver_is_retried_with_backoff_then_given_up(hooks_api: ApiHarness) -> None:
+    api = hooks_api
+    api.queue.settings = api.queue.settings.model_copy(update={"webhook_max_attempts": 3})
+    with socket.socket() as s:  # a port nothing listens on: every attempt is refused
+        s.bind(("127.0.0.1", 0))
+        dead = f"http://127.0.0.1:{s.getsockname()[1]}/hook"
+    hook = api.client.post("/v1/webhooks", json={"url": dead, "event_types": ["job.succeeded"]},
+                           headers=api.headers).json()  # fmt: skip
+    job_id = api.client.post("/v1/jobs", json=json_body(), headers=api.headers).json()["id"]
+    run_job(api.queue, job_id)
+    assert api.client.get(f"/v1/jobs/{job_id}", headers=api.headers).json()["state"] == "SUCCEEDED"
+    url = f"/v1/webhooks/{hook['id']}/deliveries"
+    (failed,) = wait_until(
+        lambda: [d for d in api.client.get(url, headers=api.headers).json()["data"] if d["state"] == "FAILED"],
+        "the delivery to be given up",
+    )
+    assert failed["attempts"] == 3 and len(failed["log"]) == 3 and failed["last_status"] is None
+    assert all(a["error"].startswith("ConnectError") for a in failed["log"])
+    times = [datetime.fromisoformat(a["at"]) for a in failed["log"]]
+    assert times == sorted(times)  # one attempt after another, each after its backoff
