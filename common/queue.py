@@ -19,21 +19,23 @@ from __future__ import annotations
 
 import base64
 import builtins
+import dataclasses
 import hashlib
 import json
 import re
 import secrets
 import uuid
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
+from contextlib import AbstractContextManager
 from datetime import datetime, timedelta
 from typing import Any, cast
 
 import sqlalchemy as sa
 from sqlalchemy.engine import Connection, Engine, Row
 
-from common.database import IMMEDIATE
-from common.db_models import Job, JobArtifact, JobEvent, JobInput, JobResult, utcnow
+from common.batch_metrics import aggregate
+from common.database import for_update, read_transaction, write_transaction
+from common.db_models import Batch, Job, JobArtifact, JobEvent, JobInput, JobResult, utcnow
 from common.errors import (
     ConflictError,
     FieldProblem,
@@ -45,7 +47,7 @@ from common.errors import (
 )
 from common.job_options import JobOptions
 from common.job_state import ACTIVE, JobState
-from common.queue_types import Artifact, ClaimedJob, JobEventRecord, JobRecord, QueueStats
+from common.queue_types import Artifact, BatchRecord, ClaimedJob, JobEventRecord, JobRecord, QueueStats
 from common.safe_text import shown
 from common.settings import Settings, get_settings
 
@@ -55,8 +57,15 @@ inputs = cast(sa.Table, JobInput.__table__)
 results = cast(sa.Table, JobResult.__table__)
 events = cast(sa.Table, JobEvent.__table__)
 artifacts = cast(sa.Table, JobArtifact.__table__)
+batches = cast(sa.Table, Batch.__table__)
 
 MAX_PAGE_SIZE = 500
+#: Events one stream read returns at most (the stream asks again at once while a read comes back full).
+EVENTS_PER_READ = 200
+#: How old an event must be before a stream over several jobs (or the webhook fan-out) passes it on
+#: PostgreSQL: by then every transaction that took a smaller id has committed.
+EVENT_LAG = timedelta(seconds=2)
+_VERSION_SQL = sa.text("SELECT owner_key_id, updated_at FROM jobs WHERE id = :job_id")
 
 
 def payload_hash(payload: bytes, options: JobOptions) -> str:
@@ -66,10 +75,13 @@ def payload_hash(payload: bytes, options: JobOptions) -> str:
 
 
 class JobQueue:
-    """Submit, claim, heartbeat, complete, fail, cancel, retry, requeue, delete; owner-scoped reads and counts.
+    """Submit, claim, heartbeat, complete, fail, cancel, retry, requeue, delete; owner-scoped reads and counts;
+    batches and the event reads behind the event streams.
 
     Sections: construction and transactions, submission, owner-scoped reads, counts, the worker side,
-    owner-scoped actions, row helpers. API keys live in ``common.api_key_store.ApiKeyStore``.
+    owner-scoped actions, batches, event reads, row helpers. API keys live in
+    ``common.api_key_store.ApiKeyStore``, webhooks (an outbox fed from ``job_events``) in
+    ``common.webhook_store.WebhookStore``.
     """
 
     def __init__(self, engine: Engine, settings: Settings | None = None) -> None:
@@ -78,22 +90,14 @@ class JobQueue:
         self._postgres = engine.dialect.name == "postgresql"
 
     # ------------------------------------------------------------------ transactions
-    @contextmanager
-    def _write(self) -> Iterator[Connection]:
-        """A write transaction (BEGIN IMMEDIATE on SQLite, see ``common.database``)."""
-        with self.engine.connect() as conn:
-            conn.execution_options(**{IMMEDIATE: True})
-            with conn.begin():
-                yield conn
+    def _write(self) -> AbstractContextManager[Connection]:
+        return write_transaction(self.engine)
 
-    @contextmanager
-    def _read(self) -> Iterator[Connection]:
-        with self.engine.connect() as conn, conn.begin():
-            yield conn
+    def _read(self) -> AbstractContextManager[Connection]:
+        return read_transaction(self.engine)
 
     def _locked(self, query: sa.Select[Any], skip_locked: bool = False) -> sa.Select[Any]:
-        # SQLite has no row locks; its BEGIN IMMEDIATE already holds the whole database.
-        return query.with_for_update(skip_locked=skip_locked) if self._postgres else query
+        return for_update(query, self.engine, skip_locked)
 
     @staticmethod
     def _event(conn: Connection, job_id: str, kind: str, now: datetime, **detail: Any) -> None:
@@ -108,8 +112,10 @@ class JobQueue:
         idempotency_key: str | None,
         name: str,
         num_frames: int,
+        batch_id: str | None = None,
     ) -> tuple[JobRecord, bool]:
-        """Queue a job; returns (job, created). Same Idempotency-Key + same payload -> the first job."""
+        """Queue a job, into ``batch_id`` when given (a batch of the same key); returns (job, created).
+        Same Idempotency-Key + same payload -> the first job (adopted into ``batch_id`` if it had no batch)."""
         digest = payload_hash(payload, options)
         try:
             with self._write() as conn:
@@ -117,10 +123,13 @@ class JobQueue:
                     # Serialise one owner's submissions: the idempotency lookup and the active-jobs limit
                     # below then see every committed sibling (SQLite's BEGIN IMMEDIATE already does this).
                     conn.execute(sa.select(sa.func.pg_advisory_xact_lock(sa.func.hashtext(owner_key_id))))
+                if batch_id is not None:
+                    self._owned_batch(conn, owner_key_id, batch_id)
                 if idempotency_key is not None:
                     existing = self._by_idempotency_key(conn, owner_key_id, idempotency_key)
                     if existing is not None:
-                        return self._idempotent_match(existing, digest), False
+                        match = self._idempotent_match(existing, digest)
+                        return self._into_batch(conn, match, batch_id), False
                 active = self._count_active(conn, owner_key_id)
                 if active >= self.settings.max_active_jobs_per_key:
                     raise LimitExceededError(
@@ -132,7 +141,8 @@ class JobQueue:
                 job_id = uuid.uuid4().hex
                 conn.execute(
                     sa.insert(jobs).values(
-                        id=job_id, owner_key_id=owner_key_id, name=name[:200], state=JobState.QUEUED,
+                        id=job_id, owner_key_id=owner_key_id, batch_id=batch_id, name=name[:200],
+                        state=JobState.QUEUED,
                         priority=options.priority, attempt=1, idempotency_key=idempotency_key,
                         payload_hash=digest, options=options.model_dump(mode="json"), num_frames=num_frames,
                         cancel_requested=False, errors=[], created_at=now, queued_at=now, updated_at=now,
@@ -150,7 +160,21 @@ class JobQueue:
                 existing = self._by_idempotency_key(conn, owner_key_id, idempotency_key)
             if existing is None:
                 raise
+            if existing.batch_id != batch_id:
+                raise
             return self._idempotent_match(existing, digest), False
+
+    def _into_batch(self, conn: Connection, job: JobRecord, batch_id: str | None) -> JobRecord:
+        """A job found by its Idempotency-Key, re-sent with ``batch_id``: adopt it when it has no batch yet
+        (a manifest written before batches existed), refuse when it belongs to another batch."""
+        if batch_id is None or job.batch_id == batch_id:
+            return job
+        if job.batch_id is not None:
+            raise ConflictError(f"Idempotency-Key names job {job.id}, which is in batch {job.batch_id}, not {batch_id}")
+        now = utcnow()
+        conn.execute(sa.update(jobs).where(jobs.c.id == job.id).values(batch_id=batch_id, updated_at=now))
+        self._event(conn, job.id, "batched", now, batch_id=batch_id)
+        return self._get(conn, job.id, None)
 
     def _by_idempotency_key(self, conn: Connection, owner_key_id: str, key: str) -> JobRecord | None:
         row = conn.execute(
@@ -172,8 +196,27 @@ class JobQueue:
         with self._read() as conn:
             return self._get(conn, job_id, owner_key_id)
 
+    def version(self, owner_key_id: str | None, job_id: str) -> str:
+        """An opaque version of the job: its ``updated_at`` as the driver returns it. Every write to a job sets
+        ``updated_at``, so this versions the whole representation (the status poll's ETag and cache key).
+        ``NotFoundError`` as ``get``.
+
+        The status poll's hot path: one indexed single-row SELECT in autocommit (no BEGIN / ROLLBACK round
+        trips), as plain SQL (no type processing: the value is only compared, never interpreted)."""
+        _require_plain_id(job_id)
+        with self.engine.connect().execution_options(isolation_level="AUTOCOMMIT") as conn:
+            row = conn.execute(_VERSION_SQL, {"job_id": job_id}).first()
+        if row is None or (owner_key_id is not None and row[0] != owner_key_id):
+            raise NotFoundError(f"no job {job_id}")
+        return str(row[1])
+
     def list(
-        self, owner_key_id: str | None, state: str | None = None, page_size: int = 50, page_token: str | None = None
+        self,
+        owner_key_id: str | None,
+        state: str | None = None,
+        page_size: int = 50,
+        page_token: str | None = None,
+        batch_id: str | None = None,
     ) -> tuple[builtins.list[JobRecord], str | None]:
         """Newest first, keyset-paginated on (created_at, id); returns (jobs, next_page_token)."""
         page_size = max(1, min(page_size, MAX_PAGE_SIZE))
@@ -182,6 +225,8 @@ class JobQueue:
             query = query.where(jobs.c.owner_key_id == owner_key_id)
         if state is not None:
             query = query.where(jobs.c.state == state)
+        if batch_id is not None:
+            query = query.where(jobs.c.batch_id == batch_id)
         if page_token is not None:
             created, last_id = _decode_page_token(page_token)
             query = query.where(
@@ -244,7 +289,7 @@ class JobQueue:
             if owner_key_id is not None:
                 self._get(conn, job_id, owner_key_id)
             rows = conn.execute(sa.select(events).where(events.c.job_id == job_id).order_by(events.c.id)).all()
-        return [JobEventRecord(r.id, r.job_id, r.at, r.kind, dict(r.detail)) for r in rows]
+        return [_event_record(r) for r in rows]
 
     # ------------------------------------------------------------------ counts
     def count_active(self, owner_key_id: str) -> int:
@@ -317,13 +362,17 @@ class JobQueue:
         values: dict[str, Any] = {"lease_expires_at": now + lease, "updated_at": now}
         if progress is not None:
             values["progress"] = progress
+        held = (jobs.c.id == job_id, jobs.c.lease_token == lease_token, jobs.c.state == JobState.RUNNING)
         with self._write() as conn:
-            flag = conn.execute(
-                sa.update(jobs)
-                .where(jobs.c.id == job_id, jobs.c.lease_token == lease_token, jobs.c.state == JobState.RUNNING)
-                .values(**values)
-                .returning(jobs.c.cancel_requested)
-            ).scalar()
+            before = None
+            if progress is not None:
+                before = conn.execute(self._locked(sa.select(jobs.c.progress).where(*held))).first()
+            update = sa.update(jobs).where(*held).values(**values)
+            flag = conn.execute(update.returning(jobs.c.cancel_requested)).scalar()
+            if flag is not None and before is not None and before.progress != progress:
+                # Progress that moved is an event too (the event streams send it with an id, so a client
+                # resumes after it); an unchanged renewal writes none, which bounds the log's growth.
+                self._event(conn, job_id, "progress", now, progress=progress)
         if flag is None:
             raise LeaseLostError(f"job {job_id}: lease token no longer holds the job")
         return bool(flag)
@@ -549,6 +598,180 @@ class JobQueue:
             conn.execute(sa.delete(jobs).where(jobs.c.id == job_id))
             self._event(conn, job_id, "deleted", now, state=state)
 
+    # ------------------------------------------------------------------ batches
+    def create_batch(self, owner_key_id: str, name: str, meta: dict[str, Any] | None = None) -> BatchRecord:
+        batch_id, now = uuid.uuid4().hex, utcnow()
+        with self._write() as conn:
+            conn.execute(
+                sa.insert(batches).values(
+                    id=batch_id, owner_key_id=owner_key_id, name=name[:200], meta=dict(meta or {}), created_at=now
+                )
+            )
+            return self._batch_record(conn, self._owned_batch(conn, owner_key_id, batch_id))
+
+    def get_batch(self, owner_key_id: str | None, batch_id: str) -> BatchRecord:
+        """The batch with counts per state and the aggregate metrics of its SUCCEEDED jobs."""
+        with self._read() as conn:
+            row = self._owned_batch(conn, owner_key_id, batch_id)
+            summaries = conn.execute(
+                sa.select(results.c.summary)
+                .select_from(jobs.join(results, results.c.job_id == jobs.c.id))
+                .where(jobs.c.batch_id == batch_id, jobs.c.state == JobState.SUCCEEDED)
+            ).scalars()
+            metrics = aggregate(summaries)
+            record = self._batch_record(conn, row)
+        return dataclasses.replace(record, metrics=metrics)
+
+    def list_batches(
+        self, owner_key_id: str, page_size: int = 50, page_token: str | None = None
+    ) -> tuple[builtins.list[BatchRecord], str | None]:
+        """Newest first, keyset-paginated on (created_at, id) like ``list``; counts, no metrics."""
+        page_size = max(1, min(page_size, MAX_PAGE_SIZE))
+        query = sa.select(batches).where(batches.c.owner_key_id == owner_key_id)
+        if page_token is not None:
+            created, last_id = _decode_page_token(page_token)
+            query = query.where(
+                sa.or_(
+                    batches.c.created_at < created, sa.and_(batches.c.created_at == created, batches.c.id < last_id)
+                )
+            )
+        query = query.order_by(batches.c.created_at.desc(), batches.c.id.desc()).limit(page_size + 1)
+        with self._read() as conn:
+            rows = conn.execute(query).all()
+            more = len(rows) > page_size
+            rows = rows[:page_size]
+            counts = self._counts(conn, [r.id for r in rows])
+        page = [_batch(r, counts.get(r.id, {})) for r in rows]
+        return page, (_encode_page_token(page[-1].created_at, page[-1].id) if more else None)
+
+    def batch_jobs(self, owner_key_id: str | None, batch_id: str) -> builtins.list[JobRecord]:
+        """Every job of the batch with its result summary, oldest first (the per-sequence report)."""
+        with self._read() as conn:
+            self._owned_batch(conn, owner_key_id, batch_id)
+            rows = conn.execute(
+                self._job_select().where(jobs.c.batch_id == batch_id).order_by(jobs.c.created_at, jobs.c.id)
+            ).all()
+        return [self._record(r) for r in rows]
+
+    def cancel_batch(self, owner_key_id: str | None, batch_id: str) -> tuple[BatchRecord, int]:
+        """Cancel every QUEUED job now and flag every RUNNING one (as ``cancel`` does for one job);
+        returns (batch, jobs changed)."""
+        now = utcnow()
+        with self._write() as conn:
+            row = self._owned_batch(conn, owner_key_id, batch_id)
+            active = conn.execute(
+                self._locked(
+                    sa.select(jobs.c.id, jobs.c.state).where(
+                        jobs.c.batch_id == batch_id, jobs.c.state.in_(ACTIVE), jobs.c.cancel_requested.is_(False)
+                    )
+                )
+            ).all()
+            queued = [r.id for r in active if r.state == JobState.QUEUED]
+            running = [r.id for r in active if r.state == JobState.RUNNING]
+            if queued:
+                conn.execute(
+                    sa.update(jobs)
+                    .where(jobs.c.id.in_(queued), jobs.c.state == JobState.QUEUED)
+                    .values(state=JobState.CANCELLED, finished_at=now, updated_at=now)
+                )
+            if running:
+                conn.execute(
+                    sa.update(jobs).where(jobs.c.id.in_(running)).values(cancel_requested=True, updated_at=now)
+                )
+            self._events(conn, now, [(j, "cancelled") for j in queued] + [(j, "cancel_requested") for j in running])
+            return self._batch_record(conn, row), len(active)
+
+    def retry_failed_batch(self, owner_key_id: str | None, batch_id: str) -> tuple[BatchRecord, int]:
+        """Requeue every FAILED job of the batch with a fresh attempt budget (as ``retry``)."""
+        now = utcnow()
+        with self._write() as conn:
+            row = self._owned_batch(conn, owner_key_id, batch_id)
+            failed = conn.execute(
+                self._locked(sa.select(jobs.c.id).where(jobs.c.batch_id == batch_id, jobs.c.state == JobState.FAILED))
+            ).scalars().all()
+            if failed:
+                conn.execute(
+                    sa.update(jobs)
+                    .where(jobs.c.id.in_(failed), jobs.c.state == JobState.FAILED)
+                    .values(
+                        state=JobState.QUEUED, attempt=1, not_before=None, cancel_requested=False, progress=None,
+                        queued_at=now, started_at=None, finished_at=None, updated_at=now,
+                    )
+                )  # fmt: skip
+            self._events(conn, now, [(j, "retried") for j in failed])
+            return self._batch_record(conn, row), len(failed)
+
+    # ------------------------------------------------------------------ event streams
+    def job_events_after(
+        self, owner_key_id: str | None, job_id: str, after_id: int = 0, limit: int = EVENTS_PER_READ
+    ) -> tuple[JobRecord, builtins.list[JobEventRecord]]:
+        """The job (without summary) and its events with id > ``after_id``, oldest first. A job's events are
+        written under its row lock, so their ids grow in commit order and ``after_id`` misses none."""
+        with self._read() as conn:
+            row = conn.execute(self._job_select(with_summary=False).where(jobs.c.id == job_id)).first()
+            if row is None or (owner_key_id is not None and row.owner_key_id != owner_key_id):
+                raise NotFoundError(f"no job {job_id}")
+            rows = conn.execute(
+                sa.select(events)
+                .where(events.c.job_id == job_id, events.c.id > after_id)
+                .order_by(events.c.id)
+                .limit(limit)
+            ).all()
+        return self._record(row), [_event_record(r) for r in rows]
+
+    def batch_events_after(
+        self, owner_key_id: str | None, batch_id: str, after_id: int = 0, limit: int = EVENTS_PER_READ
+    ) -> tuple[BatchRecord, builtins.list[JobEventRecord], bool]:
+        """The batch (counts), the events of its jobs with id > ``after_id`` (oldest first), and whether that is
+        all of them. Events of different jobs are not ordered by one lock: on PostgreSQL a transaction can
+        commit after a later id is visible, so only the prefix older than ``EVENT_LAG`` is returned there
+        (a client resuming after the last id then misses nothing); SQLite commits in id order."""
+        now = utcnow()
+        with self._read() as conn:
+            record = self._batch_record(conn, self._owned_batch(conn, owner_key_id, batch_id))
+            rows = conn.execute(
+                sa.select(events)
+                .select_from(events.join(jobs, jobs.c.id == events.c.job_id))
+                .where(jobs.c.batch_id == batch_id, events.c.id > after_id)
+                .order_by(events.c.id)
+                .limit(limit)
+            ).all()
+        out = [_event_record(r) for r in rows]
+        if self._postgres:
+            cutoff = now - EVENT_LAG
+            settled = next((i for i, e in enumerate(out) if e.at > cutoff), len(out))
+            return record, out[:settled], settled == len(out)
+        return record, out, True
+
+    # ------------------------------------------------------------------ helpers
+    def _owned_batch(self, conn: Connection, owner_key_id: str | None, batch_id: str) -> Row[Any]:
+        row = conn.execute(sa.select(batches).where(batches.c.id == batch_id)).first()
+        if row is None or (owner_key_id is not None and row.owner_key_id != owner_key_id):
+            raise NotFoundError(f"no batch {batch_id}")
+        return row
+
+    @staticmethod
+    def _counts(conn: Connection, batch_ids: builtins.list[str]) -> dict[str, dict[str, int]]:
+        if not batch_ids:
+            return {}
+        rows = conn.execute(
+            sa.select(jobs.c.batch_id, jobs.c.state, sa.func.count())
+            .where(jobs.c.batch_id.in_(batch_ids))
+            .group_by(jobs.c.batch_id, jobs.c.state)
+        ).all()
+        out: dict[str, dict[str, int]] = {}
+        for batch_id, state, n in rows:
+            out.setdefault(batch_id, {})[state] = int(n)
+        return out
+
+    def _batch_record(self, conn: Connection, row: Row[Any]) -> BatchRecord:
+        return _batch(row, self._counts(conn, [row.id]).get(row.id, {}))
+
+    @staticmethod
+    def _events(conn: Connection, now: datetime, items: builtins.list[tuple[str, str]]) -> None:
+        if items:
+            conn.execute(sa.insert(events), [{"job_id": j, "at": now, "kind": k, "detail": {}} for j, k in items])
+
     # ------------------------------------------------------------------ row helpers
     @staticmethod
     def _job_select(with_summary: bool = True) -> sa.Select[Any]:
@@ -582,6 +805,7 @@ class JobQueue:
             payload_hash=m["payload_hash"], worker_id=m["worker_id"], lease_expires_at=m["lease_expires_at"],
             not_before=m["not_before"], created_at=m["created_at"], queued_at=m["queued_at"],
             started_at=m["started_at"], finished_at=m["finished_at"], updated_at=m["updated_at"], summary=m["summary"],
+            batch_id=m["batch_id"],
         )  # fmt: skip
 
 
@@ -609,3 +833,12 @@ def _decode_page_token(token: str) -> tuple[datetime, str]:
         return when, job_id
     except (ValueError, UnicodeDecodeError) as exc:
         raise InvalidRequestError([FieldProblem("page_token", "is not a token this service issued")]) from exc
+
+
+def _batch(row: Row[Any], counts: dict[str, int]) -> BatchRecord:
+    full = {str(state): counts.get(state, 0) for state in JobState}
+    return BatchRecord(row.id, row.owner_key_id, row.name, dict(row.meta), row.created_at, full)
+
+
+def _event_record(row: Row[Any]) -> JobEventRecord:
+    return JobEventRecord(row.id, row.job_id, row.at, row.kind, dict(row.detail))
