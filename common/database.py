@@ -75,26 +75,31 @@ def create_engine_for(url: str, **kwargs: Any) -> Engine:
 # ---------------------------------------------------------------------- migrations
 
 
-@contextmanager
-def write_transaction(engine: Engine) -> Iterator[Connection]:
-    """A write transaction: BEGIN IMMEDIATE on SQLite (the database lock is taken up front, so two writers
-    never deadlock upgrading their read locks), a plain BEGIN on PostgreSQL."""
-    with engine.connect() as conn:
-        conn.execution_options(**{IMMEDIATE: True})
-        with conn.begin():
+class Transactions:
+    """Transactions on one engine, for the stores that speak SQL (``JobQueue``, ``WebhookStore``): writes take
+    SQLite's database lock up front (BEGIN IMMEDIATE, so two writers never deadlock upgrading their read
+    locks), and row locks exist on PostgreSQL only."""
+
+    def __init__(self, engine: Engine) -> None:
+        self.engine = engine
+        self.postgres = engine.dialect.name == "postgresql"
+
+    @contextmanager
+    def write(self) -> Iterator[Connection]:
+        with self.engine.connect() as conn:
+            conn.execution_options(**{IMMEDIATE: True})
+            with conn.begin():
+                yield conn
+
+    @contextmanager
+    def read(self) -> Iterator[Connection]:
+        with self.engine.connect() as conn, conn.begin():
             yield conn
 
-
-@contextmanager
-def read_transaction(engine: Engine) -> Iterator[Connection]:
-    with engine.connect() as conn, conn.begin():
-        yield conn
-
-
-def for_update(query: sa.Select[Any], engine: Engine, skip_locked: bool = False) -> sa.Select[Any]:
-    """``SELECT ... FOR UPDATE [SKIP LOCKED]`` on PostgreSQL; SQLite has no row locks (its BEGIN IMMEDIATE
-    already holds the whole database), so the query is unchanged there."""
-    return query.with_for_update(skip_locked=skip_locked) if engine.dialect.name == "postgresql" else query
+    def locked(self, query: sa.Select[Any], skip_locked: bool = False) -> sa.Select[Any]:
+        """``SELECT ... FOR UPDATE [SKIP LOCKED]`` on PostgreSQL; unchanged on SQLite, which has no row locks
+        (its BEGIN IMMEDIATE already holds the whole database)."""
+        return query.with_for_update(skip_locked=skip_locked) if self.postgres else query
 
 
 def alembic_config(url: str) -> Config:

@@ -25,8 +25,7 @@ import json
 import re
 import secrets
 import uuid
-from collections.abc import Sequence
-from contextlib import AbstractContextManager
+from collections.abc import Callable, Sequence
 from datetime import datetime, timedelta
 from typing import Any, cast
 
@@ -34,7 +33,7 @@ import sqlalchemy as sa
 from sqlalchemy.engine import Connection, Engine, Row
 
 from common.batch_metrics import aggregate
-from common.database import for_update, read_transaction, write_transaction
+from common.database import Transactions
 from common.db_models import Batch, Job, JobArtifact, JobEvent, JobInput, JobResult, utcnow
 from common.errors import (
     ConflictError,
@@ -87,17 +86,7 @@ class JobQueue:
     def __init__(self, engine: Engine, settings: Settings | None = None) -> None:
         self.engine = engine
         self.settings = settings if settings is not None else get_settings()
-        self._postgres = engine.dialect.name == "postgresql"
-
-    # ------------------------------------------------------------------ transactions
-    def _write(self) -> AbstractContextManager[Connection]:
-        return write_transaction(self.engine)
-
-    def _read(self) -> AbstractContextManager[Connection]:
-        return read_transaction(self.engine)
-
-    def _locked(self, query: sa.Select[Any], skip_locked: bool = False) -> sa.Select[Any]:
-        return for_update(query, self.engine, skip_locked)
+        self.tx = Transactions(engine)
 
     @staticmethod
     def _event(conn: Connection, job_id: str, kind: str, now: datetime, **detail: Any) -> None:
@@ -118,8 +107,8 @@ class JobQueue:
         Same Idempotency-Key + same payload -> the first job (adopted into ``batch_id`` if it had no batch)."""
         digest = payload_hash(payload, options)
         try:
-            with self._write() as conn:
-                if self._postgres:
+            with self.tx.write() as conn:
+                if self.tx.postgres:
                     # Serialise one owner's submissions: the idempotency lookup and the active-jobs limit
                     # below then see every committed sibling (SQLite's BEGIN IMMEDIATE already does this).
                     conn.execute(sa.select(sa.func.pg_advisory_xact_lock(sa.func.hashtext(owner_key_id))))
@@ -156,7 +145,7 @@ class JobQueue:
             # A concurrent submission with the same key won the unique constraint; answer with its job.
             if idempotency_key is None:
                 raise
-            with self._read() as conn:
+            with self.tx.read() as conn:
                 existing = self._by_idempotency_key(conn, owner_key_id, idempotency_key)
             if existing is None:
                 raise
@@ -193,7 +182,7 @@ class JobQueue:
     # ------------------------------------------------------------------ owner-scoped reads
     def get(self, owner_key_id: str | None, job_id: str) -> JobRecord:
         """The job with its summary; ``NotFoundError`` when missing or owned by another key (None = any)."""
-        with self._read() as conn:
+        with self.tx.read() as conn:
             return self._get(conn, job_id, owner_key_id)
 
     def version(self, owner_key_id: str | None, job_id: str) -> str:
@@ -233,7 +222,7 @@ class JobQueue:
                 sa.or_(jobs.c.created_at < created, sa.and_(jobs.c.created_at == created, jobs.c.id < last_id))
             )
         query = query.order_by(jobs.c.created_at.desc(), jobs.c.id.desc()).limit(page_size + 1)
-        with self._read() as conn:
+        with self.tx.read() as conn:
             page = [self._record(r) for r in conn.execute(query)]
         more = len(page) > page_size
         page = page[:page_size]
@@ -241,7 +230,7 @@ class JobQueue:
 
     def get_result(self, owner_key_id: str | None, job_id: str) -> tuple[bytes, dict[str, Any]]:
         """(result NPZ bytes, summary) of a SUCCEEDED job; ``ConflictError`` before that."""
-        with self._read() as conn:
+        with self.tx.read() as conn:
             job = self._get(conn, job_id, owner_key_id)
             row = conn.execute(sa.select(results.c.result, results.c.summary).where(results.c.job_id == job_id)).first()
         if job.state != JobState.SUCCEEDED or row is None:
@@ -250,7 +239,7 @@ class JobQueue:
 
     def list_artifacts(self, owner_key_id: str | None, job_id: str) -> builtins.list[Artifact]:
         """Names, types and sizes (no data) of a job's artifacts, by name; empty before it SUCCEEDED."""
-        with self._read() as conn:
+        with self.tx.read() as conn:
             self._get(conn, job_id, owner_key_id)
             rows = conn.execute(
                 sa.select(artifacts.c.name, artifacts.c.content_type, artifacts.c.size_bytes)
@@ -262,7 +251,7 @@ class JobQueue:
     def get_artifact(self, owner_key_id: str | None, job_id: str, name: str) -> Artifact:
         """One artifact with its data; ``ConflictError`` before the job SUCCEEDED, ``NotFoundError`` when the
         job has no such artifact (e.g. it ran with ``preview_video`` off)."""
-        with self._read() as conn:
+        with self.tx.read() as conn:
             job = self._get(conn, job_id, owner_key_id)
             row = conn.execute(
                 sa.select(artifacts.c.content_type, artifacts.c.data, artifacts.c.size_bytes).where(
@@ -277,7 +266,7 @@ class JobQueue:
 
     def get_payload(self, job_id: str) -> bytes:
         _require_plain_id(job_id)
-        with self._read() as conn:
+        with self.tx.read() as conn:
             blob = conn.execute(sa.select(inputs.c.payload).where(inputs.c.job_id == job_id)).scalar()
         if blob is None:
             raise NotFoundError(f"job {job_id} has no stored input")
@@ -285,7 +274,7 @@ class JobQueue:
 
     def events(self, owner_key_id: str | None, job_id: str) -> builtins.list[JobEventRecord]:
         _require_plain_id(job_id)
-        with self._read() as conn:
+        with self.tx.read() as conn:
             if owner_key_id is not None:
                 self._get(conn, job_id, owner_key_id)
             rows = conn.execute(sa.select(events).where(events.c.job_id == job_id).order_by(events.c.id)).all()
@@ -294,7 +283,7 @@ class JobQueue:
     # ------------------------------------------------------------------ counts
     def count_active(self, owner_key_id: str) -> int:
         """Jobs of this key that are QUEUED or RUNNING (what ``max_active_jobs_per_key`` limits)."""
-        with self._read() as conn:
+        with self.tx.read() as conn:
             return self._count_active(conn, owner_key_id)
 
     @staticmethod
@@ -305,7 +294,7 @@ class JobQueue:
 
     def stats(self, recent: int = 1000) -> QueueStats:
         """Jobs per state, claims so far, and queue-wait / run seconds of the ``recent`` latest started jobs."""
-        with self._read() as conn:
+        with self.tx.read() as conn:
             per_state = conn.execute(sa.select(jobs.c.state, sa.func.count()).group_by(jobs.c.state)).all()
             claims = conn.execute(sa.select(sa.func.count()).where(events.c.kind == "claimed")).scalar_one()
             rows = conn.execute(
@@ -326,14 +315,14 @@ class JobQueue:
         now = now or utcnow()
         lease = timedelta(seconds=lease_seconds if lease_seconds is not None else self.settings.lease_seconds)
         token = secrets.token_hex(16)
-        pick = self._locked(
+        pick = self.tx.locked(
             sa.select(jobs.c.id)
             .where(jobs.c.state == JobState.QUEUED, sa.or_(jobs.c.not_before.is_(None), jobs.c.not_before <= now))
             .order_by(jobs.c.priority.desc(), jobs.c.created_at, jobs.c.id)
             .limit(1),
             skip_locked=True,
         )
-        with self._write() as conn:
+        with self.tx.write() as conn:
             row = conn.execute(
                 sa.update(jobs)
                 .where(jobs.c.id == pick.scalar_subquery(), jobs.c.state == JobState.QUEUED)
@@ -363,10 +352,10 @@ class JobQueue:
         if progress is not None:
             values["progress"] = progress
         held = (jobs.c.id == job_id, jobs.c.lease_token == lease_token, jobs.c.state == JobState.RUNNING)
-        with self._write() as conn:
+        with self.tx.write() as conn:
             before = None
             if progress is not None:
-                before = conn.execute(self._locked(sa.select(jobs.c.progress).where(*held))).first()
+                before = conn.execute(self.tx.locked(sa.select(jobs.c.progress).where(*held))).first()
             update = sa.update(jobs).where(*held).values(**values)
             flag = conn.execute(update.returning(jobs.c.cancel_requested)).scalar()
             if flag is not None and before is not None and before.progress != progress:
@@ -379,7 +368,7 @@ class JobQueue:
 
     def _lease_row(self, conn: Connection, job_id: str, lease_token: str) -> Row[Any]:
         row = conn.execute(
-            self._locked(
+            self.tx.locked(
                 sa.select(jobs.c.attempt, jobs.c.errors, jobs.c.cancel_requested, jobs.c.worker_id).where(
                     jobs.c.id == job_id, jobs.c.lease_token == lease_token, jobs.c.state == JobState.RUNNING
                 )
@@ -404,7 +393,7 @@ class JobQueue:
         """Store the result (and its artifacts: preview video, plots, ...) and mark SUCCEEDED, all in one
         token-checked transaction."""
         now = utcnow()
-        with self._write() as conn:
+        with self.tx.write() as conn:
             self._lease_row(conn, job_id, lease_token)
             conn.execute(sa.delete(results).where(results.c.job_id == job_id))
             conn.execute(
@@ -433,7 +422,7 @@ class JobQueue:
     def fail(self, job_id: str, lease_token: str, error: str, retryable: bool = False) -> None:
         """Record an error; retryable errors requeue with backoff until ``max_attempts``, then FAILED."""
         now = utcnow()
-        with self._write() as conn:
+        with self.tx.write() as conn:
             row = self._lease_row(conn, job_id, lease_token)
             self._after_attempt(conn, job_id, lease_token, row, error, retryable, now)
 
@@ -459,7 +448,7 @@ class JobQueue:
     def acknowledge_cancel(self, job_id: str, lease_token: str) -> None:
         """The worker saw the cancel flag and stopped: RUNNING -> CANCELLED."""
         now = utcnow()
-        with self._write() as conn:
+        with self.tx.write() as conn:
             row = self._lease_row(conn, job_id, lease_token)
             if not row.cancel_requested:
                 raise ConflictError(f"job {job_id}: cancellation was not requested")
@@ -469,7 +458,7 @@ class JobQueue:
     def release(self, job_id: str, lease_token: str) -> None:
         """Graceful shutdown: give the job back (QUEUED, same attempt), or CANCELLED if that was asked."""
         now = utcnow()
-        with self._write() as conn:
+        with self.tx.write() as conn:
             row = self._lease_row(conn, job_id, lease_token)
             if row.cancel_requested:
                 self._settle(conn, job_id, lease_token, now=now, state=JobState.CANCELLED, finished_at=now)
@@ -481,50 +470,43 @@ class JobQueue:
     def requeue_expired(self, now: datetime | None = None) -> int:
         """Requeue RUNNING jobs whose lease ran out (attempt + 1, backoff); FAILED after max attempts."""
         now = now or utcnow()
-        with self._write() as conn:
-            rows = conn.execute(
-                self._locked(
-                    sa.select(
-                        jobs.c.id, jobs.c.lease_token, jobs.c.attempt, jobs.c.errors, jobs.c.cancel_requested,
-                        jobs.c.worker_id,
-                    ).where(jobs.c.state == JobState.RUNNING, jobs.c.lease_expires_at < now),
-                    skip_locked=True,
-                )
-            ).all()  # fmt: skip
-            for row in rows:
-                msg = f"lease expired (worker {row.worker_id} stopped heartbeating)"
-                self._after_attempt(conn, row.id, row.lease_token, row, msg, True, now)
-        return len(rows)
+        return self._requeue_running(
+            jobs.c.lease_expires_at < now,
+            lambda row: f"lease expired (worker {row.worker_id} stopped heartbeating)",
+            now,
+        )
 
     def requeue_worker_jobs(self, worker_id_prefix: str, reason: str, now: datetime | None = None) -> int:
         """Requeue (attempt + 1, as for an expired lease) the RUNNING jobs of workers whose id starts with
         ``worker_id_prefix``: a deployment found dead (``hoi-refine up`` after a SIGKILL) need not wait for
         their leases to run out."""
-        now = now or utcnow()
-        with self._write() as conn:
+        return self._requeue_running(
+            jobs.c.worker_id.startswith(worker_id_prefix, autoescape=True), lambda _row: reason, now or utcnow()
+        )
+
+    def _requeue_running(self, which: Any, reason: Callable[[Row[Any]], str], now: datetime) -> int:
+        """The RUNNING jobs ``which`` selects end their attempt as lost (``_after_attempt``, retryable)."""
+        with self.tx.write() as conn:
             rows = conn.execute(
-                self._locked(
+                self.tx.locked(
                     sa.select(
                         jobs.c.id, jobs.c.lease_token, jobs.c.attempt, jobs.c.errors, jobs.c.cancel_requested,
                         jobs.c.worker_id,
-                    ).where(
-                        jobs.c.state == JobState.RUNNING,
-                        jobs.c.worker_id.startswith(worker_id_prefix, autoescape=True),
-                    ),
+                    ).where(jobs.c.state == JobState.RUNNING, which),
                     skip_locked=True,
                 )
             ).all()  # fmt: skip
             for row in rows:
-                self._after_attempt(conn, row.id, row.lease_token, row, reason, True, now)
+                self._after_attempt(conn, row.id, row.lease_token, row, reason(row), True, now)
         return len(rows)
 
     def cancel_jobs_of_key(self, key_id: str) -> tuple[int, int]:
         """Cancel every QUEUED job of an API key and flag its RUNNING ones (``keys revoke --cancel-jobs``):
         a revoked key can no longer see or cancel them itself. Returns (cancelled, flagged)."""
         now = utcnow()
-        with self._write() as conn:
+        with self.tx.write() as conn:
             rows = conn.execute(
-                self._locked(
+                self.tx.locked(
                     sa.select(jobs.c.id, jobs.c.state).where(
                         jobs.c.owner_key_id == key_id, jobs.c.state.in_(ACTIVE)
                     )
@@ -552,7 +534,7 @@ class JobQueue:
     def cancel(self, owner_key_id: str | None, job_id: str) -> JobRecord:
         """QUEUED -> CANCELLED now; RUNNING -> cancel flag (the worker stops at its next heartbeat)."""
         now = utcnow()
-        with self._write() as conn:
+        with self.tx.write() as conn:
             state = self._owned_state(conn, owner_key_id, job_id)
             if state == JobState.QUEUED:
                 values = {"state": JobState.CANCELLED, "finished_at": now, "updated_at": now}
@@ -570,7 +552,7 @@ class JobQueue:
     def retry(self, owner_key_id: str | None, job_id: str) -> JobRecord:
         """FAILED -> QUEUED with a fresh attempt budget (the error history is kept)."""
         now = utcnow()
-        with self._write() as conn:
+        with self.tx.write() as conn:
             state = self._owned_state(conn, owner_key_id, job_id)
             if state != JobState.FAILED:
                 raise ConflictError(f"job {job_id} is {state}; only FAILED jobs can be retried")
@@ -588,7 +570,7 @@ class JobQueue:
     def delete(self, owner_key_id: str | None, job_id: str) -> None:
         """Delete a finished job with its input and result (its events stay)."""
         now = utcnow()
-        with self._write() as conn:
+        with self.tx.write() as conn:
             state = self._owned_state(conn, owner_key_id, job_id)
             if state in ACTIVE:
                 raise ConflictError(f"job {job_id} is {state}; cancel it first (only finished jobs can be deleted)")
@@ -601,7 +583,7 @@ class JobQueue:
     # ------------------------------------------------------------------ batches
     def create_batch(self, owner_key_id: str, name: str, meta: dict[str, Any] | None = None) -> BatchRecord:
         batch_id, now = uuid.uuid4().hex, utcnow()
-        with self._write() as conn:
+        with self.tx.write() as conn:
             conn.execute(
                 sa.insert(batches).values(
                     id=batch_id, owner_key_id=owner_key_id, name=name[:200], meta=dict(meta or {}), created_at=now
@@ -611,7 +593,7 @@ class JobQueue:
 
     def get_batch(self, owner_key_id: str | None, batch_id: str) -> BatchRecord:
         """The batch with counts per state and the aggregate metrics of its SUCCEEDED jobs."""
-        with self._read() as conn:
+        with self.tx.read() as conn:
             row = self._owned_batch(conn, owner_key_id, batch_id)
             summaries = conn.execute(
                 sa.select(results.c.summary)
@@ -636,7 +618,7 @@ class JobQueue:
                 )
             )
         query = query.order_by(batches.c.created_at.desc(), batches.c.id.desc()).limit(page_size + 1)
-        with self._read() as conn:
+        with self.tx.read() as conn:
             rows = conn.execute(query).all()
             more = len(rows) > page_size
             rows = rows[:page_size]
@@ -646,7 +628,7 @@ class JobQueue:
 
     def batch_jobs(self, owner_key_id: str | None, batch_id: str) -> builtins.list[JobRecord]:
         """Every job of the batch with its result summary, oldest first (the per-sequence report)."""
-        with self._read() as conn:
+        with self.tx.read() as conn:
             self._owned_batch(conn, owner_key_id, batch_id)
             rows = conn.execute(
                 self._job_select().where(jobs.c.batch_id == batch_id).order_by(jobs.c.created_at, jobs.c.id)
@@ -657,10 +639,10 @@ class JobQueue:
         """Cancel every QUEUED job now and flag every RUNNING one (as ``cancel`` does for one job);
         returns (batch, jobs changed)."""
         now = utcnow()
-        with self._write() as conn:
+        with self.tx.write() as conn:
             row = self._owned_batch(conn, owner_key_id, batch_id)
             active = conn.execute(
-                self._locked(
+                self.tx.locked(
                     sa.select(jobs.c.id, jobs.c.state).where(
                         jobs.c.batch_id == batch_id, jobs.c.state.in_(ACTIVE), jobs.c.cancel_requested.is_(False)
                     )
@@ -684,10 +666,10 @@ class JobQueue:
     def retry_failed_batch(self, owner_key_id: str | None, batch_id: str) -> tuple[BatchRecord, int]:
         """Requeue every FAILED job of the batch with a fresh attempt budget (as ``retry``)."""
         now = utcnow()
-        with self._write() as conn:
+        with self.tx.write() as conn:
             row = self._owned_batch(conn, owner_key_id, batch_id)
             failed = conn.execute(
-                self._locked(sa.select(jobs.c.id).where(jobs.c.batch_id == batch_id, jobs.c.state == JobState.FAILED))
+                self.tx.locked(sa.select(jobs.c.id).where(jobs.c.batch_id == batch_id, jobs.c.state == JobState.FAILED))
             ).scalars().all()
             if failed:
                 conn.execute(
@@ -707,7 +689,7 @@ class JobQueue:
     ) -> tuple[JobRecord, builtins.list[JobEventRecord]]:
         """The job (without summary) and its events with id > ``after_id``, oldest first. A job's events are
         written under its row lock, so their ids grow in commit order and ``after_id`` misses none."""
-        with self._read() as conn:
+        with self.tx.read() as conn:
             row = conn.execute(self._job_select(with_summary=False).where(jobs.c.id == job_id)).first()
             if row is None or (owner_key_id is not None and row.owner_key_id != owner_key_id):
                 raise NotFoundError(f"no job {job_id}")
@@ -727,7 +709,7 @@ class JobQueue:
         commit after a later id is visible, so only the prefix older than ``EVENT_LAG`` is returned there
         (a client resuming after the last id then misses nothing); SQLite commits in id order."""
         now = utcnow()
-        with self._read() as conn:
+        with self.tx.read() as conn:
             record = self._batch_record(conn, self._owned_batch(conn, owner_key_id, batch_id))
             rows = conn.execute(
                 sa.select(events)
@@ -737,7 +719,7 @@ class JobQueue:
                 .limit(limit)
             ).all()
         out = [_event_record(r) for r in rows]
-        if self._postgres:
+        if self.tx.postgres:
             cutoff = now - EVENT_LAG
             settled = next((i for i, e in enumerate(out) if e.at > cutoff), len(out))
             return record, out[:settled], settled == len(out)
@@ -790,7 +772,7 @@ class JobQueue:
     def _owned_state(self, conn: Connection, owner_key_id: str | None, job_id: str) -> JobState:
         _require_plain_id(job_id)
         query = sa.select(jobs.c.state, jobs.c.owner_key_id).where(jobs.c.id == job_id)
-        row = conn.execute(self._locked(query)).first()
+        row = conn.execute(self.tx.locked(query)).first()
         if row is None or (owner_key_id is not None and row.owner_key_id != owner_key_id):
             raise NotFoundError(f"no job {job_id}")
         return JobState(row.state)

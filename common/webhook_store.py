@@ -13,14 +13,13 @@ from __future__ import annotations
 
 import builtins
 import uuid
-from contextlib import AbstractContextManager
 from datetime import datetime, timedelta
 from typing import Any, cast
 
 import sqlalchemy as sa
 from sqlalchemy.engine import Connection, Engine, Row
 
-from common.database import for_update, read_transaction, write_transaction
+from common.database import Transactions
 from common.db_models import EventCursor, Webhook, WebhookDelivery, utcnow
 from common.errors import NotFoundError
 from common.queue import EVENT_LAG, batches, events, jobs
@@ -50,16 +49,7 @@ class WebhookStore:
     def __init__(self, engine: Engine, settings: Settings | None = None) -> None:
         self.engine = engine
         self.settings = settings if settings is not None else get_settings()
-        self._postgres = engine.dialect.name == "postgresql"
-
-    def _write(self) -> AbstractContextManager[Connection]:
-        return write_transaction(self.engine)
-
-    def _read(self) -> AbstractContextManager[Connection]:
-        return read_transaction(self.engine)
-
-    def _locked(self, query: sa.Select[Any], skip_locked: bool = False) -> sa.Select[Any]:
-        return for_update(query, self.engine, skip_locked)
+        self.tx = Transactions(engine)
 
     # ------------------------------------------------------------------ registration
     def create_webhook(
@@ -67,7 +57,7 @@ class WebhookStore:
     ) -> tuple[WebhookRecord, str]:
         """(webhook, secret). The secret signs every delivery; it is returned here only."""
         hook_id, secret, now = uuid.uuid4().hex, new_secret(), utcnow()
-        with self._write() as conn:
+        with self.tx.write() as conn:
             conn.execute(
                 sa.insert(webhooks).values(
                     id=hook_id, owner_key_id=owner_key_id, url=url, secret=secret,
@@ -77,7 +67,7 @@ class WebhookStore:
             return _webhook(self._owned_webhook(conn, owner_key_id, hook_id)), secret
 
     def list_webhooks(self, owner_key_id: str) -> builtins.list[WebhookRecord]:
-        with self._read() as conn:
+        with self.tx.read() as conn:
             rows = conn.execute(
                 sa.select(webhooks).where(webhooks.c.owner_key_id == owner_key_id).order_by(webhooks.c.created_at)
             ).all()
@@ -85,7 +75,7 @@ class WebhookStore:
 
     def delete_webhook(self, owner_key_id: str | None, webhook_id: str) -> None:
         """Remove the webhook with its delivery log (nothing more is sent to it)."""
-        with self._write() as conn:
+        with self.tx.write() as conn:
             self._owned_webhook(conn, owner_key_id, webhook_id)
             conn.execute(sa.delete(deliveries).where(deliveries.c.webhook_id == webhook_id))
             conn.execute(sa.delete(webhooks).where(webhooks.c.id == webhook_id))
@@ -97,7 +87,7 @@ class WebhookStore:
         query = sa.select(deliveries).where(deliveries.c.webhook_id == webhook_id)
         if before_id is not None:
             query = query.where(deliveries.c.id < before_id)
-        with self._read() as conn:
+        with self.tx.read() as conn:
             self._owned_webhook(conn, owner_key_id, webhook_id)
             rows = conn.execute(query.order_by(deliveries.c.id.desc()).limit(max(1, min(limit, 500)))).all()
         return [_delivery(r) for r in rows]
@@ -108,16 +98,16 @@ class WebhookStore:
         written. Job state changes become ``job.*`` events; a batch whose state moved (ACTIVE <-> COMPLETED)
         gets one ``batch.*`` event per change."""
         now = now or utcnow()
-        with self._read() as conn:
+        with self.tx.read() as conn:
             last = conn.execute(sa.select(cursors.c.last_event_id).where(cursors.c.name == CURSOR)).scalar()
             newest = conn.execute(sa.select(sa.func.max(events.c.id))).scalar() or 0
         if last is not None and newest <= last:
             return 0  # the common case: nothing happened since the last look, and no write transaction
-        cutoff = now - EVENT_LAG if self._postgres else now
+        cutoff = now - EVENT_LAG if self.tx.postgres else now
         written = 0
-        with self._write() as conn:
+        with self.tx.write() as conn:
             last = conn.execute(
-                self._locked(sa.select(cursors.c.last_event_id).where(cursors.c.name == CURSOR))
+                self.tx.locked(sa.select(cursors.c.last_event_id).where(cursors.c.name == CURSOR))
             ).scalar()
             hooks: dict[str, builtins.list[Row[Any]]] = {}
             for hook in conn.execute(sa.select(webhooks)).all():
@@ -155,7 +145,7 @@ class WebhookStore:
     def _batch_transition(
         self, conn: Connection, hooks: dict[str, builtins.list[Row[Any]]], batch_id: str, at: datetime, now: datetime
     ) -> int:
-        row = conn.execute(self._locked(sa.select(batches).where(batches.c.id == batch_id))).first()
+        row = conn.execute(self.tx.locked(sa.select(batches).where(batches.c.id == batch_id))).first()
         if row is None:
             return 0
         counts = {
@@ -201,12 +191,12 @@ class WebhookStore:
         now = now or utcnow()
         lease = timedelta(seconds=self.settings.webhook_timeout_seconds * 2 + 5)
         due = sa.select(deliveries.c.id).where(deliveries.c.state == "PENDING", deliveries.c.next_attempt_at <= now)
-        with self._read() as conn:
+        with self.tx.read() as conn:
             if conn.execute(due.limit(1)).first() is None:
                 return []  # the common case: no write transaction (on SQLite it would queue behind workers)
-        with self._write() as conn:
+        with self.tx.write() as conn:
             rows = conn.execute(
-                self._locked(
+                self.tx.locked(
                     sa.select(deliveries.c.id, deliveries.c.msg_id, deliveries.c.payload, deliveries.c.attempts,
                               deliveries.c.webhook_id)
                     .where(deliveries.c.state == "PENDING", deliveries.c.next_attempt_at <= now)
@@ -245,9 +235,9 @@ class WebhookStore:
         ``webhook_max_attempts``, then FAILED. Returns the delivery's new state."""
         now = now or utcnow()
         ok = status is not None and 200 <= status < 300 and error is None
-        with self._write() as conn:
+        with self.tx.write() as conn:
             row = conn.execute(
-                self._locked(sa.select(deliveries.c.attempts, deliveries.c.log).where(deliveries.c.id == delivery_id))
+                self.tx.locked(sa.select(deliveries.c.attempts, deliveries.c.log).where(deliveries.c.id == delivery_id))
             ).first()
             if row is None:
                 return "GONE"  # its webhook was deleted meanwhile
