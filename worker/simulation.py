@@ -25,6 +25,7 @@ import numpy as np
 
 from worker.contacts import ContactRecorder
 from worker.hand_model import JOINT_LOWER, JOINT_UPPER, FloatArray, quat_to_matrix
+from worker.metrics import ContactFrames
 from worker.retarget import HandReference
 from worker.scene import Scene
 
@@ -82,6 +83,7 @@ class RolloutRecord:
     steps: int
     states: FloatArray | None = None
     contacts: dict[str, np.ndarray] | None = None
+    contact_frames: ContactFrames | None = None  # per-frame penetration / hand / table flags (worker.metrics)
 
 
 def slerp(q0: FloatArray, q1: FloatArray, t: FloatArray) -> FloatArray:
@@ -292,4 +294,5 @@ def rollout(
         steps=steps,
         states=states,
         contacts=None if recorder is None else recorder.columns(),
+        contact_frames=None if recorder is None or frame_offset else recorder.frames(n_frames),
     )

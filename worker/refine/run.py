@@ -19,6 +19,7 @@ import numpy as np
 
 from common.job_options import JobOptions
 from common.sequence import Sequence
+from worker.metrics import ContactFrames
 from worker.refine.evaluator import ParallelEvaluator, SimState
 from worker.refine.losses import ROT_SCALE, resolve_weights
 from worker.refine.prepare import DEFAULT_MAX_GENERATIONS, DEFAULT_POPSIZE, Prepared, initial_state, prepare
@@ -49,6 +50,8 @@ class ReplayRecord:
     keypoints: dict[str, FloatArray]  # side -> (F, 21, 3)
     contacts: dict[str, np.ndarray]
     steps: int
+    #: Per-frame penetration / hand / table contact flags (``worker.metrics``); None without contacts.
+    contact_frames: ContactFrames | None = None
 
 
 @dataclass
@@ -93,6 +96,7 @@ def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyfra
         keypoints={side: sensors[:, h.keypoint_sensor_adrs] for side, h in layout.hands.items()},
         contacts=recorder.columns() if recorder is not None else empty_contact_columns(),
         steps=control.shape[1],
+        contact_frames=recorder.frames(n_frames) if recorder is not None else None,
     )
 
 
@@ -133,34 +137,29 @@ def refine_sequence(
     committed keyframe, and a grasp lost in one window is often kept by another random stream. The best attempt
     (success first, then the lower mean object error) is the result; every attempt is listed in the summary.
     """
-    from worker.metrics import compute_metrics, scalar_metrics
+    from common.sequence_io import sequence_from_npz_bytes, sequence_to_npz_bytes
+    from worker.metrics import scalar_metrics
+    from worker.refine.derive import derive_result, replay_metrics
 
     t0 = time.perf_counter()
-    prep = prepare(seq, options)
+    # The result embeds the sequence as these bytes and is derived from them (``derive``); the optimisation runs
+    # on the same sequence read back from them, so its replays are the result's replays too.
+    seq_bytes = sequence_to_npz_bytes(seq)
+    prep = prepare(sequence_from_npz_bytes(seq_bytes), options)
     t_prep = time.perf_counter()
     own = evaluator is None
     ev = evaluator or ParallelEvaluator(prep.scene.model, threads)
     if not own:
         ev.ensure_model(prep.scene.model)
 
-    def metrics(rec: ReplayRecord) -> dict[str, Any]:
-        return compute_metrics(
-            rec.object_pose,
-            prep.obj_targets_pose(),
-            rec.keypoints,
-            {r.side: r.keypoints for r in prep.references},
-            {r.side: r.valid for r in prep.references},
-        )
-
     def rank(m: dict[str, Any]) -> tuple[bool, float]:
         # Success first; then the object error in the units of the object_pose loss (1 cm ~ ROT_SCALE).
         return bool(m["success"]), -(m["E_t"] + m["E_r"] / np.degrees(ROT_SCALE))
 
     attempts: list[dict[str, Any]] = []
+    tried: list[dict[str, FloatArray]] = []
     try:
         start, settle_steps = initial_state(prep, ev)
-        zero = {side: sp.zero_keyframes() for side, sp in prep.spaces.items()}
-        raw = replay(prep, ev, start, zero)
         weights = resolve_weights(options.loss_weights)
         problem = _problem(prep, ev, start, weights)
         best: _Attempt | None = None
@@ -168,42 +167,58 @@ def refine_sequence(
             settings = replace(cma_settings(options, prep.interval), seed=attempt_seed(options.seed, attempt))
             report = None if progress is None else _with_attempt(progress, attempt + 1)
             keyframes, logs = optimise_windows(problem, settings, progress=report, should_stop=should_stop)
-            this = _Attempt(keyframes, logs, replay(prep, ev, start, keyframes), settings)
-            m = this.metrics = metrics(this.final)
-            attempts.append({"seed": settings.seed, "success": bool(m["success"]), "E_t": m["E_t"], "E_r": m["E_r"],
+            this = _Attempt(keyframes, logs, replay(prep, ev, start, keyframes, record_contacts=False), settings)
+            m = this.metrics = replay_metrics(prep, this.final)
+            tried.append(keyframes)
+            attempts.append({**attempt_figures(m), "seed": settings.seed,
                              "evaluations": int(sum(w.evaluations for w in logs))})
             if best is None or rank(m) > rank(best.metrics):
                 best = this
             if m["success"]:
                 break
         assert best is not None
-        keyframes, logs, final, settings, m_ref = best.keyframes, best.logs, best.final, best.settings, best.metrics
+        keyframes, logs, settings = best.keyframes, best.logs, best.settings
         stats = ev.stats
     finally:
         if own:
             ev.close()
+    # The result: the derivation ``verify`` repeats, from the embedded bytes in a fresh model and MjData.
+    t_derive = time.perf_counter()
+    derived = derive_result(seq_bytes, options, prep.scene.config, prep.rotation_pivot, keyframes,
+                            tried if len(tried) > 1 else None)
+    derive_s = time.perf_counter() - t_derive
     wall = time.perf_counter() - t0
-    m_raw = metrics(raw)
-    from worker.refine.result import build_arrays, build_summary
+    from worker.refine.result import build_summary
 
-    arrays = build_arrays(prep, keyframes, final, raw, m_raw, m_ref, logs)
+    final = derived.final
+    m_raw, m_ref = scalar_metrics(derived.metrics["raw"]), scalar_metrics(derived.metrics["refined"])
+    add_attempt_metrics(m_ref, attempts)
+    arrays = derived.arrays
+    if logs:
+        width = max([len(w.history) for w in logs] + [1])
+        hist = np.full((len(logs), width), np.nan)
+        for i, w in enumerate(logs):
+            hist[i, : len(w.history)] = w.history
+        arrays["window_loss_history"] = hist
     summary = build_summary(
-        prep, settings, weights, logs, scalar_metrics(m_raw), scalar_metrics(m_ref),
+        prep, settings, weights, logs, m_raw, m_ref,
         timings={
             "wall_s": wall,
             "sim_s": stats.sim_seconds,
             "sim_share": stats.sim_seconds / max(wall, 1e-9),
-            "steps": int(stats.steps + settle_steps),
+            "steps": int(stats.steps + settle_steps + derived.steps),
             "evaluations": int(sum(a["evaluations"] for a in attempts)),
             "rollouts": int(stats.rollouts),
             "steps_per_second": stats.steps / max(stats.sim_seconds, 1e-9),
             # Where the time goes: batched rollouts (CMA-ES populations) vs Python-stepped probes, commits and
-            # replays (contacts recorded), the rest being retargeting, scene compilation, CMA-ES and losses.
+            # replays, the rest being retargeting, scene compilation, CMA-ES and losses; ``derive_s`` is the
+            # fresh preparation and replays the result is made of (``worker.refine.derive``).
             "rollout_s": stats.rollout_seconds,
             "rollout_steps": int(stats.steps - stats.python_steps),
             "python_step_s": stats.python_seconds,
             "python_steps": int(stats.python_steps),
             "prepare_s": t_prep - t0,
+            "derive_s": derive_s,
             "threads": threads,
         },
         num_contacts=len(final.contacts["contact_frame"]),
@@ -228,6 +243,23 @@ def _with_attempt(progress: Callable[[RefineProgress], None], attempt: int) -> C
         progress(replace(p, attempt=attempt))
 
     return report
+
+
+def attempt_figures(m: dict[str, Any]) -> dict[str, Any]:
+    """An attempt's entry in the summary: success and object errors on both protocols."""
+    paper = m["paper"]
+    return {"success": bool(m["success"]), "E_t": m["E_t"], "E_r": m["E_r"],
+            "paper": {"success": bool(paper["success"]), "E_t": paper["E_t"], "E_r": paper["E_r"]}}
+
+
+def add_attempt_metrics(m_ref: dict[str, Any], attempts: list[dict[str, Any]]) -> None:
+    """The first attempt's success beside the final one (issue #15 item 3; the paper runs one attempt)."""
+    if not attempts:
+        return
+    m_ref["attempts"] = len(attempts)
+    m_ref["success_first_attempt"] = bool(attempts[0]["success"])
+    if "paper" in m_ref and "paper" in attempts[0]:
+        m_ref["paper"]["success_first_attempt"] = bool(attempts[0]["paper"]["success"])
 
 
 def skipped_windows(logs: list[WindowLog]) -> int:

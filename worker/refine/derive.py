@@ -1,0 +1,139 @@
+"""Everything a refinement result holds that follows from its inputs: one function for the worker and ``verify``.
+
+``derive_result(sequence_bytes, options, config, pivot, keyframes)`` loads the sequence from the very bytes the
+result embeds, prepares it (retargeting, scene, control spaces) in a fresh model, settles frame 0 in a fresh
+``MjData``, and replays from frame 0 the raw reference (zero offsets) and the given keyframes (and each restart's
+keyframes), recording contacts; then it computes the metrics of both replays and every derived result array.
+``refine_sequence`` stores exactly what this returns for its best keyframes, and ``verify`` calls it again on what
+the file holds, so an honest result reproduces bit for bit on the same build (issue #15 item 1: the stored
+replay used to run on the refinement's own sequence object while ``verify`` read the embedded copy, which had
+been normalised once more on load; 1e-16 there grew to 0.066 mm in the contact-rich replay).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from common.job_options import JobOptions
+from common.sequence_io import sequence_from_npz_bytes
+from worker.refine.spline import FloatArray
+
+if TYPE_CHECKING:
+    from worker.refine.prepare import Prepared
+    from worker.refine.run import ReplayRecord
+
+
+@dataclass
+class Derived:
+    """What ``derive_result`` recomputed. ``metrics`` (raw / refined) are ``worker.metrics.compute_metrics``
+    outputs (with per-frame arrays); ``attempt_metrics`` one per restart's keyframes (scalars only)."""
+
+    prep: Prepared
+    raw: ReplayRecord
+    final: ReplayRecord
+    metrics: dict[str, dict[str, Any]]
+    attempt_metrics: list[dict[str, Any]]
+    arrays: dict[str, np.ndarray]
+    steps: int  # settle + replay physics steps
+
+
+def derive_result(
+    sequence_bytes: bytes,
+    options: JobOptions,
+    config: Any,
+    rotation_pivot: str,
+    keyframes: dict[str, FloatArray],
+    attempt_keyframes: list[dict[str, FloatArray]] | None = None,
+) -> Derived:
+    """See the module docstring. ``config`` is a ``worker.scene.SimConfig``; ``attempt_keyframes`` the keyframes
+    of every attempt (restarts) in order, stored so ``verify`` can check the first attempt's success too."""
+    from worker.metrics import scalar_metrics
+    from worker.refine.evaluator import ParallelEvaluator
+    from worker.refine.prepare import initial_state, prepare
+    from worker.refine.run import replay
+
+    seq = sequence_from_npz_bytes(sequence_bytes)
+    prep = prepare(seq, options, config, rotation_pivot=rotation_pivot)
+    for side, space in prep.spaces.items():
+        k = keyframes.get(side)
+        if k is None or k.shape != (space.n_keyframes, space.dim):
+            got = None if k is None else k.shape
+            raise ValueError(f"{side}_keyframes must have shape ({space.n_keyframes}, {space.dim}), got {got}")
+    attempts = attempt_keyframes or []
+    # A fresh MjData (single-threaded, Python-stepped): nothing simulated before can leak into the result.
+    with ParallelEvaluator(prep.scene.model, 1) as ev:
+        start, settle = initial_state(prep, ev)
+        zero = {side: sp.zero_keyframes() for side, sp in prep.spaces.items()}
+        raw = replay(prep, ev, start, zero)
+        final = replay(prep, ev, start, keyframes)
+        attempt_metrics = [
+            scalar_metrics(replay_metrics(prep, replay(prep, ev, start, k, record_contacts=False))) for k in attempts
+        ]
+        steps = settle + ev.stats.steps
+    metrics = {"raw": replay_metrics(prep, raw), "refined": replay_metrics(prep, final)}
+    arrays = build_arrays(prep, sequence_bytes, keyframes, final, raw, metrics["raw"], metrics["refined"])
+    for side in prep.spaces:
+        if attempts:
+            arrays[f"{side}_attempt_keyframes"] = np.stack([k[side] for k in attempts])
+    return Derived(prep, raw, final, metrics, attempt_metrics, arrays, steps)
+
+
+def replay_metrics(prep: Prepared, rec: ReplayRecord) -> dict[str, Any]:
+    """``compute_metrics`` of a replay against the prepared references (with plausibility when it has contacts)."""
+    from worker.metrics import compute_metrics
+
+    return compute_metrics(
+        rec.object_pose,
+        prep.obj_targets_pose(),
+        rec.keypoints,
+        {r.side: r.keypoints for r in prep.references},
+        {r.side: r.valid for r in prep.references},
+        rec.contact_frames,
+    )
+
+
+def build_arrays(
+    prep: Prepared,
+    sequence_bytes: bytes,
+    keyframes: dict[str, FloatArray],
+    final: ReplayRecord,
+    raw: ReplayRecord,
+    m_raw: dict[str, Any],
+    m_ref: dict[str, Any],
+) -> dict[str, np.ndarray]:
+    """The result arrays that follow from the inputs (``worker.refine.result`` lists them); the sequence is
+    embedded as the very bytes it was loaded from."""
+    arrays: dict[str, np.ndarray] = {
+        "object_pose_sim": final.object_pose,
+        "object_vel_sim": final.object_vel,
+        "object_pose_ref": prep.obj_targets_pose(),
+        "raw_object_pose_sim": raw.object_pose,
+        "sequence_npz": np.frombuffer(sequence_bytes, dtype=np.uint8).copy(),
+    }
+    if final.contact_frames is not None:
+        arrays["object_table_contact"] = final.contact_frames.table
+    for ref in prep.references:
+        s = ref.side
+        q, p, r = prep.spaces[s].frame_controls(keyframes[s])
+        arrays[f"{s}_keyframes"] = keyframes[s]
+        arrays[f"{s}_q_target"] = q
+        arrays[f"{s}_wrist_pos"] = p
+        arrays[f"{s}_wrist_quat"] = r
+        arrays[f"{s}_keypoints_sim"] = final.keypoints[s]
+        arrays[f"{s}_keypoints_ref"] = ref.keypoints
+        arrays[f"{s}_valid"] = ref.valid
+        if getattr(ref, "from_mano", False):
+            # The refined hand as MANO parameters (issue #6): exact because the scene used the MANO geometry.
+            from worker.mano.pose import mano_result_arrays
+
+            hand = prep.seq.hand(s)
+            assert hand is not None
+            arrays.update(mano_result_arrays(prep.seq, hand, p, r, q))
+    for name, m in (("raw", m_raw), ("refined", m_ref)):
+        for key, val in m["per_frame"].items():
+            arrays[f"metrics_{name}_{key}"] = val
+    arrays.update(final.contacts)
+    return arrays
