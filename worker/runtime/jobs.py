@@ -81,7 +81,30 @@ class RefineJob:
             should_stop=should_stop,
             evaluator=self._evaluator,
         )
-        return outcome.to_npz_bytes(), dict(outcome.summary)
+        blob = outcome.to_npz_bytes()
+        summary = dict(outcome.summary)
+        summary["metrics"] = {**summary["metrics"], "verification": verification(blob)}
+        return blob, summary
+
+
+def verification(blob: bytes) -> dict[str, Any]:
+    """``verify`` on the finished result from a fresh replay, before it is stored (issue #15 item 2): the job's
+    metrics then say whether it reproduced, and carry the digests a downloaded copy can be checked against
+    (``hoi-refine verify`` prints both). A result that does not verify is still stored, flagged and explained.
+    """
+    from common.result_format import content_digest
+    from worker.refine.verify import check_result
+
+    report = check_result(blob)
+    return {
+        "verified": not report.failures,
+        "exact": report.exact,
+        "max_object_deviation_m": report.max_pos_diff_m,
+        "checked_fields": len(report.checked),
+        "checked_sha256": report.digest,
+        "content_sha256": content_digest(blob),
+        "failures": report.failures[:20],
+    }
 
 
 class SelfTestJob:
