@@ -192,7 +192,10 @@ def test_verify_re_simulates_with_the_rotation_pivot_the_result_was_made_with(
     monkeypatch.undo()
     assert old.summary["config"]["rotation_pivot"] == "wrist"
     assert np.any(old.arrays["right_keyframes"][:, 10:13] != 0)  # a rotation offset, so the pivot matters
-    assert verify_result(old.to_npz_bytes())["max_pos_diff_m"] == 0.0
+    # A recorded pivot other than today's is a non-default config: verify names it and wants --allow-config.
+    with pytest.raises(ResultMismatchError, match="rotation_pivot"):
+        verify_result(old.to_npz_bytes())
+    assert verify_result(old.to_npz_bytes(), allow_config=True)["max_pos_diff_m"] == 0.0
     unrecorded = {**old.summary, "config": {k: v for k, v in old.summary["config"].items() if k != "rotation_pivot"}}
     assert verify_result(RefineOutcome(old.arrays, unrecorded).to_npz_bytes())["max_pos_diff_m"] == 0.0
     as_if_hand = {**old.summary, "config": {**old.summary["config"], "rotation_pivot": "hand"}}
