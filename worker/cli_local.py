@@ -20,6 +20,14 @@ _ROWS = (
     ("E_ft", "fingertip error E_ft", "cm", "{:.2f}"),
     ("max_E_t", "worst-frame position error", "cm", "{:.2f}"),
     ("max_E_r", "worst-frame rotation error", "deg", "{:.1f}"),
+    ("paper.E_t", "E_t, paper's protocol (frames 10+)", "cm", "{:.2f}"),
+    ("paper.E_r", "E_r, paper's protocol (frames 10+)", "deg", "{:.1f}"),
+    ("paper.E_j", "E_j, paper's protocol (frames 10+)", "cm", "{:.2f}"),
+    ("paper.E_ft", "E_ft, paper's protocol (frames 10+)", "cm", "{:.2f}"),
+    ("paper.success", "success, paper's protocol (frames 10+)", "", "{}"),
+    ("penetration_mean_mm", "penetration: mean per-frame maximum", "mm", "{:.2f}"),
+    ("penetration_max_mm", "penetration: sequence maximum", "mm", "{:.2f}"),
+    ("hand_only_fraction", "lifted frames held by the hand alone", "%", "{:.0%}"),
 )
 
 
@@ -140,9 +148,20 @@ def metrics_table(title: str, columns: dict[str, dict[str, Any]]) -> Any:
     for name in columns:
         table.add_column(name, justify="right")
     for key, label, unit, fmt in _ROWS:
-        table.add_row(label, unit, *(fmt.format(m[key]) if key in m else "-" for m in columns.values()))
+        values = [_lookup(m, key) for m in columns.values()]
+        table.add_row(label, unit, *(fmt.format(v) if v is not None else "-" for v in values))
     table.add_row("success (every frame E_t<=3 cm, E_r<=30 deg)", "", *(str(m["success"]) for m in columns.values()))
     return table
+
+
+def _lookup(metrics: dict[str, Any], key: str) -> Any:
+    """``metrics[key]``, a dotted key reading a nested block (``paper.E_t``); None when absent."""
+    value: Any = metrics
+    for part in key.split("."):
+        if not isinstance(value, dict) or part not in value:
+            return None
+        value = value[part]
+    return value
 
 
 def _run_replay(seq: Any, out: Path | None) -> Any:

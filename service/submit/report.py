@@ -20,6 +20,16 @@ METRICS: tuple[tuple[str, str, str], ...] = (
     ("E_j", "E_j (cm)", "{:.2f}"),
     ("E_ft", "E_ft (cm)", "{:.2f}"),
     ("success", "success rate", "{:.0%}"),
+    # The paper's protocol (frames 10 onward), the first attempt's success, plausibility (issue #15 items 3-4).
+    ("paper.E_t", "E_t frames 10+ (cm)", "{:.2f}"),
+    ("paper.E_r", "E_r frames 10+ (deg)", "{:.2f}"),
+    ("paper.E_j", "E_j frames 10+ (cm)", "{:.2f}"),
+    ("paper.E_ft", "E_ft frames 10+ (cm)", "{:.2f}"),
+    ("paper.success", "success rate frames 10+", "{:.0%}"),
+    ("success_first_attempt", "success rate, first attempt", "{:.0%}"),
+    ("penetration_mean_mm", "penetration, mean per-frame max (mm)", "{:.2f}"),
+    ("penetration_max_mm", "penetration, sequence max (mm)", "{:.2f}"),
+    ("hand_only_fraction", "lifted frames held by hand alone", "{:.0%}"),
 )
 _UNIT_SUFFIX = {"E_t": "_cm", "E_r": "_deg", "E_j": "_cm", "E_ft": "_cm"}
 STATE_ORDER = ("PENDING", "QUEUED", "RUNNING", "SUCCEEDED", "FAILED", "CANCELLED", "REJECTED", "INVALID")
@@ -60,6 +70,9 @@ def _number(value: Any) -> float | None:
 
 
 def _metric(stage: Any, key: str) -> float | None:
+    if "." in key:  # a nested block: "paper.E_t"
+        block, _, key = key.partition(".")
+        stage = stage.get(block) if isinstance(stage, dict) else None
     if not isinstance(stage, dict):
         return None
     for name in (key, key + _UNIT_SUFFIX.get(key, "")):
