@@ -125,7 +125,8 @@ def test_a_high_friction_config_fails_without_allow_config(
     attempts = [{**attempt_figures(derived.metrics["refined"]), "seed": 0, "evaluations": 1}]
     add_attempt_metrics(metrics["refined"], attempts)
     sim = {**summary["config"]["sim"], "hand_friction": [3.0, 0.02, 0.001], "object_friction": 3.0}
-    forged = {**summary, "metrics": metrics, "attempts": attempts, "config": {**summary["config"], "sim": sim}}
+    forged = {**summary, "metrics": metrics, "attempts": attempts, "config": {**summary["config"], "sim": sim},
+              "num_contacts": len(derived.final.contacts["contact_frame"])}
     blob = RefineOutcome(dict(derived.arrays), forged).to_npz_bytes(wall_clock=False)
     _fails_naming(blob, "sim.hand_friction", "sim.object_friction", "--allow-config")
     report = verify_result(blob, allow_config=True)  # honest under its own config: accepted, and said so
