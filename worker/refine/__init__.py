@@ -11,7 +11,11 @@ Modules, in pipeline order:
 * ``windowed``   the sliding-window CMA-ES (``optimise_windows``), progress and cancellation;
 * ``prepare``    references, scene, control spaces and loss targets of a sequence;
 * ``run``        ``refine_sequence`` (the entry point the Ray worker calls) and the from-scratch replay;
-* ``result``     the result arrays/summary and ``verify_result``.
+* ``derive``     ``derive_result``: the result's replays, metrics and arrays from its inputs (the worker and
+                 ``verify`` call the same function);
+* ``result``     the result summary;
+* ``verify``     ``verify_result`` / ``check_result`` (with ``verify_arrays``, ``verify_summary``,
+                 ``verify_report``): recompute and compare everything a result claims.
 """
 
 import warnings
