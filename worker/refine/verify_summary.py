@@ -55,17 +55,6 @@ def check_summary(
     report.checked.extend(["summary.metrics", "summary.attempts", "summary.config", "summary.table"])
 
 
-#: Tolerance of each summary figure on another host (``Tolerances``); names not listed must be equal.
-def _summary_tol(key: str, tol: Tolerances) -> float | None:
-    table = {
-        "E_t": tol.mean_cm, "E_j": tol.mean_cm, "E_ft": tol.mean_cm, "E_r": tol.mean_deg,
-        "max_E_t": tol.max_cm, "max_E_r": tol.max_deg,
-        "penetration_mean_mm": tol.penetration_mean_mm, "penetration_max_mm": tol.penetration_mm,
-        "hand_only_fraction": tol.fraction,
-    }
-    return table.get(key)
-
-
 def _compare_dict(report: VerifyReport, path: str, stored: Any, fresh: Any, tol: Tolerances | None) -> None:
     if isinstance(fresh, dict):
         if not isinstance(stored, dict):
@@ -106,7 +95,7 @@ def _compare_dict(report: VerifyReport, path: str, stored: Any, fresh: Any, tol:
     a, b = float(stored), float(fresh)
     if np.isnan(a) and np.isnan(b):
         return
-    limit = None if tol is None else _summary_tol(name, tol)
+    limit = None if tol is None or np.isnan(b) else tol.summary_limit(name, abs(b))
     if tol is not None and limit is None and name not in ("frames", "lifted_frames", "first_frame", "attempts"):
         limit = 1e-9
     diff = abs(a - b) if not (np.isnan(a) or np.isnan(b)) else float("inf")
