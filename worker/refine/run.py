@@ -1,7 +1,9 @@
 """``refine_sequence``: the whole refinement of one sequence (DESIGN §1 steps 3-7, issue #3).
 
-Raw replay (zero offsets) -> sliding-window CMA-ES -> from-scratch replay of the final controls from frame 0.
-The result is that replay, never a stitching of window rollouts. Deterministic: the same sequence, options
+Sliding-window CMA-ES (restarted with another seed while the result fails) -> ``derive.derive_result``: from
+the embedded sequence bytes, in a fresh model and MjData, the raw replay (zero offsets) and the from-scratch
+replay of the best controls from frame 0, with contacts and metrics. The result is that replay, never a stitching
+of window rollouts, and ``verify`` repeats the very same function. Deterministic: the same sequence, options
 and seed give the same arrays and summary whatever the number of threads, apart from the wall-clock entries of
 ``summary["timings"]`` (seconds, rates, ``sim_share`` and the thread count; ``common.result_format.is_wall_clock``).
 The result file keeps those in a separate member, so ``to_npz_bytes(wall_clock=False)`` gives identical bytes.
