@@ -6,9 +6,14 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
     PYTHONUNBUFFERED=1 \
     PIP_NO_CACHE_DIR=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1 \
-    # Headless MuJoCo: no rendering context is ever created.
-    MUJOCO_GL=disable \
+    # Headless offscreen rendering for the workers' preview videos (worker/visual): Mesa's EGL, no GPU needed.
+    MUJOCO_GL=egl \
     HOI_REFINE_VAR_DIR=/var/lib/hoi-refine
+
+# Mesa's EGL and software OpenGL driver: the workers render each finished job's preview video with them.
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends libegl1 libgl1 libgl1-mesa-dri \
+    && rm -rf /var/lib/apt/lists/*
 
 RUN useradd --create-home --uid 10001 hoi \
     && mkdir -p /var/lib/hoi-refine \

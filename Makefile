@@ -18,6 +18,7 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/ruff check common worker service migrations tests bench
 	$(BIN)/mypy
+	$(BIN)/lint-imports --no-cache
 	$(BIN)/python -m pytest
 
 test-fast: $(STAMP)
@@ -26,12 +27,13 @@ test-fast: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check common worker service migrations tests bench
 	$(BIN)/mypy
+	$(BIN)/lint-imports --no-cache
 
 bench-replay: $(STAMP)
 	$(BIN)/python bench/replay.py
 
 pose-basis: $(STAMP)
-	$(BIN)/python -m worker.pose_basis_build
+	$(BIN)/python -m worker.hand.pose_basis_build
 
 clean:
 	rm -rf $(VENV) var .pytest_cache .mypy_cache .ruff_cache

@@ -38,15 +38,18 @@ import sqlalchemy as sa
 #: Connections the open-loop client spreads its requests over.
 OPEN_LOOP_CONNECTIONS = 32
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))  # bench/ runs as a script; the claimer body lives in tests/queue_claimer.py
+sys.path.insert(0, str(ROOT))  # bench/ runs as a script; the claimer body lives in tests/support/queue_claimer.py
 
+from common.api_client import wait_until_ready  # noqa: E402
+from common.api_key_store import ApiKeyStore  # noqa: E402
 from common.database import create_engine_for, upgrade_to_head  # noqa: E402
+from common.errors import ApiError  # noqa: E402
 from common.job_options import JobOptions  # noqa: E402
 from common.queue import JobQueue  # noqa: E402
 from common.sequence_io import sequence_to_json_dict  # noqa: E402
 from common.settings import Settings  # noqa: E402
-from tests.queue_claimer import run_claimers  # noqa: E402
-from tests.queue_fixtures import tiny_payload, tiny_sequence  # noqa: E402
+from tests.support.queue_claimer import run_claimers  # noqa: E402
+from tests.support.queue_fixtures import tiny_payload, tiny_sequence  # noqa: E402
 
 
 @dataclass
@@ -115,16 +118,10 @@ def server(url: str) -> Iterator[tuple[str, int]]:
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env)
     base = f"http://127.0.0.1:{port}"
     try:
-        deadline = time.monotonic() + 30
-        while True:
-            try:
-                if httpx.get(f"{base}/readyz", timeout=1).status_code == 200:
-                    break
-            except httpx.HTTPError:
-                pass
-            if time.monotonic() > deadline or proc.poll() is not None:
-                raise SystemExit("uvicorn did not become ready")
-            time.sleep(0.2)
+        try:
+            wait_until_ready(base, 30, alive=lambda: proc.poll() is None, interval_s=0.2)
+        except ApiError as exc:
+            raise SystemExit(f"uvicorn did not become ready: {exc}") from exc
         yield base, proc.pid
     finally:
         proc.terminate()
@@ -220,8 +217,7 @@ async def closed_loop(base: str, key: str, job_ids: list[str], concurrency: int,
 
 def bench_polling(url: str, args: argparse.Namespace) -> list[PollFigures]:
     engine = create_engine_for(url)
-    queue = JobQueue(engine)
-    _, key = queue.create_api_key("bench")
+    _, key = ApiKeyStore(engine).create("bench")
     engine.dispose()
     with server(url) as (base, pid):
         body = {**sequence_to_json_dict(tiny_sequence().validate()), "options": {}}
@@ -247,7 +243,7 @@ def bench_polling(url: str, args: argparse.Namespace) -> list[PollFigures]:
 def bench_claims(url: str, jobs: int, claimers: int) -> ClaimFigures:
     engine = create_engine_for(url)
     queue = JobQueue(engine, Settings(max_active_jobs_per_key=1_000_000))
-    owner, _ = queue.create_api_key("bench")
+    owner, _ = ApiKeyStore(engine).create("bench")
     payload = tiny_payload()
     for i in range(jobs):
         queue.submit(owner, payload, JobOptions(seed=i), None, f"bench-{i}", 5)

@@ -47,6 +47,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def run_one(path: Path, args: argparse.Namespace, cache: Path) -> dict[str, Any]:
     from common.dexycb import load_dexycb_npz
     from common.job_options import JobOptions
+    from common.settings import get_settings
     from worker.refine.run import refine_sequence
 
     key = f"{path.stem}__p{args.popsize}_g{args.max_generations}_s{args.seed}_t{args.threads}_c{code_digest()}.json"
@@ -54,15 +55,15 @@ def run_one(path: Path, args: argparse.Namespace, cache: Path) -> dict[str, Any]
     if hit.is_file() and not args.fresh:
         out: dict[str, Any] = json.loads(hit.read_text())
         if "table" not in out:  # cached before results recorded their table: the same fit, recomputed
-            from worker.scene import SimConfig
-            from worker.table_fit import fit_table
+            from worker.simulation.scene import SimConfig
+            from worker.simulation.table_fit import fit_table
 
             out["table"] = fit_table(load_dexycb_npz(path), SimConfig())[1].to_dict()
         return out
     seq = load_dexycb_npz(path)
     options = JobOptions(seed=args.seed, popsize=args.popsize, max_generations=args.max_generations)
     t0 = time.perf_counter()
-    outcome = refine_sequence(seq, options, threads=args.threads)
+    outcome = refine_sequence(seq, options, threads=args.threads, cache_dir=get_settings().resolved_cache_dir())
     summary = dict(outcome.summary)
     summary["bench_wall_s"] = time.perf_counter() - t0
     summary["object"] = seq.object.name
@@ -168,7 +169,7 @@ def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) 
         f"* windows skipped (no hand-object contact and loss already low): {skipped} of {windows}; windows given a "
         f"second, larger CMA-ES run (best loss still above {cma.get('escalate_loss', float('inf')):.0f}): "
         f"{escalated} of {windows}",
-        f"* table laid under the start pose (worker/table_fit.py, worker/rest_pose.py): tilted in {len(tilted)} of "
+        f"* table laid under the start pose (worker/simulation: table_fit, rest_pose): tilted in {len(tilted)} of "
         f"{len(rows)} sequences (median {statistics.median([r['table']['tilt_deg'] for r in tilted] or [0]):.1f} deg),"
         " level in the rest",
         f"* where the time goes (sums over the sequences): batched CMA-ES rollouts {_sum(rows, 'rollout_s'):.0f} s "

@@ -1,8 +1,9 @@
 """Database models: jobs, their inputs and results, the append-only event log, and API keys (DESIGN §2).
 
 The schema changes only through an Alembic migration (``migrations/versions``); ``alembic check`` in
-``tests/migration`` proves these models and the migrations agree. Queue queries live in ``common.queue``
-only; other modules read these classes for their column names, never to write SQL.
+``tests/migration`` proves these models and the migrations agree. Queries live in ``common.queue`` (jobs)
+and ``common.api_key_store`` (API keys) only; other modules read these classes for their column names,
+never to write SQL.
 
 Times are timezone-aware UTC in Python. SQLite has no time zone type, so ``UTCDateTime`` stores naive UTC
 there and re-attaches UTC on the way out; comparisons in SQL stay correct because every value is UTC.
@@ -18,10 +19,7 @@ from sqlalchemy.engine import Dialect
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 from sqlalchemy.types import TypeDecorator
 
-#: Job states (DESIGN §2): QUEUED -> RUNNING -> SUCCEEDED | FAILED | CANCELLED.
-JOB_STATES: tuple[str, ...] = ("QUEUED", "RUNNING", "SUCCEEDED", "FAILED", "CANCELLED")
-TERMINAL_STATES: frozenset[str] = frozenset({"SUCCEEDED", "FAILED", "CANCELLED"})
-ACTIVE_STATES: frozenset[str] = frozenset({"QUEUED", "RUNNING"})
+from common.job_state import JobState
 
 NAMING_CONVENTION = {
     "ix": "ix_%(column_0_label)s",
@@ -78,7 +76,7 @@ class ApiKey(Base):
 class Job(Base):
     __tablename__ = "jobs"
     __table_args__ = (
-        sa.CheckConstraint(f"state IN ({', '.join(repr(s) for s in JOB_STATES)})", name="state"),
+        sa.CheckConstraint(f"state IN ({', '.join(repr(s.value) for s in JobState)})", name="state"),
         sa.UniqueConstraint("owner_key_id", "idempotency_key", name="uq_jobs_owner_idempotency"),
         # claim: the oldest, highest-priority QUEUED job.
         sa.Index("ix_jobs_claim", "state", "priority", "created_at"),
@@ -90,6 +88,7 @@ class Job(Base):
     id: Mapped[str] = mapped_column(sa.String(32), primary_key=True)
     owner_key_id: Mapped[str] = mapped_column(sa.String(32), sa.ForeignKey("api_keys.id"))
     name: Mapped[str] = mapped_column(sa.String(200))
+    #: A ``common.job_state.JobState`` value.
     state: Mapped[str] = mapped_column(sa.String(16))
     priority: Mapped[int] = mapped_column(sa.Integer, default=0)
     #: 1 on the first run; +1 each time an expired lease or a retryable failure requeues the job.
@@ -135,6 +134,22 @@ class JobResult(Base):
     result: Mapped[bytes] = mapped_column(sa.LargeBinary)
     size_bytes: Mapped[int] = mapped_column(sa.Integer)
     summary: Mapped[dict[str, Any]]
+    created_at: Mapped[datetime]
+
+
+class JobArtifact(Base):
+    """A file made beside a job's result (``name`` e.g. ``video.mp4``, ``plots/errors.png``): written with the
+    result in the same transaction, deleted with the job."""
+
+    __tablename__ = "job_artifacts"
+
+    job_id: Mapped[str] = mapped_column(
+        sa.String(32), sa.ForeignKey("jobs.id", ondelete="CASCADE"), primary_key=True
+    )
+    name: Mapped[str] = mapped_column(sa.String(100), primary_key=True)
+    content_type: Mapped[str] = mapped_column(sa.String(100))
+    data: Mapped[bytes] = mapped_column(sa.LargeBinary)
+    size_bytes: Mapped[int] = mapped_column(sa.Integer)
     created_at: Mapped[datetime]
 
 

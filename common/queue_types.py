@@ -7,6 +7,7 @@ from datetime import datetime
 from typing import Any
 
 from common.job_options import JobOptions
+from common.job_state import FINISHED, JobState
 
 
 @dataclass(frozen=True)
@@ -16,7 +17,7 @@ class JobRecord:
     id: str
     owner_key_id: str
     name: str
-    state: str
+    state: JobState
     priority: int
     attempt: int
     max_attempts: int
@@ -40,7 +41,17 @@ class JobRecord:
 
     @property
     def is_terminal(self) -> bool:
-        return self.state in ("SUCCEEDED", "FAILED", "CANCELLED")
+        return self.state in FINISHED
+
+
+@dataclass(frozen=True)
+class Artifact:
+    """A file stored beside a job's result (``common.db_models.JobArtifact``); ``data`` empty in listings."""
+
+    name: str
+    content_type: str
+    data: bytes = b""
+    size_bytes: int = 0
 
 
 @dataclass(frozen=True)
@@ -63,15 +74,6 @@ class JobEventRecord:
     at: datetime
     kind: str
     detail: dict[str, Any]
-
-
-@dataclass(frozen=True)
-class ApiKeyRecord:
-    id: str
-    name: str
-    prefix: str
-    created_at: datetime
-    revoked_at: datetime | None
 
 
 @dataclass(frozen=True)

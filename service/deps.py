@@ -1,4 +1,4 @@
-"""FastAPI dependencies: the queue, the settings, and the caller's API key (Bearer).
+"""FastAPI dependencies: the queue, the settings, and the caller's API key (Bearer, checked by ``ApiKeyStore``).
 
 They are ``async`` because FastAPI runs every sync dependency in the thread pool: one hop per dependency
 per request. Only the endpoint itself (and an API-key lookup on a cache miss) goes to a thread.
@@ -13,7 +13,7 @@ from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from starlette.concurrency import run_in_threadpool
 
-from common.api_keys import hash_key
+from common.api_key_store import ApiKeyStore, hash_key
 from common.errors import AuthenticationError, FieldProblem, InvalidRequestError
 from common.queue import JobQueue
 from common.settings import Settings
@@ -42,7 +42,7 @@ SettingsDep = Annotated[Settings, Depends(get_app_settings)]
 
 
 async def current_key(
-    request: Request, queue: QueueDep, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)]
+    request: Request, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)]
 ) -> str:
     """The id of the caller's API key; 401 when the header is missing or the key unknown or revoked."""
     if credentials is None or not credentials.credentials:
@@ -53,7 +53,8 @@ async def current_key(
     now = time.monotonic()
     if hit is not None and hit[1] > now:
         return hit[0]
-    key_id = await run_in_threadpool(queue.authenticate, credentials.credentials)
+    store: ApiKeyStore = request.app.state.api_keys
+    key_id = await run_in_threadpool(store.authenticate, credentials.credentials)
     if len(cache) > 10_000:  # bounded: a flood of distinct keys cannot grow it without limit
         cache.clear()
     cache[digest] = (key_id, now + KEY_CACHE_SECONDS)

@@ -10,6 +10,7 @@ from fastapi import APIRouter, Depends, Header, Query, Request, Response
 from starlette.concurrency import run_in_threadpool
 
 from common.errors import FieldProblem, InvalidRequestError
+from common.job_state import ACTIVE, JobState
 from common.result_format import read_arrays, read_contacts
 from common.sequence_io import sequence_to_json_dict
 from service.deps import KeyDep, QueueDep, SettingsDep, reject_unknown_query_parameters
@@ -19,7 +20,6 @@ from service.schemas import (
     JobEventsPublic,
     JobPublic,
     JobsPublic,
-    JobState,
     MetricsPublic,
     Problem,
     ResultJson,
@@ -38,7 +38,7 @@ router = APIRouter(
 
 
 def _job_response(response: Response, job: JobPublic, retry_after: int) -> JobPublic:
-    if job.state in ("QUEUED", "RUNNING"):
+    if job.state in ACTIVE:
         response.headers["Retry-After"] = str(retry_after)
     return job
 
@@ -66,7 +66,7 @@ async def submit_job(
     queue: QueueDep,
     settings: SettingsDep,
     key_id: KeyDep,
-    idempotency_key: Annotated[str | None, Header(max_length=200)] = None,
+    idempotency_key: Annotated[str | None, Header(max_length=200, pattern=r"^[\x20-\x7E]+$")] = None,
 ) -> JobPublic:
     sub = await read_submission(request, settings)
     job, _created = await run_in_threadpool(
@@ -106,7 +106,7 @@ def get_job(
     body = job.model_dump_json().encode()
     etag = f'"{hashlib.sha256(body).hexdigest()[:32]}"'
     headers = {"ETag": etag}
-    if job.state in ("QUEUED", "RUNNING"):
+    if job.state in ACTIVE:
         headers["Retry-After"] = str(settings.poll_retry_after_seconds)
     if if_none_match is not None and etag in [t.strip() for t in if_none_match.split(",")]:
         return Response(status_code=304, headers=headers)

@@ -10,10 +10,11 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from service.submit.manifest import FAILED_STATES, Entry
+from common.job_state import JobState
+from service.submit.manifest import FAILED_STATES, INVALID, PENDING, REJECTED, Entry
 
 #: Metrics of DESIGN §1.8 in table order: (key in the result summary, label, format). Keys are
-#: ``worker.metrics.METRIC_KEYS``; unit-suffixed spellings (``E_t_cm``) of older results are read too.
+#: ``worker.simulation.metrics.METRIC_KEYS``; unit-suffixed spellings (``E_t_cm``) of older results are read too.
 METRICS: tuple[tuple[str, str, str], ...] = (
     ("E_t", "E_t (cm)", "{:.2f}"),
     ("E_r", "E_r (deg)", "{:.2f}"),
@@ -32,15 +33,15 @@ METRICS: tuple[tuple[str, str, str], ...] = (
     ("hand_only_fraction", "lifted frames held by hand alone", "{:.0%}"),
 )
 _UNIT_SUFFIX = {"E_t": "_cm", "E_r": "_deg", "E_j": "_cm", "E_ft": "_cm"}
-STATE_ORDER = ("PENDING", "QUEUED", "RUNNING", "SUCCEEDED", "FAILED", "CANCELLED", "REJECTED", "INVALID")
+STATE_ORDER: tuple[str, ...] = (PENDING, *JobState, REJECTED, INVALID)
 
 
 def counts(entries: list[Entry]) -> dict[str, int]:
     """Progress counters: submitted (has a job), running, done (succeeded + downloaded if waiting), failed."""
     return {
         "submitted": sum(e.job_id is not None for e in entries),
-        "running": sum(e.state == "RUNNING" for e in entries),
-        "done": sum(e.state == "SUCCEEDED" for e in entries),
+        "running": sum(e.state == JobState.RUNNING for e in entries),
+        "done": sum(e.state == JobState.SUCCEEDED for e in entries),
         "failed": sum(e.state in FAILED_STATES for e in entries),
     }
 
@@ -90,7 +91,7 @@ def metric_means(entries: list[Entry]) -> dict[str, dict[str, float | None]]:
             values = [
                 v
                 for e in entries
-                if e.state == "SUCCEEDED" and e.metrics
+                if e.state == JobState.SUCCEEDED and e.metrics
                 for v in [_metric(e.metrics.get(stage), key)]
                 if v is not None
             ]
@@ -105,7 +106,7 @@ def summary_document(entries: list[Entry], retried: int = 0) -> dict[str, Any]:
         "states": dict(sorted(Counter(e.state for e in entries).items())),
         "total": len(entries),
         "retried": retried,
-        "succeeded_with_metrics": sum(1 for e in entries if e.state == "SUCCEEDED" and e.metrics),
+        "succeeded_with_metrics": sum(1 for e in entries if e.state == JobState.SUCCEEDED and e.metrics),
         "mean_metrics": metric_means(entries),
     }
 
@@ -119,7 +120,7 @@ def summary_tables(entries: list[Entry]) -> tuple[Table, Table]:
         jobs.add_row(state, str(states[state]))
     jobs.add_row("total", str(len(entries)), style="bold")
 
-    with_metrics = sum(1 for e in entries if e.state == "SUCCEEDED" and e.metrics)
+    with_metrics = sum(1 for e in entries if e.state == JobState.SUCCEEDED and e.metrics)
     means = metric_means(entries)
     metrics = Table(title=f"Mean metrics over {with_metrics} succeeded sequences")
     metrics.add_column("metric")
@@ -139,12 +140,12 @@ def print_summary(console: Console, entries: list[Entry], retried: int = 0, retr
     console.print(metrics)
     if retried:
         console.print(f"retried {retried} FAILED job{'s' if retried != 1 else ''} (same job ids, new attempts)")
-    problems = [e for e in entries if e.state in FAILED_STATES or (e.error and e.state == "PENDING")]
+    problems = [e for e in entries if e.state in FAILED_STATES or (e.error and e.state == PENDING)]
     for e in problems[:20]:
         console.print(f"[red]{e.state}[/red] {e.label}: {e.error or 'no detail'}", highlight=False)
     if len(problems) > 20:
         console.print(f"... and {len(problems) - 20} more (see the manifest)")
-    failed = sum(e.state == "FAILED" for e in entries)
+    failed = sum(e.state == JobState.FAILED for e in entries)
     if retry_hint and failed:
         console.print(
             f"{failed} job{'s' if failed != 1 else ''} FAILED on the service: run the same command with "

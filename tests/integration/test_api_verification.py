@@ -9,7 +9,7 @@ import pytest
 from common.job_options import JobOptions
 from common.result_format import content_digest, read_summary
 from common.sequence_io import sequence_to_npz_bytes
-from tests.queue_fixtures import BACKENDS, ApiHarness
+from tests.support.queue_fixtures import BACKENDS, ApiHarness
 from worker.refine.verify import check_result
 from worker.runtime.jobs import RefineJob, verification
 from worker.runtime.loop import WorkerLoop
@@ -18,7 +18,7 @@ BACKEND = pytest.mark.parametrize("empty_db_url", BACKENDS, indirect=True)
 
 
 def _push_payload() -> bytes:
-    from tests.integration.test_refine_synthetic import push_sequence
+    from tests.support.synthetic_push import push_sequence
 
     return sequence_to_npz_bytes(push_sequence(frames=12))
 
@@ -52,7 +52,7 @@ def test_a_refined_job_reports_its_verification_and_the_download_matches(api: Ap
 
 def test_a_result_that_does_not_reproduce_is_flagged_with_the_field() -> None:
     from common.result_format import read_arrays, write_result_npz
-    from tests.integration.test_refine_synthetic import push_sequence
+    from tests.support.synthetic_push import push_sequence
     from worker.refine.run import refine_sequence
 
     outcome = refine_sequence(push_sequence(frames=12), JobOptions(popsize=4, max_generations=1, restarts=0))

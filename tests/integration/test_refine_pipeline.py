@@ -18,10 +18,10 @@ from common.errors import ResultMismatchError
 from common.job_options import LOSS_NAMES, JobOptions
 from common.result_format import content_digest, read_arrays, read_summary, write_result_npz
 from common.sequence_io import save_sequence
-from tests.integration.test_refine_synthetic import push_sequence, recovery_case
+from tests.support.synthetic_push import push_sequence, recovery_case
 from worker.refine.evaluator import ParallelEvaluator
 from worker.refine.losses import ROT_SCALE
-from worker.refine.prepare import initial_state, prepare
+from worker.refine.prepare import prepare, settled_start
 from worker.refine.problem import SimWindowProblem
 from worker.refine.result import verify_result
 from worker.refine.run import RefineOutcome, refine_sequence
@@ -93,7 +93,7 @@ def test_zero_weight_changes_the_optimised_objective() -> None:
     seq, _ = push_sequence(frames=12), None
     base = prepare(seq, JobOptions())
     with ParallelEvaluator(base.scene.model, 1) as ev:
-        start, _ = initial_state(base, ev)
+        start, _ = settled_start(base, ev)
         kf = {s: sp.zero_keyframes() for s, sp in base.spaces.items()}
         cand = {"right": np.random.default_rng(0).normal(size=(3, base.spaces["right"].dim))}
 
@@ -148,7 +148,7 @@ def test_sixty_fps_uses_keyframes_every_ten_frames_and_cli_round_trip(
 
 def test_two_hands_get_independent_keyframes_in_one_simulation() -> None:
     from common.sequence import HandTrack
-    from worker.hand_model import default_geometry, forward_keypoints
+    from worker.hand.model import default_geometry, forward_keypoints
 
     seq = push_sequence(frames=16)
     # A left hand resting 30 cm to the side (it never touches the box) joins the right hand's push.
@@ -216,12 +216,12 @@ def test_verify_re_simulates_with_the_leads_the_result_was_made_with(monkeypatch
     """Results made before the wrist and finger leads existed drove the mocap and the servos along the
     reference itself (leads 0) and record neither: they still verify, and claiming a lead for them fails."""
     import worker.refine.run as run_module
-    from worker.example import short_example_sequence
-    from worker.scene import SimConfig
+    from worker.example.sequences import short_example_sequence
+    from worker.simulation.scene import SimConfig
 
     seq = short_example_sequence()  # a grasp and lift: the wrist moves and the fingers close
     unled = SimConfig(wrist_lead_s=0.0, finger_lead_s=0.0)
-    monkeypatch.setattr(run_module, "prepare", lambda s, o: prepare(s, o, unled))
+    monkeypatch.setattr(run_module, "prepare", lambda s, o, **dirs: prepare(s, o, unled, **dirs))
     old = refine_sequence(seq, JobOptions(popsize=4, max_generations=1, restarts=0), threads=1)
     monkeypatch.undo()
     sim = old.summary["config"]["sim"]

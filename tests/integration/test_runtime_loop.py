@@ -15,11 +15,12 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
+from common.api_key_store import ApiKeyStore
 from common.database import create_engine_for
 from common.job_options import JobOptions
 from common.queue import JobQueue
 from common.settings import Settings
-from tests.queue_fixtures import BACKENDS
+from tests.support.queue_fixtures import BACKENDS
 from worker.runtime.backoff import Backoff, WorkerStopping, call_with_backoff
 from worker.runtime.jobs import SELFTEST_GENERATION_ENV, SelfTestJob
 from worker.runtime.loop import WorkerLoop
@@ -39,7 +40,7 @@ def rt_queue(db_url: str, monkeypatch: pytest.MonkeyPatch) -> Iterator[JobQueue]
 
 
 def _submit(q: JobQueue, generations: int, name: str = "job") -> str:
-    owner, _ = q.create_api_key("test")
+    owner, _ = ApiKeyStore(q.engine).create("test")
     rec, _ = q.submit(owner, name.encode() * 10, JobOptions(seed=3, max_generations=generations), None, name, 10)
     return rec.id
 

@@ -111,15 +111,14 @@ def test_a_high_friction_config_fails_without_allow_config(
 ) -> None:
     """The worst forgery: friction 3.0 and the whole result re-derived under it (so every array is consistent)."""
     from common.job_options import JobOptions as Options
-    from worker.refine.derive import derive_result
-    from worker.refine.run import add_attempt_metrics, attempt_figures
-    from worker.scene import SimConfig
+    from worker.refine.derive import add_attempt_metrics, attempt_figures, derive_result
+    from worker.simulation.config import SimConfig
 
     arrays, summary = honest
     sticky = SimConfig(hand_friction=(3.0, 0.02, 0.001), object_friction=3.0)
     derived = derive_result(arrays["sequence_npz"].tobytes(), Options.model_validate(summary["options"]), sticky,
                             summary["config"]["rotation_pivot"], {"right": arrays["right_keyframes"]})
-    from worker.metrics import scalar_metrics
+    from worker.simulation.metrics import scalar_metrics
 
     metrics = {k: scalar_metrics(v) for k, v in derived.metrics.items()}
     attempts = [{**attempt_figures(derived.metrics["refined"]), "seed": 0, "evaluations": 1}]

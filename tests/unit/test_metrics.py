@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from worker.metrics import compute_metrics, rotation_error_deg, scalar_metrics
+from common.geometry import rotation_error_deg
+from worker.simulation.metrics import compute_metrics, scalar_metrics
 
 
 def _poses(n: int) -> np.ndarray:
@@ -90,7 +91,7 @@ def test_the_papers_protocol_leaves_out_the_first_ten_frames() -> None:
 
 
 def test_penetration_and_the_hand_held_share_of_lifted_frames() -> None:
-    from worker.contacts import contact_frames
+    from worker.simulation.contacts import contact_frames
 
     n = 12
     ref = _poses(n)  # rises 0.2 m over 12 frames: lifted (> 2 cm above frame 0) from frame 2 on

@@ -13,22 +13,25 @@ been normalised once more on load; 1e-16 there grew to 0.066 mm in the contact-r
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from common.geometry import FloatArray
 from common.job_options import JobOptions
 from common.sequence_io import sequence_from_npz_bytes
-from worker.refine.spline import FloatArray
-
-if TYPE_CHECKING:
-    from worker.refine.prepare import Prepared
-    from worker.refine.run import ReplayRecord
+from worker.hand.mano.pose import mano_result_arrays
+from worker.refine.evaluator import ParallelEvaluator
+from worker.refine.prepare import Prepared, prepare, settled_start
+from worker.refine.replay import ReplayRecord, replay
+from worker.simulation.config import SimConfig
+from worker.simulation.metrics import compute_metrics, scalar_metrics
 
 
 @dataclass
 class Derived:
-    """What ``derive_result`` recomputed. ``metrics`` (raw / refined) are ``worker.metrics.compute_metrics``
+    """What ``derive_result`` recomputed. ``metrics`` (raw / refined) are ``worker.simulation.metrics.compute_metrics``
     outputs (with per-frame arrays); ``attempt_metrics`` one per restart's keyframes (scalars only)."""
 
     prep: Prepared
@@ -43,20 +46,18 @@ class Derived:
 def derive_result(
     sequence_bytes: bytes,
     options: JobOptions,
-    config: Any,
+    config: SimConfig,
     rotation_pivot: str,
     keyframes: dict[str, FloatArray],
     attempt_keyframes: list[dict[str, FloatArray]] | None = None,
+    *,
+    cache_dir: Path | None = None,
+    mano_dir: Path | None = None,
 ) -> Derived:
-    """See the module docstring. ``config`` is a ``worker.scene.SimConfig``; ``attempt_keyframes`` the keyframes
-    of every attempt (restarts) in order, stored so ``verify`` can check the first attempt's success too."""
-    from worker.metrics import scalar_metrics
-    from worker.refine.evaluator import ParallelEvaluator
-    from worker.refine.prepare import initial_state, prepare
-    from worker.refine.run import replay
-
+    """See the module docstring. ``attempt_keyframes`` the keyframes of every attempt (restarts) in order, stored
+    so ``verify`` can check the first attempt's success too; ``cache_dir`` and ``mano_dir`` as for ``prepare``."""
     seq = sequence_from_npz_bytes(sequence_bytes)
-    prep = prepare(seq, options, config, rotation_pivot=rotation_pivot)
+    prep = prepare(seq, options, config, rotation_pivot=rotation_pivot, cache_dir=cache_dir, mano_dir=mano_dir)
     for side, space in prep.spaces.items():
         k = keyframes.get(side)
         if k is None or k.shape != (space.n_keyframes, space.dim):
@@ -65,7 +66,7 @@ def derive_result(
     attempts = attempt_keyframes or []
     # A fresh MjData (single-threaded, Python-stepped): nothing simulated before can leak into the result.
     with ParallelEvaluator(prep.scene.model, 1) as ev:
-        start, settle = initial_state(prep, ev)
+        start, settle = settled_start(prep, ev)
         zero = {side: sp.zero_keyframes() for side, sp in prep.spaces.items()}
         raw = replay(prep, ev, start, zero)
         final = replay(prep, ev, start, keyframes)
@@ -83,8 +84,6 @@ def derive_result(
 
 def replay_metrics(prep: Prepared, rec: ReplayRecord) -> dict[str, Any]:
     """``compute_metrics`` of a replay against the prepared references (with plausibility when it has contacts)."""
-    from worker.metrics import compute_metrics
-
     return compute_metrics(
         rec.object_pose,
         prep.obj_targets_pose(),
@@ -127,13 +126,28 @@ def build_arrays(
         arrays[f"{s}_valid"] = ref.valid
         if getattr(ref, "from_mano", False):
             # The refined hand as MANO parameters (issue #6): exact because the scene used the MANO geometry.
-            from worker.mano.pose import mano_result_arrays
-
             hand = prep.seq.hand(s)
             assert hand is not None
-            arrays.update(mano_result_arrays(prep.seq, hand, p, r, q))
+            arrays.update(mano_result_arrays(prep.seq, hand, p, r, q, prep.mano_dir))
     for name, m in (("raw", m_raw), ("refined", m_ref)):
         for key, val in m["per_frame"].items():
             arrays[f"metrics_{name}_{key}"] = val
     arrays.update(final.contacts)
     return arrays
+
+
+def attempt_figures(m: dict[str, Any]) -> dict[str, Any]:
+    """An attempt's entry in the summary: success and object errors on both protocols."""
+    paper = m["paper"]
+    return {"success": bool(m["success"]), "E_t": m["E_t"], "E_r": m["E_r"],
+            "paper": {"success": bool(paper["success"]), "E_t": paper["E_t"], "E_r": paper["E_r"]}}
+
+
+def add_attempt_metrics(m_ref: dict[str, Any], attempts: list[dict[str, Any]]) -> None:
+    """The first attempt's success beside the final one (issue #15 item 3; the paper runs one attempt)."""
+    if not attempts:
+        return
+    m_ref["attempts"] = len(attempts)
+    m_ref["success_first_attempt"] = bool(attempts[0]["success"])
+    if "paper" in m_ref and "paper" in attempts[0]:
+        m_ref["paper"]["success_first_attempt"] = bool(attempts[0]["paper"]["success"])

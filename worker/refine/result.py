@@ -6,38 +6,46 @@ Arrays (``common.result_format`` keys plus; all but the loss history made by ``w
 ``S_q_target``/``S_wrist_pos``/``S_wrist_quat`` the per-frame controls they give,
 ``S_keypoints_sim``/``S_keypoints_ref``/``S_valid``; ``raw_object_pose_sim`` (F,7) the raw replay;
 ``object_table_contact`` (F,) bool, the refined object touching the table;
-``metrics_{raw,refined}_*`` per-frame errors, penetration (mm) and hand-only hold (``worker.metrics``);
-``window_loss_history`` (W, G) best loss per generation (NaN
-padded); ``sequence_npz`` (uint8) the input sequence in the native NPZ format, so ``verify`` needs nothing
-else. Summary JSON: kind, sequence, fps, frames, metrics.raw / metrics.refined (both
-protocols, plausibility, first-attempt success; ``worker.metrics``), options, config (simulation
+``metrics_{raw,refined}_*`` per-frame errors, penetration (mm) and hand-only hold (``worker.simulation.metrics``);
+``window_loss_history`` (W, G) best loss per generation (NaN padded); ``sequence_npz`` (uint8) the input
+sequence in the native NPZ format, so ``verify`` needs nothing else. Summary JSON: kind, sequence, fps, frames,
+metrics.raw / metrics.refined (both protocols, plausibility, first-attempt success), options, config (simulation
 settings, keyframe interval, CMA-ES settings, loss weights), seed, versions, table (the plane under the frame-0
-object: point, normal, tilt_deg), attempts (seed, success, E_t, E_r, evaluations of each CMA-ES run; the
-result is the best), windows (count, skipped, escalated, per window loss), timings (the
+object: point, normal, tilt_deg), attempts (seed, success, E_t, E_r on both protocols, evaluations of each
+CMA-ES run; the result is the best), windows (count, skipped, escalated, per window loss), timings (the
 deterministic counters; the wall-clock figures are stored in the ``timings_json`` member, see
-``common.result_format``, and ``read_summary`` merges them back).
+``common.result_format``, and ``read_summary`` merges them back). ``prepare_from_result`` and
+``compare_object_trajectory`` serve the visual tools' replays.
 """
 
 from __future__ import annotations
 
 from dataclasses import asdict
-from typing import TYPE_CHECKING, Any
+from pathlib import Path
+from typing import Any
 
+import cma
+import numpy as np
+
+from common.errors import ResultMismatchError, UnsupportedFormatError
+from common.geometry import FloatArray
+from common.job_options import JobOptions
+from common.result_format import read_arrays, read_summary
 from common.sequence import Sequence
+from common.sequence_io import sequence_from_npz_bytes
+from worker.refine.prepare import Prepared, prepare
 from worker.refine.windowed import CmaSettings, WindowLog
-
-if TYPE_CHECKING:
-    from worker.refine.prepare import Prepared
+from worker.simulation.config import SimConfig
+from worker.simulation.replay import versions as replay_versions
 
 RESULT_KIND = "refine"
+#: The visual tools' tolerance on a re-simulated object trajectory (m): on the same build it reproduces bit for
+#: bit (``verify`` has its own, cross-host tolerances: ``worker.refine.verify_report``).
+VERIFY_TOLERANCE_M = 1e-6
 
 
 def versions() -> dict[str, str]:
     """The raw replay's package versions plus the optimiser's."""
-    import cma
-
-    from worker.replay import versions as replay_versions
-
     return {**replay_versions(), "cma": str(cma.__version__).split()[0]}
 
 
@@ -91,8 +99,69 @@ def build_summary(
     }
 
 
-def verify_result(blob: bytes, sequence: Sequence | None = None, allow_config: bool = False) -> dict[str, Any]:
-    """``worker.refine.verify.verify_result`` (kept here for callers of the earlier API)."""
+def sim_config_from_summary(stored: dict[str, Any]) -> SimConfig:
+    """The ``SimConfig`` a result was simulated with, from its summary's JSON form."""
+    sim: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in stored.items()}
+    # Results made before the pivot was recorded turned the hand about the wrist; before the wrist lead was
+    # recorded, the mocap followed the wrist track itself; before the rest pose, the object started from frame 0.
+    sim.setdefault("wrist_lead_s", 0.0)
+    sim.setdefault("rest_approach_m", 0.0)
+    sim.setdefault("finger_lead_s", 0.0)
+    return SimConfig(**sim)
+
+
+def prepare_from_result(
+    blob: bytes, sequence: Sequence | None = None, *, cache_dir: Path | None = None, mano_dir: Path | None = None
+) -> tuple[Prepared, dict[str, FloatArray]]:
+    """Rebuild a refinement result's problem (same sequence, options and simulation settings as the run) and its
+    stored keyframes per hand side, checked against the stored per-frame controls (``cache_dir`` and
+    ``mano_dir`` as for ``prepare``). Shared by ``verify_result`` and the visual tools (``worker.visual``)."""
+    summary = read_summary(blob)
+    if summary.get("kind") != RESULT_KIND:
+        raise UnsupportedFormatError(f"not a refinement result (kind {summary.get('kind')!r})")
+    arrays = read_arrays(blob)
+    if sequence is None:
+        if "sequence_npz" not in arrays:
+            raise UnsupportedFormatError("the result embeds no sequence; pass --sequence")
+        sequence = sequence_from_npz_bytes(arrays["sequence_npz"].tobytes())
+    options = JobOptions.model_validate(summary["options"])
+    prep = prepare(sequence, options, sim_config_from_summary(summary["config"]["sim"]),
+                   rotation_pivot=summary["config"].get("rotation_pivot", "wrist"), cache_dir=cache_dir,
+                   mano_dir=mano_dir)  # fmt: skip
+    keyframes = {}
+    for side, space in prep.spaces.items():
+        key = f"{side}_keyframes"
+        if key not in arrays or arrays[key].shape != (space.n_keyframes, space.dim):
+            raise ResultMismatchError(f"{key}: missing or not ({space.n_keyframes}, {space.dim}) for this sequence")
+        keyframes[side] = arrays[key]
+        q, _, _ = space.frame_controls(arrays[key])
+        if not np.allclose(q, arrays[f"{side}_q_target"], atol=1e-9):
+            raise ResultMismatchError(f"{side}_q_target does not match the stored keyframes")
+    return prep, keyframes
+
+
+def compare_object_trajectory(stored: FloatArray, simulated: FloatArray) -> float:
+    """The largest position difference (m) between two (F, 7) object trajectories; ``ResultMismatchError``
+    when they differ beyond ``VERIFY_TOLERANCE_M`` (or in rotation beyond rounding)."""
+    if stored.shape != simulated.shape:
+        raise ResultMismatchError(f"object_pose_sim has shape {stored.shape}, re-simulation {simulated.shape}")
+    diff = np.linalg.norm(stored[:, :3] - simulated[:, :3], axis=1)
+    qdiff = np.abs(np.abs(np.sum(stored[:, 3:] * simulated[:, 3:], axis=1)) - 1.0)
+    worst = int(np.argmax(diff))
+    if diff[worst] > VERIFY_TOLERANCE_M or qdiff.max() > 1e-9:
+        raise ResultMismatchError(
+            f"object trajectory differs from the re-simulation: {diff[worst] * 1000:.3f} mm at frame {worst} "
+            f"({int((diff > VERIFY_TOLERANCE_M).sum())} of {len(diff)} frames beyond {VERIFY_TOLERANCE_M} m)"
+        )
+    return float(diff.max())
+
+
+def verify_result(
+    blob: bytes, sequence: Sequence | None = None, *, allow_config: bool = False, cache_dir: Path | None = None,
+    mano_dir: Path | None = None,
+) -> dict[str, Any]:
+    """``worker.refine.verify.verify_result``: recompute everything the result claims (kept here for callers of
+    the earlier API)."""
     from worker.refine.verify import verify_result as verify
 
-    return verify(blob, sequence, allow_config)
+    return verify(blob, sequence, allow_config=allow_config, cache_dir=cache_dir, mano_dir=mano_dir)

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -34,9 +35,12 @@ from common.job_options import JobOptions
 from common.result_format import read_arrays, read_summary
 from common.sequence import Sequence
 from common.sequence_io import sequence_to_npz_bytes
+from worker.refine.derive import derive_result
+from worker.refine.prepare import ROTATION_PIVOT
 from worker.refine.verify_arrays import ArrayChecker, check_stored_metrics
 from worker.refine.verify_report import CROSS_HOST, Tolerances, VerifyReport
 from worker.refine.verify_summary import check_summary
+from worker.simulation.config import SimConfig
 
 __all__ = ["CROSS_HOST", "Tolerances", "VerifyReport", "check_result", "verify_result"]
 
@@ -47,20 +51,24 @@ OLDER_PIVOT = "wrist"
 
 
 
-def verify_result(blob: bytes, sequence: Sequence | None = None, allow_config: bool = False) -> dict[str, Any]:
+def verify_result(
+    blob: bytes, sequence: Sequence | None = None, *, allow_config: bool = False, cache_dir: Path | None = None,
+    mano_dir: Path | None = None,
+) -> dict[str, Any]:
     """``check_result``, raising ``ResultMismatchError`` naming every failing field; returns the report as a dict
     (``VerifyReport.to_dict``)."""
-    report = check_result(blob, sequence, allow_config)
+    report = check_result(blob, sequence, allow_config=allow_config, cache_dir=cache_dir, mano_dir=mano_dir)
     if report.failures:
         raise ResultMismatchError("result does not verify:\n  " + "\n  ".join(report.failures))
     return report.to_dict()
 
 
-def check_result(blob: bytes, sequence: Sequence | None = None, allow_config: bool = False) -> VerifyReport:
-    """See the module docstring; failures are listed in the report, not raised."""
-    from worker.refine.derive import derive_result
-    from worker.scene import SimConfig
-
+def check_result(
+    blob: bytes, sequence: Sequence | None = None, *, allow_config: bool = False, cache_dir: Path | None = None,
+    mano_dir: Path | None = None,
+) -> VerifyReport:
+    """See the module docstring; failures are listed in the report, not raised. ``cache_dir`` and ``mano_dir``
+    as for ``worker.refine.prepare.prepare`` (the command passes the configured folders)."""
     summary = read_summary(blob)
     if summary.get("kind") != "refine":
         raise UnsupportedFormatError(f"not a refinement result (kind {summary.get('kind')!r})")
@@ -81,7 +89,7 @@ def check_result(blob: bytes, sequence: Sequence | None = None, allow_config: bo
     attempt_kf = _attempt_keyframes(arrays, sides)
     try:
         derived = derive_result(seq_bytes, options, SimConfig(**sim), pivot, keyframes,  # type: ignore[arg-type]
-                                attempt_kf)
+                                attempt_kf, cache_dir=cache_dir, mano_dir=mano_dir)
     except ValueError as exc:
         raise ResultMismatchError(f"the stored controls do not fit the sequence: {exc}") from exc
     c = ArrayChecker(report, arrays, derived.arrays)
@@ -103,9 +111,6 @@ def check_result(blob: bytes, sequence: Sequence | None = None, allow_config: bo
 
 def _config(config: dict[str, Any], report: VerifyReport, allow_config: bool) -> tuple[dict[str, Any], str]:
     """The stored sim settings (older defaults filled in) and pivot; config differences into the report."""
-    from worker.refine.prepare import ROTATION_PIVOT
-    from worker.scene import SimConfig
-
     defaults = SimConfig().to_dict()
     stored: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in config.get("sim", {}).items()}
     unknown = sorted(set(stored) - set(defaults))

@@ -6,8 +6,11 @@ from typing import Any
 
 import numpy as np
 
+from common.geometry import quat_to_matrix, rotation_error_deg
 from common.result_format import CONTACT_KEYS
 from worker.refine.verify_report import CROSS_HOST, Tolerances, VerifyReport
+from worker.simulation.contacts import contact_frames
+from worker.simulation.metrics import compute_metrics, scalar_metrics
 
 
 class ArrayChecker:
@@ -24,8 +27,6 @@ class ArrayChecker:
         if s is None or s.shape != f.shape:
             self.fail(f"object_pose_sim: shape {None if s is None else s.shape}, re-simulation {f.shape}")
             return
-        from worker.metrics import rotation_error_deg
-
         pos = np.linalg.norm(s[:, :3] - f[:, :3], axis=1)
         rot = rotation_error_deg(s[:, 3:], f[:, 3:])
         self.report.exact = bool(np.array_equal(s, f))
@@ -122,8 +123,6 @@ class ArrayChecker:
         return tol.object_pos_m + tol.drift_fraction * e_t / 100.0, tol.object_rot_deg + tol.drift_fraction * e_r
 
     def _pose_within(self, key: str, pos_tol: np.ndarray, rot_tol: np.ndarray) -> None:
-        from worker.metrics import rotation_error_deg
-
         s, f = self.stored.get(key), self.fresh[key]
         self.report.checked.append(key)
         if s is None or s.shape != f.shape:
@@ -175,9 +174,7 @@ class ArrayChecker:
         if frames.size and (frames.min() < 0 or frames.max() >= len(pose)):
             self.fail("contact_frame: frame numbers outside the sequence")
             return
-        from worker.hand_model import quat_to_matrix as q2m
-
-        rot = np.stack([q2m(q) for q in pose[frames, 3:]]) if frames.size else np.zeros((0, 3, 3))
+        rot = np.stack([quat_to_matrix(q) for q in pose[frames, 3:]]) if frames.size else np.zeros((0, 3, 3))
         expect = np.einsum("nji,nj->ni", rot, world - pose[frames, :3]) if frames.size else local
         d = np.abs(expect - local)
         if d.size and d.max() > 1e-9:
@@ -198,9 +195,6 @@ def check_stored_metrics(
 ) -> None:
     """The metrics of the *stored* trajectories and contacts against the stored per-frame arrays and summary:
     tight on any host, so a rewritten figure fails even where the re-simulation is only within tolerance."""
-    from worker.contacts import contact_frames
-    from worker.metrics import compute_metrics, scalar_metrics
-
     ref = arrays.get("object_pose_ref")
     if ref is None:
         return

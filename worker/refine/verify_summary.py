@@ -7,7 +7,9 @@ from typing import Any
 
 import numpy as np
 
+from worker.refine.derive import add_attempt_metrics, attempt_figures
 from worker.refine.verify_report import Tolerances, VerifyReport
+from worker.simulation.metrics import scalar_metrics
 
 
 def check_summary(
@@ -16,8 +18,6 @@ def check_summary(
 ) -> None:
     """The summary's metrics (raw, refined, both protocols), attempts and success against the derivation, and
     against the metrics of the *stored* trajectories (consistency, tight on any host)."""
-    from worker.metrics import scalar_metrics
-    from worker.refine.run import add_attempt_metrics, attempt_figures
 
     stored = summary.get("metrics", {})
     attempts = summary.get("attempts") or []

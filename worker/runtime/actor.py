@@ -46,7 +46,7 @@ class WorkerActor:
         from common.database import create_engine_for
         from common.queue import JobQueue
         from common.settings import get_settings
-        from worker.runtime.jobs import make_job_function
+        from worker.runtime.jobs import make_artifact_function, make_job_function
         from worker.runtime.loop import WorkerLoop
 
         get_settings.cache_clear()
@@ -62,6 +62,7 @@ class WorkerActor:
             worker_id=worker_id,
             lease_seconds=settings.lease_seconds,
             extra_progress={"threads": threads},
+            artifact_fn=make_artifact_function(job_kind),
         )
         log.info("actor %s ready (pid %d, %d thread(s), job kind %s)", worker_id, os.getpid(), threads, job_kind)
 
