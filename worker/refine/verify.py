@@ -102,7 +102,13 @@ def check_result(
     check_summary(report, summary, derived, attempt_kf, tol)
     check_stored_metrics(report, arrays, summary, sides)
     report.frames = int(derived.prep.num_frames)
-    report.digest = _digest(arrays, summary, report.checked)
+    # The digest covers every stored array the derivation makes (the same set on any host, whichever comparison
+    # each got) and the summary parts compared; the rest (the optimisation's loss history) is named, unchecked.
+    derived_keys = sorted(set(derived.arrays) & set(arrays))
+    unchecked = sorted(set(arrays) - set(derived.arrays))
+    if unchecked:
+        report.config_notes.append(f"not re-computable, not checked: {', '.join(unchecked)}")
+    report.digest = _digest(arrays, summary, derived_keys)
     return report
 
 
@@ -155,10 +161,10 @@ def _attempt_keyframes(arrays: dict[str, np.ndarray], sides: list[str]) -> list[
     return [{s: np.asarray(v[i]) for s, v in stacks.items() if v is not None} for i in range(n.pop())]
 
 
-def _digest(arrays: dict[str, np.ndarray], summary: dict[str, Any], checked: list[str]) -> str:
-    """SHA-256 over the checked stored arrays (name, dtype, shape, bytes) and the checked summary parts."""
+def _digest(arrays: dict[str, np.ndarray], summary: dict[str, Any], keys: list[str]) -> str:
+    """SHA-256 over the stored arrays ``keys`` (name, dtype, shape, bytes) and the checked summary parts."""
     h = hashlib.sha256()
-    for key in sorted({k for k in checked if k in arrays} | {"sequence_npz"} & set(arrays)):
+    for key in keys:
         a = np.ascontiguousarray(arrays[key])
         h.update(f"{key}:{a.dtype.str}:{a.shape}:".encode())
         h.update(a.tobytes())
