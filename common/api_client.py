@@ -196,18 +196,27 @@ class ApiClient:
         return ApiError(f"{method} {url}: HTTP {resp.status_code}: {what}{suffix}", resp.status_code, problem)
 
     # ------------------------------------------------------------------ endpoints
-    def submit(self, payload: bytes, filename: str, options: JobOptions, key: str | None = None) -> dict[str, Any]:
-        """``POST /v1/jobs`` (multipart: native NPZ + options JSON). Returns the job document (has ``id``).
+    def submit(
+        self,
+        payload: bytes,
+        filename: str,
+        options: JobOptions,
+        key: str | None = None,
+        batch_id: str | None = None,
+    ) -> dict[str, Any]:
+        """``POST /v1/jobs`` (multipart: native NPZ + options JSON, into ``batch_id`` when given). Returns the
+        job document (has ``id``).
 
         ``key`` is the Idempotency-Key; without one a fresh key is made, so that a retried POST (after a
         timeout or a 5xx) still names one job and never submits it twice.
         """
+        data = {"options": options_json(options), **({"batch_id": batch_id} if batch_id else {})}
         resp = self.request(
             "POST",
             "/v1/jobs",
             headers={"Idempotency-Key": key or uuid.uuid4().hex},
             files={"sequence": (filename, payload, "application/octet-stream")},
-            data={"options": options_json(options)},
+            data=data,
         )
         doc = resp.json() if resp.content else {}
         if not isinstance(doc, dict):
@@ -275,4 +284,14 @@ class ApiClient:
     @staticmethod
     def _document(resp: httpx.Response) -> dict[str, Any]:
         doc = resp.json()
+        return doc if isinstance(doc, dict) else {}
+
+    def create_batch(self, name: str, meta: dict[str, str] | None = None) -> dict[str, Any]:
+        """``POST /v1/batches``: a new batch to submit into. Returns the batch document (has ``id``)."""
+        doc = self.request("POST", "/v1/batches", json={"name": name, "meta": dict(meta or {})}).json()
+        return doc if isinstance(doc, dict) else {}
+
+    def batch(self, batch_id: str) -> dict[str, Any]:
+        """``GET /v1/batches/{id}``: counts per state and the aggregate raw / refined metrics."""
+        doc = self.request("GET", f"/v1/batches/{batch_id}").json()
         return doc if isinstance(doc, dict) else {}

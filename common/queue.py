@@ -19,21 +19,22 @@ from __future__ import annotations
 
 import base64
 import builtins
+import dataclasses
 import hashlib
 import json
 import re
 import secrets
 import uuid
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Sequence
 from datetime import datetime, timedelta
 from typing import Any, cast
 
 import sqlalchemy as sa
 from sqlalchemy.engine import Connection, Engine, Row
 
-from common.database import IMMEDIATE
-from common.db_models import Job, JobArtifact, JobEvent, JobInput, JobResult, utcnow
+from common.batch_metrics import aggregate
+from common.database import Transactions
+from common.db_models import Batch, Job, JobArtifact, JobEvent, JobInput, JobResult, utcnow
 from common.errors import (
     ConflictError,
     FieldProblem,
@@ -45,7 +46,7 @@ from common.errors import (
 )
 from common.job_options import JobOptions
 from common.job_state import ACTIVE, JobState
-from common.queue_types import Artifact, ClaimedJob, JobEventRecord, JobRecord, QueueStats
+from common.queue_types import Artifact, BatchRecord, ClaimedJob, JobEventRecord, JobRecord, QueueStats
 from common.safe_text import shown
 from common.settings import Settings, get_settings
 
@@ -55,8 +56,15 @@ inputs = cast(sa.Table, JobInput.__table__)
 results = cast(sa.Table, JobResult.__table__)
 events = cast(sa.Table, JobEvent.__table__)
 artifacts = cast(sa.Table, JobArtifact.__table__)
+batches = cast(sa.Table, Batch.__table__)
 
 MAX_PAGE_SIZE = 500
+#: Events one stream read returns at most (the stream asks again at once while a read comes back full).
+EVENTS_PER_READ = 200
+#: How old an event must be before a stream over several jobs (or the webhook fan-out) passes it on
+#: PostgreSQL: by then every transaction that took a smaller id has committed.
+EVENT_LAG = timedelta(seconds=2)
+_VERSION_SQL = sa.text("SELECT owner_key_id, updated_at FROM jobs WHERE id = :job_id")
 
 
 def payload_hash(payload: bytes, options: JobOptions) -> str:
@@ -66,34 +74,19 @@ def payload_hash(payload: bytes, options: JobOptions) -> str:
 
 
 class JobQueue:
-    """Submit, claim, heartbeat, complete, fail, cancel, retry, requeue, delete; owner-scoped reads and counts.
+    """Submit, claim, heartbeat, complete, fail, cancel, retry, requeue, delete; owner-scoped reads and counts;
+    batches and the event reads behind the event streams.
 
     Sections: construction and transactions, submission, owner-scoped reads, counts, the worker side,
-    owner-scoped actions, row helpers. API keys live in ``common.api_key_store.ApiKeyStore``.
+    owner-scoped actions, batches, event reads, row helpers. API keys live in
+    ``common.api_key_store.ApiKeyStore``, webhooks (an outbox fed from ``job_events``) in
+    ``common.webhook_store.WebhookStore``.
     """
 
     def __init__(self, engine: Engine, settings: Settings | None = None) -> None:
         self.engine = engine
         self.settings = settings if settings is not None else get_settings()
-        self._postgres = engine.dialect.name == "postgresql"
-
-    # ------------------------------------------------------------------ transactions
-    @contextmanager
-    def _write(self) -> Iterator[Connection]:
-        """A write transaction (BEGIN IMMEDIATE on SQLite, see ``common.database``)."""
-        with self.engine.connect() as conn:
-            conn.execution_options(**{IMMEDIATE: True})
-            with conn.begin():
-                yield conn
-
-    @contextmanager
-    def _read(self) -> Iterator[Connection]:
-        with self.engine.connect() as conn, conn.begin():
-            yield conn
-
-    def _locked(self, query: sa.Select[Any], skip_locked: bool = False) -> sa.Select[Any]:
-        # SQLite has no row locks; its BEGIN IMMEDIATE already holds the whole database.
-        return query.with_for_update(skip_locked=skip_locked) if self._postgres else query
+        self.tx = Transactions(engine)
 
     @staticmethod
     def _event(conn: Connection, job_id: str, kind: str, now: datetime, **detail: Any) -> None:
@@ -108,19 +101,24 @@ class JobQueue:
         idempotency_key: str | None,
         name: str,
         num_frames: int,
+        batch_id: str | None = None,
     ) -> tuple[JobRecord, bool]:
-        """Queue a job; returns (job, created). Same Idempotency-Key + same payload -> the first job."""
+        """Queue a job, into ``batch_id`` when given (a batch of the same key); returns (job, created).
+        Same Idempotency-Key + same payload -> the first job (adopted into ``batch_id`` if it had no batch)."""
         digest = payload_hash(payload, options)
         try:
-            with self._write() as conn:
-                if self._postgres:
+            with self.tx.write() as conn:
+                if self.tx.postgres:
                     # Serialise one owner's submissions: the idempotency lookup and the active-jobs limit
                     # below then see every committed sibling (SQLite's BEGIN IMMEDIATE already does this).
                     conn.execute(sa.select(sa.func.pg_advisory_xact_lock(sa.func.hashtext(owner_key_id))))
+                if batch_id is not None:
+                    self._owned_batch(conn, owner_key_id, batch_id)
                 if idempotency_key is not None:
                     existing = self._by_idempotency_key(conn, owner_key_id, idempotency_key)
                     if existing is not None:
-                        return self._idempotent_match(existing, digest), False
+                        match = self._idempotent_match(existing, digest)
+                        return self._into_batch(conn, match, batch_id), False
                 active = self._count_active(conn, owner_key_id)
                 if active >= self.settings.max_active_jobs_per_key:
                     raise LimitExceededError(
@@ -132,7 +130,8 @@ class JobQueue:
                 job_id = uuid.uuid4().hex
                 conn.execute(
                     sa.insert(jobs).values(
-                        id=job_id, owner_key_id=owner_key_id, name=name[:200], state=JobState.QUEUED,
+                        id=job_id, owner_key_id=owner_key_id, batch_id=batch_id, name=name[:200],
+                        state=JobState.QUEUED,
                         priority=options.priority, attempt=1, idempotency_key=idempotency_key,
                         payload_hash=digest, options=options.model_dump(mode="json"), num_frames=num_frames,
                         cancel_requested=False, errors=[], created_at=now, queued_at=now, updated_at=now,
@@ -146,11 +145,25 @@ class JobQueue:
             # A concurrent submission with the same key won the unique constraint; answer with its job.
             if idempotency_key is None:
                 raise
-            with self._read() as conn:
+            with self.tx.read() as conn:
                 existing = self._by_idempotency_key(conn, owner_key_id, idempotency_key)
             if existing is None:
                 raise
+            if existing.batch_id != batch_id:
+                raise
             return self._idempotent_match(existing, digest), False
+
+    def _into_batch(self, conn: Connection, job: JobRecord, batch_id: str | None) -> JobRecord:
+        """A job found by its Idempotency-Key, re-sent with ``batch_id``: adopt it when it has no batch yet
+        (a manifest written before batches existed), refuse when it belongs to another batch."""
+        if batch_id is None or job.batch_id == batch_id:
+            return job
+        if job.batch_id is not None:
+            raise ConflictError(f"Idempotency-Key names job {job.id}, which is in batch {job.batch_id}, not {batch_id}")
+        now = utcnow()
+        conn.execute(sa.update(jobs).where(jobs.c.id == job.id).values(batch_id=batch_id, updated_at=now))
+        self._event(conn, job.id, "batched", now, batch_id=batch_id)
+        return self._get(conn, job.id, None)
 
     def _by_idempotency_key(self, conn: Connection, owner_key_id: str, key: str) -> JobRecord | None:
         row = conn.execute(
@@ -169,11 +182,30 @@ class JobQueue:
     # ------------------------------------------------------------------ owner-scoped reads
     def get(self, owner_key_id: str | None, job_id: str) -> JobRecord:
         """The job with its summary; ``NotFoundError`` when missing or owned by another key (None = any)."""
-        with self._read() as conn:
+        with self.tx.read() as conn:
             return self._get(conn, job_id, owner_key_id)
 
+    def version(self, owner_key_id: str | None, job_id: str) -> str:
+        """An opaque version of the job: its ``updated_at`` as the driver returns it. Every write to a job sets
+        ``updated_at``, so this versions the whole representation (the status poll's ETag and cache key).
+        ``NotFoundError`` as ``get``.
+
+        The status poll's hot path: one indexed single-row SELECT in autocommit (no BEGIN / ROLLBACK round
+        trips), as plain SQL (no type processing: the value is only compared, never interpreted)."""
+        _require_plain_id(job_id)
+        with self.engine.connect().execution_options(isolation_level="AUTOCOMMIT") as conn:
+            row = conn.execute(_VERSION_SQL, {"job_id": job_id}).first()
+        if row is None or (owner_key_id is not None and row[0] != owner_key_id):
+            raise NotFoundError(f"no job {job_id}")
+        return str(row[1])
+
     def list(
-        self, owner_key_id: str | None, state: str | None = None, page_size: int = 50, page_token: str | None = None
+        self,
+        owner_key_id: str | None,
+        state: str | None = None,
+        page_size: int = 50,
+        page_token: str | None = None,
+        batch_id: str | None = None,
     ) -> tuple[builtins.list[JobRecord], str | None]:
         """Newest first, keyset-paginated on (created_at, id); returns (jobs, next_page_token)."""
         page_size = max(1, min(page_size, MAX_PAGE_SIZE))
@@ -182,13 +214,15 @@ class JobQueue:
             query = query.where(jobs.c.owner_key_id == owner_key_id)
         if state is not None:
             query = query.where(jobs.c.state == state)
+        if batch_id is not None:
+            query = query.where(jobs.c.batch_id == batch_id)
         if page_token is not None:
             created, last_id = _decode_page_token(page_token)
             query = query.where(
                 sa.or_(jobs.c.created_at < created, sa.and_(jobs.c.created_at == created, jobs.c.id < last_id))
             )
         query = query.order_by(jobs.c.created_at.desc(), jobs.c.id.desc()).limit(page_size + 1)
-        with self._read() as conn:
+        with self.tx.read() as conn:
             page = [self._record(r) for r in conn.execute(query)]
         more = len(page) > page_size
         page = page[:page_size]
@@ -196,7 +230,7 @@ class JobQueue:
 
     def get_result(self, owner_key_id: str | None, job_id: str) -> tuple[bytes, dict[str, Any]]:
         """(result NPZ bytes, summary) of a SUCCEEDED job; ``ConflictError`` before that."""
-        with self._read() as conn:
+        with self.tx.read() as conn:
             job = self._get(conn, job_id, owner_key_id)
             row = conn.execute(sa.select(results.c.result, results.c.summary).where(results.c.job_id == job_id)).first()
         if job.state != JobState.SUCCEEDED or row is None:
@@ -205,7 +239,7 @@ class JobQueue:
 
     def list_artifacts(self, owner_key_id: str | None, job_id: str) -> builtins.list[Artifact]:
         """Names, types and sizes (no data) of a job's artifacts, by name; empty before it SUCCEEDED."""
-        with self._read() as conn:
+        with self.tx.read() as conn:
             self._get(conn, job_id, owner_key_id)
             rows = conn.execute(
                 sa.select(artifacts.c.name, artifacts.c.content_type, artifacts.c.size_bytes)
@@ -217,7 +251,7 @@ class JobQueue:
     def get_artifact(self, owner_key_id: str | None, job_id: str, name: str) -> Artifact:
         """One artifact with its data; ``ConflictError`` before the job SUCCEEDED, ``NotFoundError`` when the
         job has no such artifact (e.g. it ran with ``preview_video`` off)."""
-        with self._read() as conn:
+        with self.tx.read() as conn:
             job = self._get(conn, job_id, owner_key_id)
             row = conn.execute(
                 sa.select(artifacts.c.content_type, artifacts.c.data, artifacts.c.size_bytes).where(
@@ -232,7 +266,7 @@ class JobQueue:
 
     def get_payload(self, job_id: str) -> bytes:
         _require_plain_id(job_id)
-        with self._read() as conn:
+        with self.tx.read() as conn:
             blob = conn.execute(sa.select(inputs.c.payload).where(inputs.c.job_id == job_id)).scalar()
         if blob is None:
             raise NotFoundError(f"job {job_id} has no stored input")
@@ -240,16 +274,16 @@ class JobQueue:
 
     def events(self, owner_key_id: str | None, job_id: str) -> builtins.list[JobEventRecord]:
         _require_plain_id(job_id)
-        with self._read() as conn:
+        with self.tx.read() as conn:
             if owner_key_id is not None:
                 self._get(conn, job_id, owner_key_id)
             rows = conn.execute(sa.select(events).where(events.c.job_id == job_id).order_by(events.c.id)).all()
-        return [JobEventRecord(r.id, r.job_id, r.at, r.kind, dict(r.detail)) for r in rows]
+        return [_event_record(r) for r in rows]
 
     # ------------------------------------------------------------------ counts
     def count_active(self, owner_key_id: str) -> int:
         """Jobs of this key that are QUEUED or RUNNING (what ``max_active_jobs_per_key`` limits)."""
-        with self._read() as conn:
+        with self.tx.read() as conn:
             return self._count_active(conn, owner_key_id)
 
     @staticmethod
@@ -260,7 +294,7 @@ class JobQueue:
 
     def stats(self, recent: int = 1000) -> QueueStats:
         """Jobs per state, claims so far, and queue-wait / run seconds of the ``recent`` latest started jobs."""
-        with self._read() as conn:
+        with self.tx.read() as conn:
             per_state = conn.execute(sa.select(jobs.c.state, sa.func.count()).group_by(jobs.c.state)).all()
             claims = conn.execute(sa.select(sa.func.count()).where(events.c.kind == "claimed")).scalar_one()
             rows = conn.execute(
@@ -281,14 +315,14 @@ class JobQueue:
         now = now or utcnow()
         lease = timedelta(seconds=lease_seconds if lease_seconds is not None else self.settings.lease_seconds)
         token = secrets.token_hex(16)
-        pick = self._locked(
+        pick = self.tx.locked(
             sa.select(jobs.c.id)
             .where(jobs.c.state == JobState.QUEUED, sa.or_(jobs.c.not_before.is_(None), jobs.c.not_before <= now))
             .order_by(jobs.c.priority.desc(), jobs.c.created_at, jobs.c.id)
             .limit(1),
             skip_locked=True,
         )
-        with self._write() as conn:
+        with self.tx.write() as conn:
             row = conn.execute(
                 sa.update(jobs)
                 .where(jobs.c.id == pick.scalar_subquery(), jobs.c.state == JobState.QUEUED)
@@ -317,20 +351,24 @@ class JobQueue:
         values: dict[str, Any] = {"lease_expires_at": now + lease, "updated_at": now}
         if progress is not None:
             values["progress"] = progress
-        with self._write() as conn:
-            flag = conn.execute(
-                sa.update(jobs)
-                .where(jobs.c.id == job_id, jobs.c.lease_token == lease_token, jobs.c.state == JobState.RUNNING)
-                .values(**values)
-                .returning(jobs.c.cancel_requested)
-            ).scalar()
+        held = (jobs.c.id == job_id, jobs.c.lease_token == lease_token, jobs.c.state == JobState.RUNNING)
+        with self.tx.write() as conn:
+            before = None
+            if progress is not None:
+                before = conn.execute(self.tx.locked(sa.select(jobs.c.progress).where(*held))).first()
+            update = sa.update(jobs).where(*held).values(**values)
+            flag = conn.execute(update.returning(jobs.c.cancel_requested)).scalar()
+            if flag is not None and before is not None and before.progress != progress:
+                # Progress that moved is an event too (the event streams send it with an id, so a client
+                # resumes after it); an unchanged renewal writes none, which bounds the log's growth.
+                self._event(conn, job_id, "progress", now, progress=progress)
         if flag is None:
             raise LeaseLostError(f"job {job_id}: lease token no longer holds the job")
         return bool(flag)
 
     def _lease_row(self, conn: Connection, job_id: str, lease_token: str) -> Row[Any]:
         row = conn.execute(
-            self._locked(
+            self.tx.locked(
                 sa.select(jobs.c.attempt, jobs.c.errors, jobs.c.cancel_requested, jobs.c.worker_id).where(
                     jobs.c.id == job_id, jobs.c.lease_token == lease_token, jobs.c.state == JobState.RUNNING
                 )
@@ -355,7 +393,7 @@ class JobQueue:
         """Store the result (and its artifacts: preview video, plots, ...) and mark SUCCEEDED, all in one
         token-checked transaction."""
         now = utcnow()
-        with self._write() as conn:
+        with self.tx.write() as conn:
             self._lease_row(conn, job_id, lease_token)
             conn.execute(sa.delete(results).where(results.c.job_id == job_id))
             conn.execute(
@@ -384,7 +422,7 @@ class JobQueue:
     def fail(self, job_id: str, lease_token: str, error: str, retryable: bool = False) -> None:
         """Record an error; retryable errors requeue with backoff until ``max_attempts``, then FAILED."""
         now = utcnow()
-        with self._write() as conn:
+        with self.tx.write() as conn:
             row = self._lease_row(conn, job_id, lease_token)
             self._after_attempt(conn, job_id, lease_token, row, error, retryable, now)
 
@@ -410,7 +448,7 @@ class JobQueue:
     def acknowledge_cancel(self, job_id: str, lease_token: str) -> None:
         """The worker saw the cancel flag and stopped: RUNNING -> CANCELLED."""
         now = utcnow()
-        with self._write() as conn:
+        with self.tx.write() as conn:
             row = self._lease_row(conn, job_id, lease_token)
             if not row.cancel_requested:
                 raise ConflictError(f"job {job_id}: cancellation was not requested")
@@ -420,7 +458,7 @@ class JobQueue:
     def release(self, job_id: str, lease_token: str) -> None:
         """Graceful shutdown: give the job back (QUEUED, same attempt), or CANCELLED if that was asked."""
         now = utcnow()
-        with self._write() as conn:
+        with self.tx.write() as conn:
             row = self._lease_row(conn, job_id, lease_token)
             if row.cancel_requested:
                 self._settle(conn, job_id, lease_token, now=now, state=JobState.CANCELLED, finished_at=now)
@@ -432,50 +470,43 @@ class JobQueue:
     def requeue_expired(self, now: datetime | None = None) -> int:
         """Requeue RUNNING jobs whose lease ran out (attempt + 1, backoff); FAILED after max attempts."""
         now = now or utcnow()
-        with self._write() as conn:
-            rows = conn.execute(
-                self._locked(
-                    sa.select(
-                        jobs.c.id, jobs.c.lease_token, jobs.c.attempt, jobs.c.errors, jobs.c.cancel_requested,
-                        jobs.c.worker_id,
-                    ).where(jobs.c.state == JobState.RUNNING, jobs.c.lease_expires_at < now),
-                    skip_locked=True,
-                )
-            ).all()  # fmt: skip
-            for row in rows:
-                msg = f"lease expired (worker {row.worker_id} stopped heartbeating)"
-                self._after_attempt(conn, row.id, row.lease_token, row, msg, True, now)
-        return len(rows)
+        return self._requeue_running(
+            jobs.c.lease_expires_at < now,
+            lambda row: f"lease expired (worker {row.worker_id} stopped heartbeating)",
+            now,
+        )
 
     def requeue_worker_jobs(self, worker_id_prefix: str, reason: str, now: datetime | None = None) -> int:
         """Requeue (attempt + 1, as for an expired lease) the RUNNING jobs of workers whose id starts with
         ``worker_id_prefix``: a deployment found dead (``hoi-refine up`` after a SIGKILL) need not wait for
         their leases to run out."""
-        now = now or utcnow()
-        with self._write() as conn:
+        return self._requeue_running(
+            jobs.c.worker_id.startswith(worker_id_prefix, autoescape=True), lambda _row: reason, now or utcnow()
+        )
+
+    def _requeue_running(self, which: Any, reason: Callable[[Row[Any]], str], now: datetime) -> int:
+        """The RUNNING jobs ``which`` selects end their attempt as lost (``_after_attempt``, retryable)."""
+        with self.tx.write() as conn:
             rows = conn.execute(
-                self._locked(
+                self.tx.locked(
                     sa.select(
                         jobs.c.id, jobs.c.lease_token, jobs.c.attempt, jobs.c.errors, jobs.c.cancel_requested,
                         jobs.c.worker_id,
-                    ).where(
-                        jobs.c.state == JobState.RUNNING,
-                        jobs.c.worker_id.startswith(worker_id_prefix, autoescape=True),
-                    ),
+                    ).where(jobs.c.state == JobState.RUNNING, which),
                     skip_locked=True,
                 )
             ).all()  # fmt: skip
             for row in rows:
-                self._after_attempt(conn, row.id, row.lease_token, row, reason, True, now)
+                self._after_attempt(conn, row.id, row.lease_token, row, reason(row), True, now)
         return len(rows)
 
     def cancel_jobs_of_key(self, key_id: str) -> tuple[int, int]:
         """Cancel every QUEUED job of an API key and flag its RUNNING ones (``keys revoke --cancel-jobs``):
         a revoked key can no longer see or cancel them itself. Returns (cancelled, flagged)."""
         now = utcnow()
-        with self._write() as conn:
+        with self.tx.write() as conn:
             rows = conn.execute(
-                self._locked(
+                self.tx.locked(
                     sa.select(jobs.c.id, jobs.c.state).where(
                         jobs.c.owner_key_id == key_id, jobs.c.state.in_(ACTIVE)
                     )
@@ -503,7 +534,7 @@ class JobQueue:
     def cancel(self, owner_key_id: str | None, job_id: str) -> JobRecord:
         """QUEUED -> CANCELLED now; RUNNING -> cancel flag (the worker stops at its next heartbeat)."""
         now = utcnow()
-        with self._write() as conn:
+        with self.tx.write() as conn:
             state = self._owned_state(conn, owner_key_id, job_id)
             if state == JobState.QUEUED:
                 values = {"state": JobState.CANCELLED, "finished_at": now, "updated_at": now}
@@ -521,7 +552,7 @@ class JobQueue:
     def retry(self, owner_key_id: str | None, job_id: str) -> JobRecord:
         """FAILED -> QUEUED with a fresh attempt budget (the error history is kept)."""
         now = utcnow()
-        with self._write() as conn:
+        with self.tx.write() as conn:
             state = self._owned_state(conn, owner_key_id, job_id)
             if state != JobState.FAILED:
                 raise ConflictError(f"job {job_id} is {state}; only FAILED jobs can be retried")
@@ -539,7 +570,7 @@ class JobQueue:
     def delete(self, owner_key_id: str | None, job_id: str) -> None:
         """Delete a finished job with its input and result (its events stay)."""
         now = utcnow()
-        with self._write() as conn:
+        with self.tx.write() as conn:
             state = self._owned_state(conn, owner_key_id, job_id)
             if state in ACTIVE:
                 raise ConflictError(f"job {job_id} is {state}; cancel it first (only finished jobs can be deleted)")
@@ -548,6 +579,180 @@ class JobQueue:
             conn.execute(sa.delete(artifacts).where(artifacts.c.job_id == job_id))
             conn.execute(sa.delete(jobs).where(jobs.c.id == job_id))
             self._event(conn, job_id, "deleted", now, state=state)
+
+    # ------------------------------------------------------------------ batches
+    def create_batch(self, owner_key_id: str, name: str, meta: dict[str, Any] | None = None) -> BatchRecord:
+        batch_id, now = uuid.uuid4().hex, utcnow()
+        with self.tx.write() as conn:
+            conn.execute(
+                sa.insert(batches).values(
+                    id=batch_id, owner_key_id=owner_key_id, name=name[:200], meta=dict(meta or {}), created_at=now
+                )
+            )
+            return self._batch_record(conn, self._owned_batch(conn, owner_key_id, batch_id))
+
+    def get_batch(self, owner_key_id: str | None, batch_id: str) -> BatchRecord:
+        """The batch with counts per state and the aggregate metrics of its SUCCEEDED jobs."""
+        with self.tx.read() as conn:
+            row = self._owned_batch(conn, owner_key_id, batch_id)
+            summaries = conn.execute(
+                sa.select(results.c.summary)
+                .select_from(jobs.join(results, results.c.job_id == jobs.c.id))
+                .where(jobs.c.batch_id == batch_id, jobs.c.state == JobState.SUCCEEDED)
+            ).scalars()
+            metrics = aggregate(summaries)
+            record = self._batch_record(conn, row)
+        return dataclasses.replace(record, metrics=metrics)
+
+    def list_batches(
+        self, owner_key_id: str, page_size: int = 50, page_token: str | None = None
+    ) -> tuple[builtins.list[BatchRecord], str | None]:
+        """Newest first, keyset-paginated on (created_at, id) like ``list``; counts, no metrics."""
+        page_size = max(1, min(page_size, MAX_PAGE_SIZE))
+        query = sa.select(batches).where(batches.c.owner_key_id == owner_key_id)
+        if page_token is not None:
+            created, last_id = _decode_page_token(page_token)
+            query = query.where(
+                sa.or_(
+                    batches.c.created_at < created, sa.and_(batches.c.created_at == created, batches.c.id < last_id)
+                )
+            )
+        query = query.order_by(batches.c.created_at.desc(), batches.c.id.desc()).limit(page_size + 1)
+        with self.tx.read() as conn:
+            rows = conn.execute(query).all()
+            more = len(rows) > page_size
+            rows = rows[:page_size]
+            counts = self._counts(conn, [r.id for r in rows])
+        page = [_batch(r, counts.get(r.id, {})) for r in rows]
+        return page, (_encode_page_token(page[-1].created_at, page[-1].id) if more else None)
+
+    def batch_jobs(self, owner_key_id: str | None, batch_id: str) -> builtins.list[JobRecord]:
+        """Every job of the batch with its result summary, oldest first (the per-sequence report)."""
+        with self.tx.read() as conn:
+            self._owned_batch(conn, owner_key_id, batch_id)
+            rows = conn.execute(
+                self._job_select().where(jobs.c.batch_id == batch_id).order_by(jobs.c.created_at, jobs.c.id)
+            ).all()
+        return [self._record(r) for r in rows]
+
+    def cancel_batch(self, owner_key_id: str | None, batch_id: str) -> tuple[BatchRecord, int]:
+        """Cancel every QUEUED job now and flag every RUNNING one (as ``cancel`` does for one job);
+        returns (batch, jobs changed)."""
+        now = utcnow()
+        with self.tx.write() as conn:
+            row = self._owned_batch(conn, owner_key_id, batch_id)
+            active = conn.execute(
+                self.tx.locked(
+                    sa.select(jobs.c.id, jobs.c.state).where(
+                        jobs.c.batch_id == batch_id, jobs.c.state.in_(ACTIVE), jobs.c.cancel_requested.is_(False)
+                    )
+                )
+            ).all()
+            queued = [r.id for r in active if r.state == JobState.QUEUED]
+            running = [r.id for r in active if r.state == JobState.RUNNING]
+            if queued:
+                conn.execute(
+                    sa.update(jobs)
+                    .where(jobs.c.id.in_(queued), jobs.c.state == JobState.QUEUED)
+                    .values(state=JobState.CANCELLED, finished_at=now, updated_at=now)
+                )
+            if running:
+                conn.execute(
+                    sa.update(jobs).where(jobs.c.id.in_(running)).values(cancel_requested=True, updated_at=now)
+                )
+            self._events(conn, now, [(j, "cancelled") for j in queued] + [(j, "cancel_requested") for j in running])
+            return self._batch_record(conn, row), len(active)
+
+    def retry_failed_batch(self, owner_key_id: str | None, batch_id: str) -> tuple[BatchRecord, int]:
+        """Requeue every FAILED job of the batch with a fresh attempt budget (as ``retry``)."""
+        now = utcnow()
+        with self.tx.write() as conn:
+            row = self._owned_batch(conn, owner_key_id, batch_id)
+            failed = conn.execute(
+                self.tx.locked(sa.select(jobs.c.id).where(jobs.c.batch_id == batch_id, jobs.c.state == JobState.FAILED))
+            ).scalars().all()
+            if failed:
+                conn.execute(
+                    sa.update(jobs)
+                    .where(jobs.c.id.in_(failed), jobs.c.state == JobState.FAILED)
+                    .values(
+                        state=JobState.QUEUED, attempt=1, not_before=None, cancel_requested=False, progress=None,
+                        queued_at=now, started_at=None, finished_at=None, updated_at=now,
+                    )
+                )  # fmt: skip
+            self._events(conn, now, [(j, "retried") for j in failed])
+            return self._batch_record(conn, row), len(failed)
+
+    # ------------------------------------------------------------------ event streams
+    def job_events_after(
+        self, owner_key_id: str | None, job_id: str, after_id: int = 0, limit: int = EVENTS_PER_READ
+    ) -> tuple[JobRecord, builtins.list[JobEventRecord]]:
+        """The job (without summary) and its events with id > ``after_id``, oldest first. A job's events are
+        written under its row lock, so their ids grow in commit order and ``after_id`` misses none."""
+        with self.tx.read() as conn:
+            row = conn.execute(self._job_select(with_summary=False).where(jobs.c.id == job_id)).first()
+            if row is None or (owner_key_id is not None and row.owner_key_id != owner_key_id):
+                raise NotFoundError(f"no job {job_id}")
+            rows = conn.execute(
+                sa.select(events)
+                .where(events.c.job_id == job_id, events.c.id > after_id)
+                .order_by(events.c.id)
+                .limit(limit)
+            ).all()
+        return self._record(row), [_event_record(r) for r in rows]
+
+    def batch_events_after(
+        self, owner_key_id: str | None, batch_id: str, after_id: int = 0, limit: int = EVENTS_PER_READ
+    ) -> tuple[BatchRecord, builtins.list[JobEventRecord], bool]:
+        """The batch (counts), the events of its jobs with id > ``after_id`` (oldest first), and whether that is
+        all of them. Events of different jobs are not ordered by one lock: on PostgreSQL a transaction can
+        commit after a later id is visible, so only the prefix older than ``EVENT_LAG`` is returned there
+        (a client resuming after the last id then misses nothing); SQLite commits in id order."""
+        now = utcnow()
+        with self.tx.read() as conn:
+            record = self._batch_record(conn, self._owned_batch(conn, owner_key_id, batch_id))
+            rows = conn.execute(
+                sa.select(events)
+                .select_from(events.join(jobs, jobs.c.id == events.c.job_id))
+                .where(jobs.c.batch_id == batch_id, events.c.id > after_id)
+                .order_by(events.c.id)
+                .limit(limit)
+            ).all()
+        out = [_event_record(r) for r in rows]
+        if self.tx.postgres:
+            cutoff = now - EVENT_LAG
+            settled = next((i for i, e in enumerate(out) if e.at > cutoff), len(out))
+            return record, out[:settled], settled == len(out)
+        return record, out, True
+
+    # ------------------------------------------------------------------ helpers
+    def _owned_batch(self, conn: Connection, owner_key_id: str | None, batch_id: str) -> Row[Any]:
+        row = conn.execute(sa.select(batches).where(batches.c.id == batch_id)).first()
+        if row is None or (owner_key_id is not None and row.owner_key_id != owner_key_id):
+            raise NotFoundError(f"no batch {batch_id}")
+        return row
+
+    @staticmethod
+    def _counts(conn: Connection, batch_ids: builtins.list[str]) -> dict[str, dict[str, int]]:
+        if not batch_ids:
+            return {}
+        rows = conn.execute(
+            sa.select(jobs.c.batch_id, jobs.c.state, sa.func.count())
+            .where(jobs.c.batch_id.in_(batch_ids))
+            .group_by(jobs.c.batch_id, jobs.c.state)
+        ).all()
+        out: dict[str, dict[str, int]] = {}
+        for batch_id, state, n in rows:
+            out.setdefault(batch_id, {})[state] = int(n)
+        return out
+
+    def _batch_record(self, conn: Connection, row: Row[Any]) -> BatchRecord:
+        return _batch(row, self._counts(conn, [row.id]).get(row.id, {}))
+
+    @staticmethod
+    def _events(conn: Connection, now: datetime, items: builtins.list[tuple[str, str]]) -> None:
+        if items:
+            conn.execute(sa.insert(events), [{"job_id": j, "at": now, "kind": k, "detail": {}} for j, k in items])
 
     # ------------------------------------------------------------------ row helpers
     @staticmethod
@@ -567,7 +772,7 @@ class JobQueue:
     def _owned_state(self, conn: Connection, owner_key_id: str | None, job_id: str) -> JobState:
         _require_plain_id(job_id)
         query = sa.select(jobs.c.state, jobs.c.owner_key_id).where(jobs.c.id == job_id)
-        row = conn.execute(self._locked(query)).first()
+        row = conn.execute(self.tx.locked(query)).first()
         if row is None or (owner_key_id is not None and row.owner_key_id != owner_key_id):
             raise NotFoundError(f"no job {job_id}")
         return JobState(row.state)
@@ -582,6 +787,7 @@ class JobQueue:
             payload_hash=m["payload_hash"], worker_id=m["worker_id"], lease_expires_at=m["lease_expires_at"],
             not_before=m["not_before"], created_at=m["created_at"], queued_at=m["queued_at"],
             started_at=m["started_at"], finished_at=m["finished_at"], updated_at=m["updated_at"], summary=m["summary"],
+            batch_id=m["batch_id"],
         )  # fmt: skip
 
 
@@ -609,3 +815,12 @@ def _decode_page_token(token: str) -> tuple[datetime, str]:
         return when, job_id
     except (ValueError, UnicodeDecodeError) as exc:
         raise InvalidRequestError([FieldProblem("page_token", "is not a token this service issued")]) from exc
+
+
+def _batch(row: Row[Any], counts: dict[str, int]) -> BatchRecord:
+    full = {str(state): counts.get(state, 0) for state in JobState}
+    return BatchRecord(row.id, row.owner_key_id, row.name, dict(row.meta), row.created_at, full)
+
+
+def _event_record(row: Row[Any]) -> JobEventRecord:
+    return JobEventRecord(row.id, row.job_id, row.at, row.kind, dict(row.detail))

@@ -61,6 +61,28 @@ class Settings(BaseSettings):
     poll_retry_after_seconds: int = Field(default=2, gt=0)
     #: How long ``hoi-refine serve`` waits for the database at start-up.
     database_wait_seconds: float = Field(default=60.0, gt=0)
+    #: Seconds between the reads of a server-sent event stream (``/v1/jobs/{id}/events`` etc.).
+    events_poll_seconds: float = Field(default=1.0, gt=0)
+    #: Seconds between keep-alive comments on an idle event stream (proxies close silent connections).
+    events_heartbeat_seconds: float = Field(default=15.0, gt=0)
+    #: Longest life of one event stream; the client reconnects with Last-Event-ID and loses nothing.
+    events_max_seconds: float = Field(default=900.0, gt=0)
+
+    # --- webhooks (sent by a background task of the API process; never by a worker) ----------
+    #: Seconds between the dispatcher's looks for new events and due deliveries.
+    webhook_poll_seconds: float = Field(default=1.0, gt=0)
+    #: Timeout of one delivery (connect + answer).
+    webhook_timeout_seconds: float = Field(default=5.0, gt=0)
+    #: Attempts before a delivery is given up (FAILED in the delivery log).
+    webhook_max_attempts: int = Field(default=8, gt=0)
+    #: Base of the exponential backoff between attempts (doubling, capped at one hour).
+    webhook_backoff_seconds: float = Field(default=5.0, ge=0)
+    #: Run the dispatcher in this API process (off when a separate process sends the webhooks).
+    webhook_dispatcher: bool = True
+
+    # --- workers -------------------------------------------------------------------------------
+    #: Niceness added to worker processes (0-19): the physics yields the CPU to the API's status polls.
+    worker_nice: int = Field(default=10, ge=0, le=19)
 
     def parse_limits(self) -> ParseLimits:
         """What one uploaded sequence may hold (frames, mesh size, uncompressed bytes)."""

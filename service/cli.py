@@ -17,7 +17,7 @@ if TYPE_CHECKING:
     from common.api_key_store import ApiKeyStore
 
 
-def register(subparsers: Any) -> None:
+def register_serve(subparsers: Any) -> None:
     serve = subparsers.add_parser(
         "serve",
         help="run the REST API (waits for the database and upgrades it to the latest migration first)",
@@ -31,6 +31,8 @@ def register(subparsers: Any) -> None:
     serve.add_argument("--no-migrate", action="store_true", help="do not upgrade the database at start-up")
     serve.set_defaults(func=_cmd_serve)
 
+
+def register_keys(subparsers: Any) -> None:
     keys = subparsers.add_parser("keys", help="manage API keys", description="Create, list and revoke API keys.")
     keys_sub = keys.add_subparsers(dest="keys_command", required=True, metavar="ACTION")
     create = keys_sub.add_parser("create", help="create a key and print it (shown once; only a hash is stored)")

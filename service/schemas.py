@@ -83,6 +83,7 @@ class JobCreate(BaseModel):
     up: Vec3 | None = None
     meta: dict[str, str] = Field(default_factory=dict)
     options: JobOptions = Field(default_factory=JobOptions)
+    batch_id: str | None = Field(default=None, max_length=32, description="Submit into this batch (POST /v1/batches)")
 
 
 class ProgressPublic(BaseModel):
@@ -105,6 +106,7 @@ class JobError(BaseModel):
 
 class JobPublic(BaseModel):
     id: str
+    batch_id: str | None = None
     name: str
     state: JobState
     attempt: int
@@ -133,7 +135,7 @@ class JobPublic(BaseModel):
                 # ETag, then changes only when the job does.
                 progress.eta_s = _eta(progress, (job.updated_at - job.started_at).total_seconds())
         return cls(
-            id=job.id, name=job.name, state=job.state,
+            id=job.id, batch_id=job.batch_id, name=job.name, state=job.state,
             attempt=job.attempt, max_attempts=job.max_attempts, priority=job.priority, num_frames=job.num_frames,
             options=job.options, cancel_requested=job.cancel_requested, created_at=job.created_at,
             queued_at=job.queued_at, started_at=job.started_at, finished_at=job.finished_at,
@@ -157,8 +159,8 @@ class JobsPublic(BaseModel):
 class JobEventPublic(BaseModel):
     id: int
     at: datetime
-    kind: str = Field(description="submitted, claimed, requeued, released, cancel_requested, cancelled, "
-                      "succeeded, failed, retried, deleted")  # fmt: skip
+    kind: str = Field(description="submitted, claimed, progress, requeued, released, cancel_requested, cancelled, "
+                      "succeeded, failed, retried, batched, deleted")  # fmt: skip
     detail: dict[str, Any]
 
 

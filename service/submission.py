@@ -12,7 +12,7 @@ from typing import Any
 
 from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
-from starlette.datastructures import UploadFile
+from starlette.datastructures import FormData, UploadFile
 from starlette.requests import Request
 
 from common.errors import (
@@ -35,6 +35,7 @@ MULTIPART_SCHEMA: dict[str, Any] = {
     "properties": {
         "sequence": {"type": "string", "format": "binary", "description": "native or DexYCB development NPZ"},
         "options": {"type": "string", "description": "JobOptions as JSON"},
+        "batch_id": {"type": "string", "description": "submit into this batch (POST /v1/batches)"},
     },
     "required": ["sequence"],
 }
@@ -46,6 +47,8 @@ class Submission:
     options: JobOptions
     #: The sequence as native NPZ bytes: what the queue stores and the worker reads.
     payload: bytes
+    #: The batch to submit into, or None.
+    batch_id: str | None = None
 
 
 def _invalid(problems: list[FieldProblem]) -> InvalidRequestError:
@@ -66,9 +69,9 @@ async def read_submission(request: Request, settings: Settings) -> Submission:
     content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if content_type == "application/json":
         body = await _read_json_body(request, settings.max_json_request_bytes)
-        seq, options = await run_in_threadpool(_from_json, body, settings)
+        seq, options, batch_id = await run_in_threadpool(_from_json, body, settings)
     elif content_type == "multipart/form-data":
-        blob, options = await _read_multipart(request, settings)
+        blob, options, batch_id = await _read_multipart(request, settings)
         seq = await run_in_threadpool(_from_npz, blob, settings)
     else:
         raise UnsupportedFormatError(
@@ -76,7 +79,7 @@ async def read_submission(request: Request, settings: Settings) -> Submission:
             "multipart/form-data"
         )
     payload = await run_in_threadpool(sequence_to_npz_bytes, seq)
-    return Submission(seq, options, payload)
+    return Submission(seq, options, payload, batch_id)
 
 
 async def _read_json_body(request: Request, limit: int) -> bytes:
@@ -93,32 +96,39 @@ async def _read_json_body(request: Request, limit: int) -> bytes:
     return b"".join(chunks)
 
 
-def _from_json(body: bytes, settings: Settings) -> tuple[Sequence, JobOptions]:
+def _from_json(body: bytes, settings: Settings) -> tuple[Sequence, JobOptions, str | None]:
     try:
         # pydantic parses the bytes straight into the model (no intermediate Python objects); NaN and
         # Infinity are refused by the models' allow_inf_nan=False, too-deep nesting by its recursion limit.
         parsed = JobCreate.model_validate_json(body)
     except ValidationError as exc:
         raise _invalid(validation_problems(exc.errors())) from exc
-    seq_doc = parsed.model_dump(exclude={"options"}, exclude_none=True)
-    return sequence_from_json_dict(seq_doc, max_frames=settings.max_frames), parsed.options
+    seq_doc = parsed.model_dump(exclude={"options", "batch_id"}, exclude_none=True)
+    return sequence_from_json_dict(seq_doc, max_frames=settings.max_frames), parsed.options, parsed.batch_id
 
 
-async def _read_multipart(request: Request, settings: Settings) -> tuple[bytes, JobOptions]:
-    # ``async with`` closes the parts' spooled temporary files whatever happens next (a 4xx included).
+async def _read_multipart(request: Request, settings: Settings) -> tuple[bytes, JobOptions, str | None]:
+    # The context closes the spooled temporary files of the parts (else each request leaks one until GC).
     async with request.form(max_files=1, max_fields=10, max_part_size=1024 * 1024) as form:
-        seq_part = form.get("sequence")
-        if seq_part is None:
-            raise _invalid([FieldProblem("sequence", "is required (a file part holding the sequence NPZ)")])
-        blob = await seq_part.read() if isinstance(seq_part, UploadFile) else seq_part.encode()
-        raw_options = form.get("options")
-        if isinstance(raw_options, UploadFile):
-            raw_options = (await raw_options.read(1024 * 1024 + 1)).decode(errors="replace")
+        return await _read_form(form)
+
+
+async def _read_form(form: FormData) -> tuple[bytes, JobOptions, str | None]:
+    seq_part = form.get("sequence")
+    if seq_part is None:
+        raise _invalid([FieldProblem("sequence", "is required (a file part holding the sequence NPZ)")])
+    blob = await seq_part.read() if isinstance(seq_part, UploadFile) else seq_part.encode()
+    raw_options = form.get("options")
+    if isinstance(raw_options, UploadFile):
+        raw_options = (await raw_options.read(1024 * 1024 + 1)).decode(errors="replace")
     try:
         options = JobOptions.model_validate_json(raw_options) if raw_options else JobOptions()
     except ValidationError as exc:
         raise _invalid(_prefixed(exc, "options")) from exc
-    return blob, options
+    batch_id = form.get("batch_id")
+    if batch_id is not None and (not isinstance(batch_id, str) or not 0 < len(batch_id) <= 32):
+        raise _invalid([FieldProblem("batch_id", "must be a batch id (text, at most 32 characters)")])
+    return blob, options, batch_id
 
 
 def _from_npz(blob: bytes, settings: Settings) -> Sequence:

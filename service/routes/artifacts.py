@@ -12,6 +12,7 @@ from typing import Any
 
 from fastapi import APIRouter, Depends, Path, Response
 
+from common.job_state import JobState
 from service.deps import KeyDep, QueueDep, reject_unknown_query_parameters
 from service.routes.jobs import COMMON_ERRORS, PROBLEM
 from service.schemas import PlotPublic, PlotsPublic
@@ -56,7 +57,7 @@ def get_export(job_id: str, queue: QueueDep, key_id: KeyDep) -> Response:
 @router.get("/{job_id}/plots", response_model=PlotsPublic, summary="The job's plots (PNG), by name")
 def list_plots(job_id: str, queue: QueueDep, key_id: KeyDep) -> PlotsPublic:
     job = queue.get(key_id, job_id)
-    if job.state != "SUCCEEDED":
+    if job.state != JobState.SUCCEEDED:
         queue.get_artifact(key_id, job_id, VIDEO)  # raises the queue's 409 with its message
     plots = [
         PlotPublic(name=a.name[len(PLOTS_PREFIX):], url=f"/v1/jobs/{job_id}/plots/{a.name[len(PLOTS_PREFIX):]}",

@@ -152,3 +152,19 @@ def print_summary(console: Console, entries: list[Entry], retried: int = 0, retr
             "--retry-failed to retry them",
             highlight=False,
         )
+
+
+def job_error(doc: dict[str, Any]) -> str:
+    """The last error of a FAILED/CANCELLED job (``errors`` holds one entry per attempt)."""
+    errors = doc.get("errors")
+    if isinstance(errors, list) and errors:
+        last = errors[-1]
+        return str(last.get("error") if isinstance(last, dict) else last)
+    return str(doc.get("error") or doc.get("detail") or f"job {str(doc.get('state', 'failed')).lower()}")
+
+
+def job_metrics(doc: dict[str, Any]) -> dict[str, Any] | None:
+    for holder in (doc.get("summary"), doc):
+        if isinstance(holder, dict) and isinstance(holder.get("metrics"), dict):
+            return dict(holder["metrics"])
+    return None

@@ -28,6 +28,7 @@ from common.errors import ApiError, HoiRefineError
 from common.job_options import JobOptions
 from common.job_state import FINISHED, JobState
 from common.result_format import content_digest, read_summary
+from service.submit.batch import ensure_batch, print_batch
 from service.submit.discovery import Source, SourceFormat, discover, load_source
 from service.submit.manifest import (
     FAILED_STATES,
@@ -40,7 +41,15 @@ from service.submit.manifest import (
     write_atomic,
 )
 from service.submit.payload import idempotency_key, sequence_payload
-from service.submit.report import counts, describe, make_progress, print_summary, summary_document
+from service.submit.report import (
+    counts,
+    describe,
+    job_error,
+    job_metrics,
+    make_progress,
+    print_summary,
+    summary_document,
+)
 
 RESULTS_DIR = "results"
 #: Machine-readable form of the closing summary, rewritten at the end of every run.
@@ -94,6 +103,8 @@ def _fingerprint(src: Source, options: JobOptions) -> str:
 class _Run:
     def __init__(self, cfg: SubmitConfig, client: ApiClient, manifest: Manifest, stop: threading.Event) -> None:
         self.cfg, self.client, self.manifest, self.stop = cfg, client, manifest, stop
+        #: The run's batch on the server (``service.submit.batch``); None for a server without batches.
+        self.batch_id: str | None = None
         self.results_dir = cfg.out_dir / RESULTS_DIR
         #: Why the run stopped early, when the service kept failing after all retries.
         self.unreachable: str | None = None
@@ -123,7 +134,7 @@ class _Run:
         if self.stop.is_set():
             return "stopped"
         try:
-            doc = self.client.submit(payload, f"{src.label}.npz", self.cfg.options, key)
+            doc = self.client.submit(payload, f"{src.label}.npz", self.cfg.options, key, self.batch_id)
         except ApiError as exc:
             if exc.status is not None and 400 <= exc.status < 500:
                 self.manifest.update(entry, state=REJECTED, error=str(exc), posts=entry.posts + 1)
@@ -157,8 +168,8 @@ class _Run:
             self.manifest.reset(entry, entry.key)
             return "lost", None
         state = str(doc.get("state", entry.state))
-        error = _job_error(doc) if state in UNSUCCESSFUL else None
-        metrics = _job_metrics(doc) or entry.metrics
+        error = job_error(doc) if state in UNSUCCESSFUL else None
+        metrics = job_metrics(doc) or entry.metrics
         self.manifest.update(entry, state=state, attempt=doc.get("attempt", entry.attempt), error=error,
                              metrics=metrics)
         if state == JobState.SUCCEEDED and download:
@@ -220,22 +231,6 @@ class _Run:
         )
 
 
-def _job_error(doc: dict[str, Any]) -> str:
-    """The last error of a FAILED/CANCELLED job (``errors`` holds one entry per attempt)."""
-    errors = doc.get("errors")
-    if isinstance(errors, list) and errors:
-        last = errors[-1]
-        return str(last.get("error") if isinstance(last, dict) else last)
-    return str(doc.get("error") or doc.get("detail") or f"job {str(doc.get('state', 'failed')).lower()}")
-
-
-def _job_metrics(doc: dict[str, Any]) -> dict[str, Any] | None:
-    for holder in (doc.get("summary"), doc):
-        if isinstance(holder, dict) and isinstance(holder.get("metrics"), dict):
-            return dict(holder["metrics"])
-    return None
-
-
 def run_submit(
     cfg: SubmitConfig,
     *,
@@ -268,6 +263,10 @@ def run_submit(
     )
     client.stop = stop
     run = _Run(cfg, client, manifest, stop)
+    try:
+        run.batch_id = ensure_batch(client, manifest, cfg.api_url, cfg.out_dir.resolve().name, console)
+    except ApiError as exc:  # the service is down: nothing can be submitted now
+        run.give_up(str(exc))
 
     fp_cache = {e.source: _fingerprint(s, cfg.options) for e, s in entries}
     to_submit = [
@@ -369,12 +368,16 @@ def run_submit(
         stop.set()  # ends every retry wait; requests in flight complete and are recorded
         submit_pool.shutdown(wait=True, cancel_futures=True)
         poll_pool.shutdown(wait=True, cancel_futures=True)
-        if own_client:
-            client.close()
         manifest.save()
 
     print_summary(console, visible, retried=len(retried), retry_hint=not cfg.retry_failed)
-    write_atomic(cfg.out_dir / SUMMARY_NAME, json.dumps(summary_document(visible, len(retried)), indent=1).encode())
+    document = summary_document(visible, len(retried))
+    if run.batch_id is not None and run.unreachable is None:
+        client.stop = threading.Event()  # the run's stop is set by now; this one last read may go out
+        document["batch"] = print_batch(console, client, cfg.api_url, run.batch_id)
+    if own_client:
+        client.close()
+    write_atomic(cfg.out_dir / SUMMARY_NAME, json.dumps(document, indent=1).encode())
     if run.unreachable is not None:
         console.print(
             f"[red]Stopped: the service keeps failing[/red] ({run.unreachable}). The manifest ({manifest.path}) is up "

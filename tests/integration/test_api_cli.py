@@ -22,7 +22,9 @@ from service import cli
 
 def run_cli(*argv: str) -> int:
     parser = argparse.ArgumentParser()
-    cli.register(parser.add_subparsers(required=True))
+    commands = parser.add_subparsers(required=True)
+    cli.register_serve(commands)
+    cli.register_keys(commands)
     args = parser.parse_args(argv)
     return int(args.func(args))
 

@@ -32,12 +32,16 @@ def test_submit_claim_heartbeat_complete_round_trip(queue: JobQueue, owner: str)
     progress = {"window": 2, "windows": 7, "best_loss": 0.5, "evaluations": 40, "eta_s": 12.0}
     assert queue.heartbeat(job_id, claimed.lease_token, progress) is False
     assert queue.get(owner, job_id).progress == progress
+    # A renewal with the same progress logs no second "progress" event.
+    assert queue.heartbeat(job_id, claimed.lease_token, progress) is False
     blob, summary = fake_result()
     queue.complete(job_id, claimed.lease_token, blob, summary)
     job = queue.get(owner, job_id)
     assert job.state == "SUCCEEDED" and job.summary == summary and job.finished_at is not None
     assert queue.get_result(owner, job_id) == (blob, summary)
-    assert [e.kind for e in queue.events(owner, job_id)] == ["submitted", "claimed", "succeeded"]
+    kinds = [e.kind for e in queue.events(owner, job_id)]
+    assert kinds == ["submitted", "claimed", "progress", "succeeded"]
+    assert queue.events(owner, job_id)[2].detail == {"progress": progress}
     assert queue.claim("w2") is None
     # The finished lease is spent: nothing more can be written with it.
     with pytest.raises(LeaseLostError):

@@ -103,7 +103,7 @@ class Deployment:
 
     def jobs(self) -> list[Any]:
         with self.worker_engine.connect() as conn:
-            return list(conn.execute(sa.text("SELECT id, name, state, idempotency_key FROM jobs")).all())
+            return list(conn.execute(sa.text("SELECT id, name, state, idempotency_key, batch_id FROM jobs")).all())
 
 
 @pytest.fixture
@@ -188,6 +188,14 @@ def test_interrupt_and_resume_submits_each_sequence_once(
     doc = json.loads((out / "summary.json").read_text())
     assert doc["states"] == {"INVALID": 1, "SUCCEEDED": SEQUENCES}
     assert doc["mean_metrics"]["raw"]["E_t"] == pytest.approx(means)
+
+    # Both runs submitted into one server-side batch (its id kept in the manifest), printed at the end.
+    batch_id = Manifest.load_or_create(out).meta["batch_id"]
+    assert {j.batch_id for j in jobs} == {batch_id}
+    assert f"batch: {deployment.url}/v1/batches/{batch_id}" in text.replace("\n", "")
+    assert doc["batch"]["id"] == batch_id and doc["batch"]["counts"]["SUCCEEDED"] == SEQUENCES
+    assert doc["batch"]["metrics"]["all_frames"]["raw"]["E_t"] == pytest.approx(means)
+    assert "Batch metrics (all_frames)" in text
 
     # The per-key limit of 2 active jobs made the server answer 429 + Retry-After; the tool waited it out.
     assert deployment.throttled > 0

@@ -12,7 +12,8 @@ from tests.support.queue_fixtures import BACKENDS
 
 pytestmark = pytest.mark.parametrize("empty_db_url", BACKENDS, indirect=True)
 
-TABLES = {"alembic_version", "api_keys", "jobs", "job_inputs", "job_results", "job_artifacts", "job_events"}
+TABLES = {"alembic_version", "api_keys", "jobs", "job_inputs", "job_results", "job_artifacts", "job_events", "batches",
+          "webhooks", "webhook_deliveries", "event_cursors"}
 
 
 def test_upgrade_head_on_empty_database_then_check_reports_no_drift(empty_db_url: str) -> None:

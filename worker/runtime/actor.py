@@ -19,6 +19,8 @@ import sys
 import threading
 from typing import Any
 
+from worker.runtime.priority import lower_priority
+
 log = logging.getLogger(__name__)
 
 
@@ -51,6 +53,8 @@ class WorkerActor:
 
         get_settings.cache_clear()
         settings = get_settings()
+        self.nice = settings.worker_nice
+        lower_priority(self.nice)  # below the API on a shared machine (worker.runtime.priority)
         self.worker_id = worker_id
         self._run_lock = threading.Lock()
         self.engine = create_engine_for(settings.resolved_database_url())
@@ -70,6 +74,8 @@ class WorkerActor:
         # One loop per actor, even if Ray delivers a run call that the driver saw fail during a restart
         # (ActorUnavailableError means "may or may not have run"): a second call waits for the first.
         with self._run_lock:
+            # Ray may run this call on a thread that existed before __init__ lowered the others.
+            lower_priority(self.nice)
             return self.loop.run()
 
     def stop(self) -> None:
