@@ -100,7 +100,8 @@ def aggregate(rows: list[dict[str, Any]], which: str, protocol: str = "all") -> 
     first = [m.get("success_first_attempt") for m in ms]
     pen_max = [float(m["penetration_max_mm"]) for m in ms if m.get("penetration_max_mm") is not None]
     return {
-        "SR": 100.0 * sum(bool(m.get("success")) for m in ms) / len(ms),
+        "SR": 100.0 * sum(bool(m.get("success")) for m in ms) / len(ms) if all("success" in m for m in ms)
+        else float("nan"),
         "SR_first": 100.0 * sum(bool(f) for f in first) / len(ms) if all(f is not None for f in first)
         else float("nan"),
         **{k: mean(k) for k in ("E_t", "E_r", "E_j", "E_ft")},
@@ -155,6 +156,7 @@ def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) 
         f"({platform.processor() or platform.machine()}), MuJoCo {rows[0]['versions']['mujoco']}.",
         "",
         *metrics_table(rows),
+        *by_side(rows),
         "",
         "| targets / paper | SR % | E_t cm | E_r deg | E_j cm | E_ft cm |",
         "|---|---|---|---|---|---|",
@@ -201,6 +203,17 @@ def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) 
             f"{r.get('table', {}).get('tilt_deg', float('nan')):.1f} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def by_side(rows: list[dict[str, Any]]) -> list[str]:
+    """The same table for each hand side (left hands failed more often on outside data; issue #15); nothing when
+    the rows have one side only."""
+    sides = sorted({str(r.get("side")) for r in rows})
+    out: list[str] = []
+    for side in sides if len(sides) > 1 else []:
+        some = [r for r in rows if str(r.get("side")) == side]
+        out += ["", f"{side} hands ({len(some)} sequences):", "", *metrics_table(some)]
+    return out
 
 
 def _f(v: Any, digits: int = 2) -> str:
