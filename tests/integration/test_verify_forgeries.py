@@ -187,3 +187,21 @@ def test_an_honest_result_verifies_on_an_emulated_avx2_host(
     assert "verify: OK" in run.stdout
     # Both hosts vouch for the same content, whichever comparison each made.
     assert f"checked sha256 {check_result(path.read_bytes()).digest}" in run.stdout
+
+
+def test_a_result_of_an_older_version_still_verifies(honest: tuple[dict[str, np.ndarray], dict[str, Any]]) -> None:
+    """Made before issue #15: no paper protocol, plausibility figures, table-contact or attempt arrays. What it does
+    hold is checked; what it lacks reads as absent, not as a forgery."""
+    arrays, summary = honest
+    new_arrays = {"object_table_contact", "metrics_raw_penetration_mm", "metrics_raw_hand_only",
+                  "metrics_refined_penetration_mm", "metrics_refined_hand_only"}
+    old_arrays = {k: v for k, v in arrays.items() if k not in new_arrays}
+    new_keys = {"paper", "penetration_mean_mm", "penetration_max_mm", "lifted_frames", "hand_only_fraction",
+                "attempts", "success_first_attempt"}
+    old_metrics = {name: {k: v for k, v in m.items() if k not in new_keys} for name, m in summary["metrics"].items()}
+    old_attempts = [{k: v for k, v in a.items() if k != "paper"} for a in summary["attempts"]]
+    old = {**summary, "metrics": old_metrics, "attempts": old_attempts}
+    report = check_result(_forged(old_arrays, old))
+    assert report.failures == [] and report.exact
+    forged = {**old, "metrics": {**old_metrics, "refined": {**old_metrics["refined"], "E_t": 0.01}}}
+    _fails_naming(_forged(old_arrays, forged), "metrics.refined.E_t")
