@@ -40,17 +40,24 @@ SUCCESS_ROWS: tuple[tuple[str, str], ...] = (
     ("success_first_attempt", "success of the first attempt (no restart)"),
 )
 _UNIT_SUFFIX = {"E_t": "_cm", "E_r": "_deg", "E_j": "_cm", "E_ft": "_cm"}
+#: The keys a mean over many results is taken of (the submit summary): every row but the worst-frame ones, then
+#: the success rates.
+MEAN_KEYS: tuple[str, ...] = (
+    *(key for key, _, _, _ in ROWS if not key.startswith("max_")),
+    "success",
+    *(key for key, _ in SUCCESS_ROWS),
+)
 
 
 def metric_value(column: Mapping[str, Any], key: str) -> Any:
     """``column[key]``, or its unit-suffixed spelling (``E_t_cm``) in results written before the units moved
     into the documentation; a dotted key reads a nested block (``paper.E_t``); None when absent."""
+    if key in column:  # a flat key, also a dotted one (``paper.E_t``) of a mean over results
+        return column[key]
     if "." in key:
         block, _, rest = key.partition(".")
         inner = column.get(block)
         return metric_value(inner, rest) if isinstance(inner, Mapping) else None
-    if key in column:
-        return column[key]
     return column.get(key + _UNIT_SUFFIX.get(key, "\0"))
 
 

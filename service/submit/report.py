@@ -11,27 +11,9 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from common.job_state import JobState
+from common.metrics_table import MEAN_KEYS, metrics_table
 from service.submit.manifest import FAILED_STATES, INVALID, PENDING, REJECTED, Entry
 
-#: Metrics of DESIGN §1.8 in table order: (key in the result summary, label, format). Keys are
-#: ``worker.simulation.metrics.METRIC_KEYS``; unit-suffixed spellings (``E_t_cm``) of older results are read too.
-METRICS: tuple[tuple[str, str, str], ...] = (
-    ("E_t", "E_t (cm)", "{:.2f}"),
-    ("E_r", "E_r (deg)", "{:.2f}"),
-    ("E_j", "E_j (cm)", "{:.2f}"),
-    ("E_ft", "E_ft (cm)", "{:.2f}"),
-    ("success", "success rate", "{:.0%}"),
-    # The paper's protocol (frames 10 onward), the first attempt's success, plausibility (issue #15 items 3-4).
-    ("paper.E_t", "E_t frames 10+ (cm)", "{:.2f}"),
-    ("paper.E_r", "E_r frames 10+ (deg)", "{:.2f}"),
-    ("paper.E_j", "E_j frames 10+ (cm)", "{:.2f}"),
-    ("paper.E_ft", "E_ft frames 10+ (cm)", "{:.2f}"),
-    ("paper.success", "success rate frames 10+", "{:.0%}"),
-    ("success_first_attempt", "success rate, first attempt", "{:.0%}"),
-    ("penetration_mean_mm", "penetration, mean per-frame max (mm)", "{:.2f}"),
-    ("penetration_max_mm", "penetration, sequence max (mm)", "{:.2f}"),
-    ("hand_only_fraction", "lifted frames held by hand alone", "{:.0%}"),
-)
 _UNIT_SUFFIX = {"E_t": "_cm", "E_r": "_deg", "E_j": "_cm", "E_ft": "_cm"}
 STATE_ORDER: tuple[str, ...] = (PENDING, *JobState, REJECTED, INVALID)
 
@@ -87,7 +69,7 @@ def metric_means(entries: list[Entry]) -> dict[str, dict[str, float | None]]:
     out: dict[str, dict[str, float | None]] = {}
     for stage in ("raw", "refined"):
         out[stage] = {}
-        for key, _, _ in METRICS:
+        for key in MEAN_KEYS:
             values = [
                 v
                 for e in entries
@@ -122,13 +104,10 @@ def summary_tables(entries: list[Entry]) -> tuple[Table, Table]:
 
     with_metrics = sum(1 for e in entries if e.state == JobState.SUCCEEDED and e.metrics)
     means = metric_means(entries)
-    metrics = Table(title=f"Mean metrics over {with_metrics} succeeded sequences")
-    metrics.add_column("metric")
-    metrics.add_column("raw replay", justify="right")
-    metrics.add_column("refined", justify="right")
-    for key, label, fmt in METRICS:
-        cells = [fmt.format(v) if v is not None else "-" for v in (means["raw"][key], means["refined"][key])]
-        metrics.add_row(label, *cells)
+    metrics = metrics_table(
+        {"raw replay": means["raw"], "refined": means["refined"]},
+        title=f"Mean metrics over {with_metrics} succeeded sequences",
+    )
     return jobs, metrics
 
 
