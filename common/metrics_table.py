@@ -3,7 +3,9 @@
 Used by ``hoi-refine replay``, ``refine``, ``demo`` and the closing summary of ``submit``. Columns are named
 runs ("raw", "refined", or "raw replay" / "refined" means); each column is a mapping of metric key to value as
 results store them (``E_t`` cm, ``E_r`` deg, ...; unit-suffixed spellings such as ``E_t_cm`` of older results
-are read too). ``success`` is a bool for one result and a rate (0..1) for a mean.
+are read too). ``success`` is a bool for one result and a rate (0..1) for a mean. Both protocols (issue #15):
+all frames, and the paper's (``paper.*``: frames 10 onward), the first attempt's success beside the final one,
+and the plausibility figures (penetration, hand-held share of lifted frames); rows a result lacks are left out.
 """
 
 from __future__ import annotations
@@ -21,16 +23,41 @@ ROWS: tuple[tuple[str, str, str, str], ...] = (
     ("E_ft", "fingertip error E_ft", "cm", "{:.2f}"),
     ("max_E_t", "worst-frame position error", "cm", "{:.2f}"),
     ("max_E_r", "worst-frame rotation error", "deg", "{:.1f}"),
+    ("paper.E_t", "E_t, paper's protocol (frames 10+)", "cm", "{:.2f}"),
+    ("paper.E_r", "E_r, paper's protocol (frames 10+)", "deg", "{:.2f}"),
+    ("paper.E_j", "E_j, paper's protocol (frames 10+)", "cm", "{:.2f}"),
+    ("paper.E_ft", "E_ft, paper's protocol (frames 10+)", "cm", "{:.2f}"),
+    ("penetration_mean_mm", "penetration: mean per-frame maximum", "mm", "{:.2f}"),
+    ("penetration_max_mm", "penetration: sequence maximum", "mm", "{:.2f}"),
+    ("hand_only_fraction", "lifted frames held by the hand alone", "", "{:.0%}"),
 )
+#: Rows shown only when a column has them (older results, or the raw replay for the first attempt).
+OPTIONAL_PREFIXES: tuple[str, ...] = ("max_", "paper.", "penetration_", "hand_only")
 SUCCESS_LABEL = "success (every frame E_t <= 3 cm, E_r <= 30 deg)"
+#: Success rows after the first: key, label.
+SUCCESS_ROWS: tuple[tuple[str, str], ...] = (
+    ("paper.success", "success, paper's protocol (frames 10+)"),
+    ("success_first_attempt", "success of the first attempt (no restart)"),
+)
 _UNIT_SUFFIX = {"E_t": "_cm", "E_r": "_deg", "E_j": "_cm", "E_ft": "_cm"}
+#: The keys a mean over many results is taken of (the submit summary): every row but the worst-frame ones, then
+#: the success rates.
+MEAN_KEYS: tuple[str, ...] = (
+    *(key for key, _, _, _ in ROWS if not key.startswith("max_")),
+    "success",
+    *(key for key, _ in SUCCESS_ROWS),
+)
 
 
 def metric_value(column: Mapping[str, Any], key: str) -> Any:
     """``column[key]``, or its unit-suffixed spelling (``E_t_cm``) in results written before the units moved
-    into the documentation; None when absent."""
-    if key in column:
+    into the documentation; a dotted key reads a nested block (``paper.E_t``); None when absent."""
+    if key in column:  # a flat key, also a dotted one (``paper.E_t``) of a mean over results
         return column[key]
+    if "." in key:
+        block, _, rest = key.partition(".")
+        inner = column.get(block)
+        return metric_value(inner, rest) if isinstance(inner, Mapping) else None
     return column.get(key + _UNIT_SUFFIX.get(key, "\0"))
 
 
@@ -61,10 +88,14 @@ def metrics_table(columns: Mapping[str, Mapping[str, Any]], title: str | None = 
         table.add_column(name, justify="right")
     for key, label, unit, fmt in ROWS:
         values = [metric_value(c, key) for c in columns.values()]
-        if key.startswith("max_") and all(v is None for v in values):
+        if key.startswith(OPTIONAL_PREFIXES) and all(v is None for v in values):
             continue
         table.add_row(label, unit, *(_cell(v, fmt) for v in values))
     table.add_row(SUCCESS_LABEL, "", *(_success_cell(metric_value(c, "success")) for c in columns.values()))
+    for key, label in SUCCESS_ROWS:
+        values = [metric_value(c, key) for c in columns.values()]
+        if any(v is not None for v in values):
+            table.add_row(label, "", *(_success_cell(v) for v in values))
     return table
 
 

@@ -15,16 +15,8 @@ from rich.table import Table
 
 from common.api_client import ApiClient
 from common.errors import ApiError
+from common.metrics_table import metrics_table
 from service.submit.manifest import Manifest
-
-#: The aggregate's metric names (``common.batch_metrics``) in table order, with labels and formats.
-METRICS: tuple[tuple[str, str, str], ...] = (
-    ("E_t", "E_t (cm)", "{:.2f}"),
-    ("E_r", "E_r (deg)", "{:.2f}"),
-    ("E_j", "E_j (cm)", "{:.2f}"),
-    ("E_ft", "E_ft (cm)", "{:.2f}"),
-    ("SR", "success rate", "{:.0%}"),
-)
 
 
 def batch_url(api_url: str, batch_id: str) -> str:
@@ -66,14 +58,10 @@ def batch_tables(doc: dict[str, Any]) -> list[Table]:
     tables = [counts]
     for protocol, stages in (doc.get("metrics") or {}).items():
         raw, refined = stages.get("raw") or {}, stages.get("refined") or {}
-        table = Table(title=f"Batch metrics ({protocol}), over {refined.get('n', raw.get('n', 0))} succeeded jobs")
-        table.add_column("metric")
-        table.add_column("raw replay", justify="right")
-        table.add_column("refined", justify="right")
-        for key, label, fmt in METRICS:
-            cells = [fmt.format(s[key]) if s.get(key) is not None else "-" for s in (raw, refined)]
-            table.add_row(label, *cells)
-        tables.append(table)
+        # The aggregate names the success rate SR (``common.batch_metrics``); the table reads it as success.
+        columns = {name: {**s, "success": s.get("SR")} for name, s in (("raw replay", raw), ("refined", refined))}
+        title = f"Batch metrics ({protocol}), over {refined.get('n', raw.get('n', 0))} succeeded jobs"
+        tables.append(metrics_table(columns, title=title))
     return tables
 
 

@@ -11,17 +11,9 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from common.job_state import JobState
+from common.metrics_table import MEAN_KEYS, metrics_table
 from service.submit.manifest import FAILED_STATES, INVALID, PENDING, REJECTED, Entry
 
-#: Metrics of DESIGN §1.8 in table order: (key in the result summary, label, format). Keys are
-#: ``worker.simulation.metrics.METRIC_KEYS``; unit-suffixed spellings (``E_t_cm``) of older results are read too.
-METRICS: tuple[tuple[str, str, str], ...] = (
-    ("E_t", "E_t (cm)", "{:.2f}"),
-    ("E_r", "E_r (deg)", "{:.2f}"),
-    ("E_j", "E_j (cm)", "{:.2f}"),
-    ("E_ft", "E_ft (cm)", "{:.2f}"),
-    ("success", "success rate", "{:.0%}"),
-)
 _UNIT_SUFFIX = {"E_t": "_cm", "E_r": "_deg", "E_j": "_cm", "E_ft": "_cm"}
 STATE_ORDER: tuple[str, ...] = (PENDING, *JobState, REJECTED, INVALID)
 
@@ -61,6 +53,9 @@ def _number(value: Any) -> float | None:
 
 
 def _metric(stage: Any, key: str) -> float | None:
+    if "." in key:  # a nested block: "paper.E_t"
+        block, _, key = key.partition(".")
+        stage = stage.get(block) if isinstance(stage, dict) else None
     if not isinstance(stage, dict):
         return None
     for name in (key, key + _UNIT_SUFFIX.get(key, "")):
@@ -74,7 +69,7 @@ def metric_means(entries: list[Entry]) -> dict[str, dict[str, float | None]]:
     out: dict[str, dict[str, float | None]] = {}
     for stage in ("raw", "refined"):
         out[stage] = {}
-        for key, _, _ in METRICS:
+        for key in MEAN_KEYS:
             values = [
                 v
                 for e in entries
@@ -109,13 +104,10 @@ def summary_tables(entries: list[Entry]) -> tuple[Table, Table]:
 
     with_metrics = sum(1 for e in entries if e.state == JobState.SUCCEEDED and e.metrics)
     means = metric_means(entries)
-    metrics = Table(title=f"Mean metrics over {with_metrics} succeeded sequences")
-    metrics.add_column("metric")
-    metrics.add_column("raw replay", justify="right")
-    metrics.add_column("refined", justify="right")
-    for key, label, fmt in METRICS:
-        cells = [fmt.format(v) if v is not None else "-" for v in (means["raw"][key], means["refined"][key])]
-        metrics.add_row(label, *cells)
+    metrics = metrics_table(
+        {"raw replay": means["raw"], "refined": means["refined"]},
+        title=f"Mean metrics over {with_metrics} succeeded sequences",
+    )
     return jobs, metrics
 
 

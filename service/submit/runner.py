@@ -27,7 +27,7 @@ from common.api_client import ApiClient, Stopped, options_json
 from common.errors import ApiError, HoiRefineError
 from common.job_options import JobOptions
 from common.job_state import FINISHED, JobState
-from common.result_format import read_summary
+from common.result_format import content_digest, read_summary
 from service.submit.batch import ensure_batch, print_batch
 from service.submit.discovery import Source, SourceFormat, discover, load_source
 from service.submit.manifest import (
@@ -211,8 +211,13 @@ class _Run:
         blob = self.client.result(entry.job_id)
         summary = read_summary(blob)  # also proves the file is a readable result before it is kept
         write_atomic(self.cfg.out_dir / result_rel, blob)
-        self.manifest.update(entry, files={**entry.files, "result": result_rel},
-                             metrics=summary.get("metrics") or entry.metrics)
+        metrics = dict(summary.get("metrics") or entry.metrics or {})
+        proof = (entry.metrics or {}).get("verification")
+        if isinstance(proof, dict):
+            # The worker's verification travels with the dataset, with whether this copy is the file it checked
+            # (``hoi-refine verify`` on the file prints the same content sha256).
+            metrics["verification"] = {**proof, "download_matches": content_digest(blob) == proof.get("content_sha256")}
+        self.manifest.update(entry, files={**entry.files, "result": result_rel}, metrics=metrics)
         contacts = self.client.contacts(entry.job_id)
         write_atomic(self.cfg.out_dir / contacts_rel, json.dumps(contacts).encode())
         self.manifest.update(entry, files={**entry.files, "contacts": contacts_rel})

@@ -1,5 +1,6 @@
 """The refinement end to end on a synthetic push (tests/integration/test_refine_synthetic.py): parameter
-recovery, determinism (identical result bytes without the wall clock), verify, loss ablation, keyframe interval
+recovery, determinism (identical result bytes without the wall clock), verify (tests/integration/
+test_verify_forgeries.py has the forgeries of issue #15), loss ablation, keyframe interval
 at 60 fps, and the CLI."""
 
 from __future__ import annotations
@@ -179,6 +180,12 @@ def test_a_failed_refinement_is_restarted_with_another_seed_and_the_best_attempt
     assert twice.summary["metrics"]["refined"]["E_t"] == best["E_t"]  # the result is the best attempt's replay
     assert twice.summary["timings"]["evaluations"] == first["evaluations"] + second["evaluations"]
     assert verify_result(twice.to_npz_bytes())["max_pos_diff_m"] == 0.0
+    # Both attempts' keyframes are stored, so the first attempt's failure is re-simulated too (issue #15 item 3).
+    assert twice.arrays["right_attempt_keyframes"].shape[0] == 2
+    assert twice.summary["metrics"]["refined"]["success_first_attempt"] is False
+    claimed = {**twice.summary, "attempts": [{**first, "success": True}, second]}
+    with pytest.raises(ResultMismatchError, match=r"attempts\[0\]\.success"):
+        verify_result(RefineOutcome(twice.arrays, claimed).to_npz_bytes())
 
 
 def test_verify_re_simulates_with_the_rotation_pivot_the_result_was_made_with(
@@ -192,7 +199,10 @@ def test_verify_re_simulates_with_the_rotation_pivot_the_result_was_made_with(
     monkeypatch.undo()
     assert old.summary["config"]["rotation_pivot"] == "wrist"
     assert np.any(old.arrays["right_keyframes"][:, 10:13] != 0)  # a rotation offset, so the pivot matters
-    assert verify_result(old.to_npz_bytes())["max_pos_diff_m"] == 0.0
+    # A recorded pivot other than today's is a non-default config: verify names it and wants --allow-config.
+    with pytest.raises(ResultMismatchError, match="rotation_pivot"):
+        verify_result(old.to_npz_bytes())
+    assert verify_result(old.to_npz_bytes(), allow_config=True)["max_pos_diff_m"] == 0.0
     unrecorded = {**old.summary, "config": {k: v for k, v in old.summary["config"].items() if k != "rotation_pivot"}}
     assert verify_result(RefineOutcome(old.arrays, unrecorded).to_npz_bytes())["max_pos_diff_m"] == 0.0
     as_if_hand = {**old.summary, "config": {**old.summary["config"], "rotation_pivot": "hand"}}

@@ -12,7 +12,11 @@ Modules, in pipeline order:
 * ``prepare``    references, scene, control spaces and loss targets of a sequence;
 * ``replay``     the from-scratch replay of keyframes and the window problem it shares with the optimiser;
 * ``run``        ``refine_sequence`` (the entry point the Ray worker calls);
-* ``result``     the result arrays/summary and ``verify_result``.
+* ``derive``     ``derive_result``: the result's replays, metrics and arrays from its inputs (the worker and
+                 ``verify`` call the same function);
+* ``result``     the result summary (and the visual tools' rebuild of a result's problem);
+* ``verify``     ``verify_result`` / ``check_result`` (with ``verify_arrays``, ``verify_summary``,
+                 ``verify_report``): recompute and compare everything a result claims.
 """
 
 import warnings
@@ -23,8 +27,8 @@ warnings.filterwarnings("ignore", message="Could not import matplotlib", categor
 from worker.refine.evaluator import ParallelEvaluator  # noqa: E402  (after the warnings filter: it imports cma)
 from worker.refine.prepare import Prepared  # noqa: E402
 from worker.refine.replay import ReplayRecord  # noqa: E402
-from worker.refine.result import verify_result  # noqa: E402
 from worker.refine.run import RefineOutcome, refine_sequence  # noqa: E402
+from worker.refine.verify import verify_result  # noqa: E402
 from worker.refine.windowed import RefineProgress  # noqa: E402
 
 # Not re-exported: the functions named like their modules (``prepare``, ``replay``): a package attribute of that

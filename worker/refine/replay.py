@@ -18,6 +18,7 @@ from worker.refine.losses import resolve_weights
 from worker.refine.prepare import Prepared
 from worker.refine.problem import SimWindowProblem
 from worker.simulation.contacts import ContactRecorder, empty_contact_columns
+from worker.simulation.metrics import ContactFrames
 
 #: Keyframe intervals simulated past the optimised keyframe: 1 is the (k1..k4) window of DESIGN §1.6; 2 lets
 #: the optimiser see whether a grasp holds one interval longer (on DexYCB dev it turned a dropped lift into a
@@ -33,6 +34,8 @@ class ReplayRecord:
     keypoints: dict[str, FloatArray]  # side -> (F, 21, 3)
     contacts: dict[str, np.ndarray]
     steps: int
+    #: Per-frame penetration / hand / table contact flags (``worker.simulation.metrics``); None without contacts.
+    contact_frames: ContactFrames | None = None
 
 
 def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyframes: dict[str, FloatArray],
@@ -64,6 +67,7 @@ def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyfra
         keypoints={side: sensors[:, h.keypoint_sensor_adrs] for side, h in layout.hands.items()},
         contacts=recorder.columns() if recorder is not None else empty_contact_columns(),
         steps=control.shape[1],
+        contact_frames=recorder.frames(n_frames) if recorder is not None else None,
     )
 
 

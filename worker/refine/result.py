@@ -1,16 +1,21 @@
-"""The refinement result file (issue #3 item 5) and ``verify`` (item 6).
+"""The refinement result file (issue #3 item 5); ``verify`` lives in ``worker.refine.verify``.
 
-Arrays (``common.result_format`` keys plus): ``object_pose_ref`` (F,7); per side ``S_keyframes`` (N, 13|16)
-the optimised offsets, ``S_q_target``/``S_wrist_pos``/``S_wrist_quat`` the per-frame controls they give,
+Arrays (``common.result_format`` keys plus; all but the loss history made by ``worker.refine.derive``):
+``object_pose_ref`` (F,7); per side ``S_keyframes`` (N, 13|16) the optimised offsets,
+``S_attempt_keyframes`` (A, N, 13|16) every attempt's when there were restarts,
+``S_q_target``/``S_wrist_pos``/``S_wrist_quat`` the per-frame controls they give,
 ``S_keypoints_sim``/``S_keypoints_ref``/``S_valid``; ``raw_object_pose_sim`` (F,7) the raw replay;
-``metrics_{raw,refined}_*`` per-frame errors; ``window_loss_history`` (W, G) best loss per generation (NaN
-padded); ``sequence_npz`` (uint8) the input sequence in the native NPZ format, so ``verify`` needs nothing
-else. Summary JSON: kind, sequence, fps, frames, metrics.raw / metrics.refined, options, config (simulation
+``object_table_contact`` (F,) bool, the refined object touching the table;
+``metrics_{raw,refined}_*`` per-frame errors, penetration (mm) and hand-only hold (``worker.simulation.metrics``);
+``window_loss_history`` (W, G) best loss per generation (NaN padded); ``sequence_npz`` (uint8) the input
+sequence in the native NPZ format, so ``verify`` needs nothing else. Summary JSON: kind, sequence, fps, frames,
+metrics.raw / metrics.refined (both protocols, plausibility, first-attempt success), options, config (simulation
 settings, keyframe interval, CMA-ES settings, loss weights), seed, versions, table (the plane under the frame-0
-object: point, normal, tilt_deg), attempts (seed, success, E_t, E_r, evaluations of each CMA-ES run; the
-result is the best), windows (count, skipped, escalated, per window loss), timings (the
+object: point, normal, tilt_deg), attempts (seed, success, E_t, E_r on both protocols, evaluations of each
+CMA-ES run; the result is the best), windows (count, skipped, escalated, per window loss), timings (the
 deterministic counters; the wall-clock figures are stored in the ``timings_json`` member, see
-``common.result_format``, and ``read_summary`` merges them back).
+``common.result_format``, and ``read_summary`` merges them back). ``prepare_from_result`` and
+``compare_object_trajectory`` serve the visual tools' replays.
 """
 
 from __future__ import annotations
@@ -27,68 +32,21 @@ from common.geometry import FloatArray
 from common.job_options import JobOptions
 from common.result_format import read_arrays, read_summary
 from common.sequence import Sequence
-from common.sequence_io import sequence_from_npz_bytes, sequence_to_npz_bytes
-from worker.hand.mano.pose import mano_result_arrays
-from worker.refine.evaluator import ParallelEvaluator
-from worker.refine.prepare import Prepared, prepare, settled_start
-from worker.refine.replay import ReplayRecord, replay
+from common.sequence_io import sequence_from_npz_bytes
+from worker.refine.prepare import Prepared, prepare
 from worker.refine.windowed import CmaSettings, WindowLog
 from worker.simulation.config import SimConfig
 from worker.simulation.replay import versions as replay_versions
 
 RESULT_KIND = "refine"
-#: verify tolerance on object positions (m): a re-simulation on the same build reproduces bit for bit; the
-#: margin only absorbs libm differences between machines.
+#: The visual tools' tolerance on a re-simulated object trajectory (m): on the same build it reproduces bit for
+#: bit (``verify`` has its own, cross-host tolerances: ``worker.refine.verify_report``).
 VERIFY_TOLERANCE_M = 1e-6
 
 
 def versions() -> dict[str, str]:
     """The raw replay's package versions plus the optimiser's."""
     return {**replay_versions(), "cma": str(cma.__version__).split()[0]}
-
-
-def build_arrays(
-    prep: Prepared,
-    keyframes: dict[str, FloatArray],
-    final: ReplayRecord,
-    raw: ReplayRecord,
-    m_raw: dict[str, Any],
-    m_ref: dict[str, Any],
-    logs: list[WindowLog] | None = None,
-) -> dict[str, np.ndarray]:
-    arrays: dict[str, np.ndarray] = {
-        "object_pose_sim": final.object_pose,
-        "object_vel_sim": final.object_vel,
-        "object_pose_ref": prep.obj_targets_pose(),
-        "raw_object_pose_sim": raw.object_pose,
-        "sequence_npz": np.frombuffer(sequence_to_npz_bytes(prep.seq), dtype=np.uint8),
-    }
-    for ref in prep.references:
-        s = ref.side
-        q, p, r = prep.spaces[s].frame_controls(keyframes[s])
-        arrays[f"{s}_keyframes"] = keyframes[s]
-        arrays[f"{s}_q_target"] = q
-        arrays[f"{s}_wrist_pos"] = p
-        arrays[f"{s}_wrist_quat"] = r
-        arrays[f"{s}_keypoints_sim"] = final.keypoints[s]
-        arrays[f"{s}_keypoints_ref"] = ref.keypoints
-        arrays[f"{s}_valid"] = ref.valid
-        if getattr(ref, "from_mano", False):
-            # The refined hand as MANO parameters (issue #6): exact because the scene used the MANO geometry.
-            hand = prep.seq.hand(s)
-            assert hand is not None
-            arrays.update(mano_result_arrays(prep.seq, hand, p, r, q, prep.mano_dir))
-    for name, m in (("raw", m_raw), ("refined", m_ref)):
-        for key, val in m["per_frame"].items():
-            arrays[f"metrics_{name}_{key}"] = val
-    if logs is not None:
-        width = max([len(w.history) for w in logs] + [1])
-        hist = np.full((len(logs), width), np.nan)
-        for i, w in enumerate(logs):
-            hist[i, : len(w.history)] = w.history
-        arrays["window_loss_history"] = hist
-    arrays.update(final.contacts)
-    return arrays
 
 
 def build_summary(
@@ -199,16 +157,11 @@ def compare_object_trajectory(stored: FloatArray, simulated: FloatArray) -> floa
 
 
 def verify_result(
-    blob: bytes, sequence: Sequence | None = None, *, cache_dir: Path | None = None, mano_dir: Path | None = None
+    blob: bytes, sequence: Sequence | None = None, *, allow_config: bool = False, cache_dir: Path | None = None,
+    mano_dir: Path | None = None,
 ) -> dict[str, Any]:
-    """Re-simulate a result's stored keyframes from frame 0 and compare the object trajectory (``cache_dir`` and
-    ``mano_dir`` as for ``prepare``).
+    """``worker.refine.verify.verify_result``: recompute everything the result claims (kept here for callers of
+    the earlier API)."""
+    from worker.refine.verify import verify_result as verify
 
-    Raises ``ResultMismatchError`` when the object trajectory (or the stored per-frame controls) differ.
-    """
-    prep, keyframes = prepare_from_result(blob, sequence, cache_dir=cache_dir, mano_dir=mano_dir)
-    with ParallelEvaluator(prep.scene.model, 1) as ev:
-        start, _ = settled_start(prep, ev)
-        rec = replay(prep, ev, start, keyframes, record_contacts=False)
-    stored = read_arrays(blob)["object_pose_sim"]
-    return {"frames": len(stored), "max_pos_diff_m": compare_object_trajectory(stored, rec.object_pose)}
+    return verify(blob, sequence, allow_config=allow_config, cache_dir=cache_dir, mano_dir=mano_dir)

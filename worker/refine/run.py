@@ -1,8 +1,9 @@
 """``refine_sequence``: the whole refinement of one sequence (DESIGN §1 steps 3-7, issue #3).
 
-Raw replay (zero offsets) -> sliding-window CMA-ES -> from-scratch replay of the final controls from frame 0
-(``replay``).
-The result is that replay, never a stitching of window rollouts. Deterministic: the same sequence, options
+Sliding-window CMA-ES (restarted with another seed while the result fails) -> ``derive.derive_result``: from
+the embedded sequence bytes, in a fresh model and MjData, the raw replay (zero offsets) and the from-scratch
+replay (``replay``) of the best controls from frame 0, with contacts and metrics. The result is that replay, never
+a stitching of window rollouts, and ``verify`` repeats the very same function. Deterministic: the same sequence, options
 and seed give the same arrays and summary whatever the number of threads, apart from the wall-clock entries of
 ``summary["timings"]`` (seconds, rates, ``sim_share`` and the thread count; ``common.result_format.is_wall_clock``).
 The result file keeps those in a separate member, so ``to_npz_bytes(wall_clock=False)`` gives identical bytes.
@@ -22,13 +23,15 @@ from common.geometry import FloatArray
 from common.job_options import JobOptions
 from common.result_format import write_result_npz
 from common.sequence import Sequence
+from common.sequence_io import sequence_from_npz_bytes, sequence_to_npz_bytes
+from worker.refine.derive import add_attempt_metrics, attempt_figures, derive_result, replay_metrics
 from worker.refine.evaluator import ParallelEvaluator
 from worker.refine.losses import ROT_SCALE, resolve_weights
 from worker.refine.prepare import DEFAULT_MAX_GENERATIONS, DEFAULT_POPSIZE, prepare, settled_start
 from worker.refine.replay import ReplayRecord, replay, window_problem
-from worker.refine.result import build_arrays, build_summary
+from worker.refine.result import build_summary
 from worker.refine.windowed import CmaSettings, RefineProgress, WindowLog, optimise_windows
-from worker.simulation.metrics import compute_metrics, scalar_metrics
+from worker.simulation.metrics import scalar_metrics
 
 #: Skip a window when no hand touches the object and its loss per frame is below this (see windowed).
 SKIP_LOSS_PER_FRAME = 0.3
@@ -84,31 +87,24 @@ def refine_sequence(
     (success first, then the lower mean object error) is the result; every attempt is listed in the summary.
     """
     t0 = time.perf_counter()
-    prep = prepare(seq, options, cache_dir=cache_dir, mano_dir=mano_dir)
+    # The result embeds the sequence as these bytes and is derived from them (``derive``); the optimisation runs
+    # on the same sequence read back from them, so its replays are the result's replays too.
+    seq_bytes = sequence_to_npz_bytes(seq)
+    prep = prepare(sequence_from_npz_bytes(seq_bytes), options, cache_dir=cache_dir, mano_dir=mano_dir)
     t_prep = time.perf_counter()
     own = evaluator is None
     ev = evaluator or ParallelEvaluator(prep.scene.model, threads)
     if not own:
         ev.ensure_model(prep.scene.model)
 
-    def metrics(rec: ReplayRecord) -> dict[str, Any]:
-        return compute_metrics(
-            rec.object_pose,
-            prep.obj_targets_pose(),
-            rec.keypoints,
-            {r.side: r.keypoints for r in prep.references},
-            {r.side: r.valid for r in prep.references},
-        )
-
     def rank(m: dict[str, Any]) -> tuple[bool, float]:
         # Success first; then the object error in the units of the object_pose loss (1 cm ~ ROT_SCALE).
         return bool(m["success"]), -(m["E_t"] + m["E_r"] / np.degrees(ROT_SCALE))
 
     attempts: list[dict[str, Any]] = []
+    tried: list[dict[str, FloatArray]] = []
     try:
         start, settle_steps = settled_start(prep, ev)
-        zero = {side: sp.zero_keyframes() for side, sp in prep.spaces.items()}
-        raw = replay(prep, ev, start, zero)
         weights = resolve_weights(options.loss_weights)
         problem = window_problem(prep, ev, start, weights)
         best: _Attempt | None = None
@@ -116,40 +112,57 @@ def refine_sequence(
             settings = replace(cma_settings(options, prep.interval), seed=attempt_seed(options.seed, attempt))
             report = None if progress is None else _with_attempt(progress, attempt + 1)
             keyframes, logs = optimise_windows(problem, settings, progress=report, should_stop=should_stop)
-            this = _Attempt(keyframes, logs, replay(prep, ev, start, keyframes), settings)
-            m = this.metrics = metrics(this.final)
-            attempts.append({"seed": settings.seed, "success": bool(m["success"]), "E_t": m["E_t"], "E_r": m["E_r"],
+            this = _Attempt(keyframes, logs, replay(prep, ev, start, keyframes, record_contacts=False), settings)
+            m = this.metrics = replay_metrics(prep, this.final)
+            tried.append(keyframes)
+            attempts.append({**attempt_figures(m), "seed": settings.seed,
                              "evaluations": int(sum(w.evaluations for w in logs))})
             if best is None or rank(m) > rank(best.metrics):
                 best = this
             if m["success"]:
                 break
         assert best is not None
-        keyframes, logs, final, settings, m_ref = best.keyframes, best.logs, best.final, best.settings, best.metrics
+        keyframes, logs, settings = best.keyframes, best.logs, best.settings
         stats = ev.stats
     finally:
         if own:
             ev.close()
+    # The result: the derivation ``verify`` repeats, from the embedded bytes in a fresh model and MjData.
+    t_derive = time.perf_counter()
+    derived = derive_result(seq_bytes, options, prep.scene.config, prep.rotation_pivot, keyframes,
+                            tried if len(tried) > 1 else None, cache_dir=cache_dir, mano_dir=mano_dir)
+    derive_s = time.perf_counter() - t_derive
     wall = time.perf_counter() - t0
-    m_raw = metrics(raw)
-    arrays = build_arrays(prep, keyframes, final, raw, m_raw, m_ref, logs)
+    final = derived.final
+    m_raw, m_ref = scalar_metrics(derived.metrics["raw"]), scalar_metrics(derived.metrics["refined"])
+    add_attempt_metrics(m_ref, attempts)
+    arrays = derived.arrays
+    if logs:
+        width = max([len(w.history) for w in logs] + [1])
+        hist = np.full((len(logs), width), np.nan)
+        for i, w in enumerate(logs):
+            hist[i, : len(w.history)] = w.history
+        arrays["window_loss_history"] = hist
     summary = build_summary(
-        prep, settings, weights, logs, scalar_metrics(m_raw), scalar_metrics(m_ref),
+        prep, settings, weights, logs, m_raw, m_ref,
         timings={
             "wall_s": wall,
             "sim_s": stats.sim_seconds,
             "sim_share": stats.sim_seconds / max(wall, 1e-9),
             "steps": int(stats.steps + settle_steps),
+            "derive_steps": int(derived.steps),
             "evaluations": int(sum(a["evaluations"] for a in attempts)),
             "rollouts": int(stats.rollouts),
             "steps_per_second": stats.steps / max(stats.sim_seconds, 1e-9),
             # Where the time goes: batched rollouts (CMA-ES populations) vs Python-stepped probes, commits and
-            # replays (contacts recorded), the rest being retargeting, scene compilation, CMA-ES and losses.
+            # replays, the rest being retargeting, scene compilation, CMA-ES and losses; ``derive_s`` is the
+            # fresh preparation and replays the result is made of (``worker.refine.derive``).
             "rollout_s": stats.rollout_seconds,
             "rollout_steps": int(stats.steps - stats.python_steps),
             "python_step_s": stats.python_seconds,
             "python_steps": int(stats.python_steps),
             "prepare_s": t_prep - t0,
+            "derive_s": derive_s,
             "threads": threads,
         },
         num_contacts=len(final.contacts["contact_frame"]),

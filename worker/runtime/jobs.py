@@ -15,6 +15,7 @@ import hashlib
 import io
 import os
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -86,7 +87,31 @@ class RefineJob:
             cache_dir=get_settings().resolved_cache_dir(),
             mano_dir=get_settings().mano_dir,
         )
-        return outcome.to_npz_bytes(), dict(outcome.summary)
+        blob = outcome.to_npz_bytes()
+        summary = dict(outcome.summary)
+        proof = verification(blob, cache_dir=get_settings().resolved_cache_dir(), mano_dir=get_settings().mano_dir)
+        summary["metrics"] = {**summary["metrics"], "verification": proof}
+        return blob, summary
+
+
+def verification(blob: bytes, cache_dir: Path | None = None, mano_dir: Path | None = None) -> dict[str, Any]:
+    """``verify`` on the finished result from a fresh replay, before it is stored (issue #15 item 2): the job's
+    metrics then say whether it reproduced, and carry the digests a downloaded copy can be checked against
+    (``hoi-refine verify`` prints both). A result that does not verify is still stored, flagged and explained.
+    """
+    from common.result_format import content_digest
+    from worker.refine.verify import check_result
+
+    report = check_result(blob, cache_dir=cache_dir, mano_dir=mano_dir)
+    return {
+        "verified": not report.failures,
+        "exact": report.exact,
+        "max_object_deviation_m": report.max_pos_diff_m,
+        "checked_fields": len(report.checked),
+        "checked_sha256": report.digest,
+        "content_sha256": content_digest(blob),
+        "failures": report.failures[:20],
+    }
 
 
 class SelfTestJob:

@@ -3,7 +3,9 @@
 For each active hand-object contact: the hand side and body, the contact point in world and object frames,
 the normal (world, pointing from the object to the hand), the 6-D wrench from ``mj_contactForce`` rotated
 out of the contact frame — **exerted by the hand on the object**, world frame, about the contact point — and
-the penetration depth (>= 0). Object-table contacts are not reported.
+the penetration depth (>= 0). Object-table contacts are not reported as rows; ``frames`` says per frame whether
+the object touched the table (and a hand), and how deep the deepest hand-object contact was
+(``worker.simulation.metrics``).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import numpy as np
 from common.result_format import CONTACT_KEYS
 
 if TYPE_CHECKING:
+    from worker.simulation.metrics import ContactFrames
     from worker.simulation.scene import Scene
 
 
@@ -32,6 +35,7 @@ class ContactRecorder:
         self._geom_body = [names[int(model.geom_bodyid[g])] for g in range(model.ngeom)]
         self._rows: dict[str, list[object]] = {k: [] for k in CONTACT_KEYS}
         self._f6 = np.zeros(6)
+        self._table_frames: set[int] = set()
 
     def add(self, data: mujoco.MjData, frame: int) -> int:
         """Record the current contacts of ``data`` as frame ``frame``; returns how many were added."""
@@ -47,7 +51,8 @@ class ContactRecorder:
             hand_geom = g2 if self._is_object[g1] else g1
             side = self._geom_side[hand_geom]
             if not side:
-                continue  # object-table
+                self._table_frames.add(frame)  # object-table: no row, but the frame is not hand-held alone
+                continue
             mujoco.mj_contactForce(model, data, i, self._f6)
             frame_rot = c.frame.reshape(3, 3)  # rows: normal (geom1 -> geom2), tangents
             force = frame_rot.T @ self._f6[:3]  # on geom2 by geom1, world
@@ -69,6 +74,13 @@ class ContactRecorder:
 
     def __len__(self) -> int:
         return len(self._rows["contact_frame"])
+
+    def frames(self, n_frames: int) -> ContactFrames:
+        """Per frame 0..n_frames-1: deepest hand-object penetration (m), hand contact, table contact."""
+
+        frame = np.asarray(self._rows["contact_frame"], dtype=np.int64)
+        depth = np.asarray(self._rows["contact_depth"], dtype=np.float64)
+        return contact_frames(frame, depth, np.fromiter(self._table_frames, dtype=np.int64), n_frames)
 
     def columns(self) -> dict[str, np.ndarray]:
         """The CONTACT_KEYS arrays (empty arrays of the right shapes when there were no contacts)."""
@@ -100,3 +112,21 @@ def empty_contact_columns() -> dict[str, np.ndarray]:
         **{k: np.zeros((0, 3)) for k in CONTACT_KEYS[3:8]},
         "contact_depth": np.zeros(0),
     }
+
+
+def contact_frames(
+    contact_frame: np.ndarray, contact_depth: np.ndarray, table_frames: np.ndarray, n_frames: int
+) -> ContactFrames:
+    """``ContactFrames`` from contact rows (frame, depth) and the frames with an object-table contact."""
+    from worker.simulation.metrics import ContactFrames
+
+    frame = np.asarray(contact_frame, dtype=np.int64)
+    if frame.size and (frame.min() < 0 or frame.max() >= n_frames):
+        raise ValueError(f"contact frames must lie in 0..{n_frames - 1}")
+    pen = np.zeros(n_frames)
+    np.maximum.at(pen, frame, np.asarray(contact_depth, dtype=np.float64))
+    hand = np.zeros(n_frames, dtype=bool)
+    hand[frame] = True
+    table = np.zeros(n_frames, dtype=bool)
+    table[np.asarray(table_frames, dtype=np.int64)] = True
+    return ContactFrames(pen, hand, table)

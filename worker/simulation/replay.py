@@ -101,6 +101,7 @@ def raw_replay(
         record.keypoints,
         {r.side: r.keypoints for r in references},
         {r.side: r.valid for r in references},
+        record.contact_frames,
     )
     steps = settle_steps + record.steps
     mano_arrays: dict[str, np.ndarray] = {}

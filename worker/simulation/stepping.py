@@ -27,6 +27,7 @@ from common.geometry import FloatArray, quat_to_matrix, slerp
 from worker.hand.model import JOINT_LOWER, JOINT_UPPER
 from worker.hand.reference import HandReference
 from worker.simulation.contacts import ContactRecorder
+from worker.simulation.metrics import ContactFrames
 from worker.simulation.scene import Scene
 
 PHYSICS_SPEC = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
@@ -83,6 +84,8 @@ class RolloutRecord:
     steps: int
     states: FloatArray | None = None
     contacts: dict[str, np.ndarray] | None = None
+    #: Per-frame penetration / hand / table flags (``worker.simulation.metrics``).
+    contact_frames: ContactFrames | None = None
 
 
 
@@ -281,4 +284,5 @@ def rollout(
         steps=steps,
         states=states,
         contacts=None if recorder is None else recorder.columns(),
+        contact_frames=None if recorder is None or frame_offset else recorder.frames(n_frames),
     )
