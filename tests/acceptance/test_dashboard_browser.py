@@ -162,7 +162,7 @@ def test_dashboard_shows_a_job_to_its_key_only(chromium: str, deployment: Deploy
 
             page.click(f'tr[data-job-id="{job_id}"] a')
             expect(page.locator("#job-state")).to_have_text("SUCCEEDED")
-            metrics = client.http.get(f"/v1/jobs/{job_id}/metrics").json()["metrics"]
+            metrics = client.request("GET", f"/v1/jobs/{job_id}/metrics").json()["metrics"]
             client.close()
             for name in ("E_t", "E_r"):
                 row = page.locator(f'#metrics tr[data-metric="{name}"] td')

@@ -71,9 +71,6 @@ def test_up_two_workers_crash_cancel_and_stop(db_url: str, tmp_path: Path) -> No
 
 
 def _scenario(db_url: str, tmp_path: Path, log: Path) -> None:
-    from worker.example.sequences import short_example_sequence
-    from worker.refine.run import refine_sequence
-
     env = {
         **os.environ,
         "HOI_REFINE_DATABASE_URL": db_url,
@@ -82,6 +79,16 @@ def _scenario(db_url: str, tmp_path: Path, log: Path) -> None:
         "HOI_REFINE_RETRY_BACKOFF_SECONDS": "0",
     }
     queue = JobQueue(create_engine_for(db_url))
+    try:
+        _run(queue, log, env)
+    finally:
+        queue.engine.dispose()  # its pooled connections, or they are closed by the garbage collector
+
+
+def _run(queue: JobQueue, log: Path, env: dict[str, str]) -> None:
+    from worker.example.sequences import short_example_sequence
+    from worker.refine.run import refine_sequence
+
     payloads = [sequence_to_npz_bytes(short_example_sequence(seed=i)) for i in range(4)]
     with local_deployment(log, workers=2, threads_per_worker=1, port=_free_port(), env=env) as dep:
         client = ApiClient(dep.base_url, dep.api_key)

@@ -38,7 +38,7 @@ def _wait(pred: object, timeout: float, what: str) -> None:
 
 
 def test_killed_actor_job_is_finished_elsewhere_and_sigterm_leaves_nothing_running(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, request: pytest.FixtureRequest
 ) -> None:
     url = f"sqlite:///{tmp_path / 'q.sqlite3'}"
     env = {
@@ -54,6 +54,7 @@ def test_killed_actor_job_is_finished_elsewhere_and_sigterm_leaves_nothing_runni
     get_settings.cache_clear()
     upgrade_to_head(url)
     q = JobQueue(create_engine_for(url))
+    request.addfinalizer(q.engine.dispose)
     owner, _ = ApiKeyStore(q.engine).create("t")
     ids = [
         q.submit(owner, f"seq{i}".encode(), JobOptions(seed=i, max_generations=g), None, f"j{i}", 5)[0].id
