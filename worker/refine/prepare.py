@@ -50,6 +50,7 @@ class Prepared:
     hand_targets: dict[str, HandTargets]
     basis_provenance: str
     rotation_pivot: str  # what the wrist rotation offset turns the hand about (one of PIVOTS)
+    mirror_left: bool = True  # a left hand's control coordinates mirror a right hand's (``prepare``)
 
     @property
     def num_frames(self) -> int:
@@ -75,11 +76,17 @@ def mano_pose_basis(seq: Sequence, reference: Any, like: PoseBasis10) -> PoseBas
     return PoseBasis10(comps / norms[:, None], builtin_norms)
 
 
-def pose_basis(references: list[Any], seq: Sequence | None = None) -> tuple[dict[str, PoseBasis10], str]:
-    """The packaged pose basis (``worker.pose_basis``, one PCA over the built-in hand's hinges, used for both
-    sides since the left hand mirrors the right with the same hinge conventions); without the packaged file,
-    a PCA of this sequence's own reference hinge angles (a documented fallback named in the provenance)."""
+def pose_basis(references: list[Any], seq: Sequence | None = None, mirror_left: bool = True
+               ) -> tuple[dict[str, PoseBasis10], str]:
+    """The packaged pose basis (``worker.pose_basis``, one PCA over the built-in hand's hinges in the right
+    hand's convention); a left hand gets its mirror image (``hand_model.MIRROR_SIGNS``: abductions and twists
+    negated), since the left hand that mirrors a right hand at ``q`` is at ``MIRROR_SIGNS * q``. Without the
+    packaged file, a PCA of this sequence's own reference hinge angles (a documented fallback named in the
+    provenance). ``mirror_left=False``: the packaged basis unmirrored for both sides (results made before
+    issue #15; the packaged basis came from right hands only, so left hands were steered along couplings of
+    abduction and flexion that are the wrong way round for them)."""
     from common.errors import ConfigurationError
+    from worker.hand_model import MIRROR_SIGNS
     from worker.pose_basis import load_pose_basis
 
     try:
@@ -90,7 +97,8 @@ def pose_basis(references: list[Any], seq: Sequence | None = None) -> tuple[dict
         basis = PoseBasis10(np.asarray(packaged.components[:10], dtype=np.float64),
                             np.asarray(packaged.stddev[:10], dtype=np.float64))
         source = json.dumps(packaged.provenance, sort_keys=True)[:300]
-        bases = {r.side: basis for r in references}
+        left = PoseBasis10(basis.components * MIRROR_SIGNS, basis.stddev) if mirror_left else basis
+        bases = {r.side: left if r.side == "left" else basis for r in references}
         mano_sides = [r.side for r in references if getattr(r, "from_mano", False) and seq is not None]
         for r in references:
             if r.side in mano_sides:
@@ -98,6 +106,8 @@ def pose_basis(references: list[Any], seq: Sequence | None = None) -> tuple[dict
                 bases[r.side] = mano_pose_basis(seq, r, basis)
         if mano_sides:
             source += f"; MANO PCA basis for {', '.join(mano_sides)}"
+        if mirror_left and any(r.side == "left" for r in references):
+            source += "; mirrored for the left hand"
         return bases, f"worker.pose_basis (packaged): {source}"
     out = {}
     for r in references:
@@ -112,8 +122,12 @@ def pose_basis(references: list[Any], seq: Sequence | None = None) -> tuple[dict
     return out, "fallback: PCA of this sequence's reference hinge angles (packaged pose basis missing)"
 
 
-def prepare(seq: Sequence, options: JobOptions, config: Any = None, rotation_pivot: str | None = None) -> Prepared:
-    """``rotation_pivot``: ``ROTATION_PIVOT`` when None (``verify`` passes the one a result was made with)."""
+def prepare(seq: Sequence, options: JobOptions, config: Any = None, rotation_pivot: str | None = None,
+            mirror_left: bool = True) -> Prepared:
+    """``rotation_pivot``: ``ROTATION_PIVOT`` when None (``verify`` passes the one a result was made with).
+    ``mirror_left``: a left hand's control coordinates are the mirror image of a right hand's (pose basis,
+    wrist rotation and translation; ``controls``); False reproduces results made before issue #15, which
+    recorded no ``config.left_hand_controls``."""
     from worker.retarget import retarget_sequence
     from worker.scene import SimConfig, build_scene
     from worker.simulation import lead_track, lead_values
@@ -123,7 +137,7 @@ def prepare(seq: Sequence, options: JobOptions, config: Any = None, rotation_piv
     scene = build_scene(seq, references, config)
     layout = SimLayout.from_scene(scene)
     interval = options.keyframe_interval or default_keyframe_interval(seq.fps)
-    bases, provenance = pose_basis(references, seq)
+    bases, provenance = pose_basis(references, seq, mirror_left)
     from worker.hand_model import JOINT_LIMITS
 
     pivot_kind = rotation_pivot or ROTATION_PIVOT
@@ -155,8 +169,10 @@ def prepare(seq: Sequence, options: JobOptions, config: Any = None, rotation_piv
             substeps=scene.substeps_per_frame,
             free_translation=options.free_wrist_translation,
             pivot=None if pivot is None else lead_values(pivot, lead),
+            mirrored=mirror_left and r.side == "left",
         )
-    return Prepared(seq, options, interval, references, scene, layout, spaces, obj, hands, provenance, pivot_kind)
+    return Prepared(seq, options, interval, references, scene, layout, spaces, obj, hands, provenance, pivot_kind,
+                    mirror_left)
 
 
 def pivot_track(kind: str, keypoints: FloatArray, joint_weights: FloatArray) -> FloatArray | None:

@@ -122,6 +122,9 @@ def build_summary(
             "loss_weights": weights,
             "free_wrist_translation": bool(prep.options.free_wrist_translation),
             "rotation_pivot": prep.rotation_pivot,
+            # "mirrored": a left hand's coordinates mirror a right hand's (``prepare.prepare(mirror_left=...)``);
+            # results without this key were made with the right hand's coordinates for both sides.
+            "left_hand_controls": "mirrored" if prep.mirror_left else "as right",
             "pose_basis": prep.basis_provenance,
         },
         "versions": versions(),
@@ -169,7 +172,8 @@ def verify_result(blob: bytes, sequence: Sequence | None = None) -> dict[str, An
     sim.setdefault("wrist_lead_s", 0.0)
     sim.setdefault("rest_approach_m", 0.0)
     sim.setdefault("finger_lead_s", 0.0)
-    prep = prepare(sequence, options, SimConfig(**sim), rotation_pivot=summary["config"].get("rotation_pivot", "wrist"))
+    prep = prepare(sequence, options, SimConfig(**sim), rotation_pivot=summary["config"].get("rotation_pivot", "wrist"),
+                   mirror_left=summary["config"].get("left_hand_controls") == "mirrored")
     keyframes = {}
     for side, space in prep.spaces.items():
         key = f"{side}_keyframes"
