@@ -124,9 +124,12 @@ def refine_sequence(
     progress: Callable[[RefineProgress], None] | None = None,
     should_stop: Callable[[], bool] | None = None,
     evaluator: ParallelEvaluator | None = None,
+    prepared: Prepared | None = None,
 ) -> RefineOutcome:
     """Refine one sequence; see the module docstring. ``should_stop`` is polled once per CMA-ES generation
     (``JobCancelledError`` when it answers True). ``evaluator`` lets a long-lived worker reuse its pool.
+    ``prepared``: ``prepare(seq, options)`` done by the caller, possibly altered (the known-answer test starts the
+    controls from a perturbed reference while the loss keeps the recorded targets); None prepares here.
 
     When the refined replay fails the success criterion and ``options.restarts`` allows, the whole window loop
     runs again from zero offsets with another seed (``attempt_seed``): the greedy sliding window cannot undo a
@@ -136,7 +139,9 @@ def refine_sequence(
     from worker.metrics import compute_metrics, scalar_metrics
 
     t0 = time.perf_counter()
-    prep = prepare(seq, options)
+    prep = prepared or prepare(seq, options)
+    if prep.seq is not seq:
+        raise ValueError("prepared must come from prepare() of the sequence being refined")
     t_prep = time.perf_counter()
     own = evaluator is None
     ev = evaluator or ParallelEvaluator(prep.scene.model, threads)
