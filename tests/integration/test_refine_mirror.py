@@ -58,3 +58,27 @@ def test_a_dexycb_right_hand_and_its_mirror_refine_alike(dexycb_dev_files: list[
         pytest.skip(f"{DEV_RIGHT} is not in the dev data")
     a, b = _both(load_dexycb_npz(path), JobOptions(seed=3, popsize=6, max_generations=2, restarts=0))
     _assert_alike(a, b)
+
+
+def test_verify_re_simulates_a_left_hand_with_the_controls_it_was_made_with() -> None:
+    """Results made before left hands were mirrored record no ``left_hand_controls`` and verify as made."""
+    from common.errors import ResultMismatchError
+    from worker.refine.prepare import prepare
+    from worker.refine.result import verify_result
+    from worker.refine.run import RefineOutcome
+
+    seq, _ = recovery_case(frames=16)
+    left = mirror_sequence(seq)
+    options = JobOptions(seed=1, popsize=4, max_generations=1, restarts=0)
+    old = refine_sequence(left, options, prepared=prepare(left, options, mirror_left=False))
+    assert old.summary["config"]["left_hand_controls"] == "as right"
+    assert abs(old.keyframes["left"]).max() > 0  # something was optimised, so the convention matters
+    unrecorded = {**old.summary, "config": {k: v for k, v in old.summary["config"].items()
+                                            if k != "left_hand_controls"}}
+    verify_result(RefineOutcome(old.arrays, unrecorded).to_npz_bytes())
+    as_if_new = {**old.summary, "config": {**old.summary["config"], "left_hand_controls": "mirrored"}}
+    with pytest.raises(ResultMismatchError):
+        verify_result(RefineOutcome(old.arrays, as_if_new).to_npz_bytes())
+    new = refine_sequence(left, options)
+    assert new.summary["config"]["left_hand_controls"] == "mirrored"
+    verify_result(new.to_npz_bytes())
