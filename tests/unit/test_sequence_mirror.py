@@ -13,7 +13,7 @@ from common.sequence import HandTrack, ObjectSpec, Sequence
 from common.sequence_mirror import mirror_object, mirror_sequence, reflection
 from worker.example import short_example_sequence
 from worker.hand_mjcf import hand_worldbody_xml
-from worker.hand_model import HINGE_NAMES, MIRROR_SIGNS, default_geometry, quat_to_matrix
+from worker.hand_model import HINGE_NAMES, JOINT_LIMITS, MIRROR_SIGNS, default_geometry, quat_to_matrix
 from worker.scene import SimConfig
 
 M = reflection()
@@ -83,8 +83,10 @@ def test_left_palm_box_mirrors_the_right_one() -> None:
     np.testing.assert_allclose(pos_l, np.array(pos_r) * [1, -1, 1])
 
 
-def test_mirror_signs_negate_abduction_and_twist_only() -> None:
+def test_mirror_signs_negate_abduction_and_twist_only_whose_limits_are_symmetric() -> None:
     assert all((s < 0) == name.endswith(("_abd", "_twist")) for s, name in zip(MIRROR_SIGNS, HINGE_NAMES, strict=True))
+    # The left hand shares the right hand's limits, so a mirrored pose must stay within them.
+    np.testing.assert_array_equal(np.sort(JOINT_LIMITS * MIRROR_SIGNS[:, None], axis=1), JOINT_LIMITS)
 
 
 def test_retargeting_and_controls_of_the_mirror_are_the_mirror_image() -> None:
