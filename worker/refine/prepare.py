@@ -35,6 +35,12 @@ DEFAULT_MAX_GENERATIONS = 10
 #: object then swings on the ~8 cm lever from the wrist; results made before the pivot was recorded).
 PIVOTS = ("hand", "wrist")
 ROTATION_PIVOT = "hand"
+#: A left hand's control coordinates are the mirror image of a right hand's (``prepare(mirror_left=...)``): the
+#: pose basis with abductions and twists negated, the wrist rotation reflected. Then a sequence and its mirror
+#: image are the same problem. Measured on small samples (bench/results/left_hands_thin.md) it did not improve
+#: left hands at a small budget (7 of 8 refined a little worse, one more failure); kept because it makes the two
+#: sides one method (tests/integration/test_refine_mirror.py). False restores the old treatment of left hands.
+MIRROR_LEFT_HAND = True
 
 
 @dataclass
@@ -123,11 +129,13 @@ def pose_basis(references: list[Any], seq: Sequence | None = None, mirror_left: 
 
 
 def prepare(seq: Sequence, options: JobOptions, config: Any = None, rotation_pivot: str | None = None,
-            mirror_left: bool = True) -> Prepared:
+            mirror_left: bool | None = None) -> Prepared:
     """``rotation_pivot``: ``ROTATION_PIVOT`` when None (``verify`` passes the one a result was made with).
     ``mirror_left``: a left hand's control coordinates are the mirror image of a right hand's (pose basis,
-    wrist rotation and translation; ``controls``); False reproduces results made before issue #15, which
-    recorded no ``config.left_hand_controls``."""
+    wrist rotation and translation; ``controls``); ``MIRROR_LEFT_HAND`` when None; False reproduces results
+    made before issue #15, which recorded no ``config.left_hand_controls``."""
+    if mirror_left is None:
+        mirror_left = MIRROR_LEFT_HAND
     from worker.retarget import retarget_sequence
     from worker.scene import SimConfig, build_scene
     from worker.simulation import lead_track, lead_values
