@@ -1,14 +1,26 @@
 # One image for every hoi-refine role: API (`hoi-refine serve`), Ray head (`hoi-refine ray-head`) and
 # workers (`hoi-refine worker --ray-address ... --ray-node`). docker-compose.yml picks the role per service.
-FROM python:3.11-slim
+#
+# The base only needs Python 3.11 with `python` and `pip` on PATH. Without Docker Hub, build a local one from
+# Debian's packages and use it:
+#   docker/build_base_image.sh    # -> hoi-refine-base:bookworm (debootstrap, this machine's CA bundle)
+#   docker build --network host --build-arg BASE_IMAGE=hoi-refine-base:bookworm -t hoi-refine:latest .
+# The image is lean on purpose: no torch (the `mano` extra is optional and not installed here).
+ARG BASE_IMAGE=python:3.11-slim
+FROM ${BASE_IMAGE}
 
 ENV PYTHONDONTWRITEBYTECODE=1 \
     PYTHONUNBUFFERED=1 \
     PIP_NO_CACHE_DIR=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1 \
-    # Headless MuJoCo: no rendering context is ever created.
-    MUJOCO_GL=disable \
+    # Headless offscreen rendering for the workers' preview videos (worker/visual): Mesa's EGL, no GPU needed.
+    MUJOCO_GL=egl \
     HOI_REFINE_VAR_DIR=/var/lib/hoi-refine
+
+# Mesa's EGL and software OpenGL driver: the workers render each finished job's preview video with them.
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends libegl1 libgl1 libgl1-mesa-dri \
+    && rm -rf /var/lib/apt/lists/*
 
 RUN useradd --create-home --uid 10001 hoi \
     && mkdir -p /var/lib/hoi-refine \

@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-fast lint typecheck bench-replay pose-basis clean
+.PHONY: demo test test-fast lint typecheck bench-replay compose-test pose-basis clean
 
 $(STAMP): pyproject.toml
 	test -d $(VENV) || $(PYTHON) -m venv $(VENV)
@@ -18,6 +18,7 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/ruff check common worker service migrations tests bench
 	$(BIN)/mypy
+	$(BIN)/lint-imports --no-cache
 	$(BIN)/python -m pytest
 
 test-fast: $(STAMP)
@@ -26,12 +27,19 @@ test-fast: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check common worker service migrations tests bench
 	$(BIN)/mypy
+	$(BIN)/lint-imports --no-cache
 
 bench-replay: $(STAMP)
 	$(BIN)/python bench/replay.py
 
+# The container stack on this machine (needs dockerd, docker-compose, debootstrap, root, the host's PostgreSQL):
+# build the images, start API + Ray head + 2 worker containers, kill one mid-job, check every job ends once.
+# Minutes, so not part of `make test`. Writes bench/results/compose.md.
+compose-test: $(STAMP)
+	$(BIN)/python bench/compose_test.py --out bench/results/compose.md
+
 pose-basis: $(STAMP)
-	$(BIN)/python -m worker.pose_basis_build
+	$(BIN)/python -m worker.hand.pose_basis_build
 
 clean:
 	rm -rf $(VENV) var .pytest_cache .mypy_cache .ruff_cache

@@ -2,12 +2,16 @@
 
 1. Polling: a uvicorn subprocess on 127.0.0.1 serves the app; an open-loop client fires
    ``GET /v1/jobs/{id}`` at a fixed rate (default 200 req/s for 30 s) over a set of submitted jobs and records
-   each latency; then a closed-loop run (``--concurrency`` clients back to back) finds the saturation rate.
+   each latency, once plain and once as a caching client would (``If-None-Match`` with the last ETag); then
+   a closed-loop run (``--concurrency`` clients back to back) finds the saturation rate. With
+   ``--refine-workers N`` a ``hoi-refine worker --workers N`` process refines real sequences (the built-in
+   example) on the same machine the whole time, as ``hoi-refine up`` does (issue #20).
 2. Claims: ``--claim-jobs`` jobs are queued, then ``--claimers`` spawned processes claim + complete until the
    queue is empty (each job claimed exactly once is checked too).
 
     .venv/bin/python bench/api_load.py                          # both backends, results to stdout
     .venv/bin/python bench/api_load.py --out bench/results/api_load.md
+    .venv/bin/python bench/api_load.py --refine-workers 2 --out bench/results/api_load.md
 
 PostgreSQL uses ``HOI_REFINE_TEST_POSTGRES_URL`` (or ``--postgres-url``), in a scratch schema dropped after.
 """
@@ -19,6 +23,7 @@ import asyncio
 import os
 import platform
 import re
+import signal
 import socket
 import subprocess
 import sys
@@ -38,15 +43,19 @@ import sqlalchemy as sa
 #: Connections the open-loop client spreads its requests over.
 OPEN_LOOP_CONNECTIONS = 32
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))  # bench/ runs as a script; the claimer body lives in tests/queue_claimer.py
+sys.path.insert(0, str(ROOT))  # bench/ runs as a script; the claimer body lives in tests/support/queue_claimer.py
 
+from common.api_client import wait_until_ready  # noqa: E402
+from common.api_key_store import ApiKeyStore  # noqa: E402
 from common.database import create_engine_for, upgrade_to_head  # noqa: E402
+from common.errors import ApiError  # noqa: E402
 from common.job_options import JobOptions  # noqa: E402
 from common.queue import JobQueue  # noqa: E402
-from common.sequence_io import sequence_to_json_dict  # noqa: E402
+from common.sequence_io import sequence_to_json_dict, sequence_to_npz_bytes  # noqa: E402
 from common.settings import Settings  # noqa: E402
-from tests.queue_claimer import run_claimers  # noqa: E402
-from tests.queue_fixtures import tiny_payload, tiny_sequence  # noqa: E402
+from tests.support.queue_claimer import run_claimers  # noqa: E402
+from tests.support.queue_fixtures import tiny_payload, tiny_sequence  # noqa: E402
+from worker.example import example_sequence  # noqa: E402
 
 
 @dataclass
@@ -59,6 +68,9 @@ class PollFigures:
     p99_ms: float
     #: uvicorn process CPU time per request: what a request costs, independent of other load on the machine.
     server_cpu_ms: float = float("nan")
+    #: Jobs RUNNING (refined by the workers) when the run started and when it ended.
+    running: str = "-"
+    not_modified: int = 0
 
     @property
     def rate(self) -> float:
@@ -115,16 +127,10 @@ def server(url: str) -> Iterator[tuple[str, int]]:
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env)
     base = f"http://127.0.0.1:{port}"
     try:
-        deadline = time.monotonic() + 30
-        while True:
-            try:
-                if httpx.get(f"{base}/readyz", timeout=1).status_code == 200:
-                    break
-            except httpx.HTTPError:
-                pass
-            if time.monotonic() > deadline or proc.poll() is not None:
-                raise SystemExit("uvicorn did not become ready")
-            time.sleep(0.2)
+        try:
+            wait_until_ready(base, 30, alive=lambda: proc.poll() is None, interval_s=0.2)
+        except ApiError as exc:
+            raise SystemExit(f"uvicorn did not become ready: {exc}") from exc
         yield base, proc.pid
     finally:
         proc.terminate()
@@ -144,25 +150,35 @@ class Connection:
         reader, writer = await asyncio.open_connection(host, int(port))
         return cls(reader, writer, f"Authorization: Bearer {key}\r\n".encode())
 
-    async def get(self, path: str) -> int:
-        self.writer.write(f"GET {path} HTTP/1.1\r\nHost: bench\r\n".encode() + self.auth + b"\r\n")
+    async def get(self, path: str, etags: dict[str, bytes] | None = None) -> int:
+        """GET ``path``; with ``etags``, send the last ETag seen for it (a caching client) and remember the new."""
+        extra = b""
+        if etags is not None and path in etags:
+            extra = b"If-None-Match: " + etags[path] + b"\r\n"
+        self.writer.write(f"GET {path} HTTP/1.1\r\nHost: bench\r\n".encode() + self.auth + extra + b"\r\n")
         head = await self.reader.readuntil(b"\r\n\r\n")
         length = re.search(rb"(?i)\r\ncontent-length: *(\d+)", head)
         if length:
             await self.reader.readexactly(int(length.group(1)))
+        if etags is not None and (tag := re.search(rb"(?i)\r\netag: *([^\r]+)", head)):
+            etags[path] = tag.group(1)
         return int(head[9:12])
 
     def close(self) -> None:
         self.writer.close()
 
 
-async def open_loop(base: str, key: str, job_ids: list[str], rate: float, duration: float) -> PollFigures:
+async def open_loop(
+    base: str, key: str, job_ids: list[str], rate: float, duration: float, conditional: bool = False
+) -> PollFigures:
     """Requests are due on a fixed schedule whatever the answers do; latency counts from the due time, so
-    time spent waiting for a free connection is included (no coordinated omission)."""
+    time spent waiting for a free connection is included (no coordinated omission). ``conditional``: each
+    request carries the ETag of the last answer for that job (If-None-Match), as a caching client does."""
     conns = [await Connection.open(base, key) for _ in range(OPEN_LOOP_CONNECTIONS)]
     due: asyncio.Queue[tuple[int, float] | None] = asyncio.Queue()
     latencies: list[float] = []
-    errors = 0
+    errors = not_modified = 0
+    etags: dict[str, bytes] | None = {} if conditional else None
     n = int(rate * duration)
 
     async def produce() -> None:
@@ -176,12 +192,13 @@ async def open_loop(base: str, key: str, job_ids: list[str], rate: float, durati
             due.put_nowait(None)
 
     async def consume(conn: Connection) -> None:
-        nonlocal errors
+        nonlocal errors, not_modified
         while (item := await due.get()) is not None:
             i, at = item
-            status = await conn.get(f"/v1/jobs/{job_ids[i % len(job_ids)]}")
+            status = await conn.get(f"/v1/jobs/{job_ids[i % len(job_ids)]}", etags)
             latencies.append(time.perf_counter() - at)
-            errors += status != 200
+            errors += status not in (200, 304)
+            not_modified += status == 304
 
     t0 = time.perf_counter()
     await asyncio.gather(produce(), *(consume(c) for c in conns))
@@ -189,7 +206,10 @@ async def open_loop(base: str, key: str, job_ids: list[str], rate: float, durati
     for c in conns:
         c.close()
     lat = np.array(latencies) * 1e3
-    return PollFigures(f"open loop {rate:.0f}/s ({len(conns)})", n, errors, elapsed, *np.percentile(lat, [50, 99]))
+    mode = f"open loop {rate:.0f}/s ({len(conns)}){', If-None-Match' if conditional else ''}"
+    figures = PollFigures(mode, n, errors, elapsed, *np.percentile(lat, [50, 99]))
+    figures.not_modified = not_modified
+    return figures
 
 
 async def closed_loop(base: str, key: str, job_ids: list[str], concurrency: int, duration: float) -> PollFigures:
@@ -218,11 +238,51 @@ async def closed_loop(base: str, key: str, job_ids: list[str], concurrency: int,
     return PollFigures(f"closed loop x{concurrency}", len(lat), errors, elapsed, *np.percentile(lat, [50, 99]))
 
 
+@contextmanager
+def refining_workers(url: str, queue: JobQueue, owner: str, workers: int) -> Iterator[None]:
+    """``hoi-refine worker --workers N`` refining the built-in example sequence (2 jobs per worker, ahead of
+    the polled jobs by priority) until the block ends; waits until N jobs are RUNNING."""
+    if workers <= 0:
+        yield
+        return
+    payload = sequence_to_npz_bytes(example_sequence(seed=0).validate())
+    for i in range(2 * workers):
+        queue.submit(owner, payload, JobOptions(seed=i, priority=10), None, f"example-{i}", 72)
+    env = {**os.environ, "HOI_REFINE_DATABASE_URL": url}
+    cmd = [sys.executable, "-m", "common.cli", "worker", "--workers", str(workers), "--quiet-actors"]
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, start_new_session=True, stdout=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 180
+        while running_jobs(queue) < workers:
+            if time.monotonic() > deadline or proc.poll() is not None:
+                raise SystemExit(f"the workers did not start refining (exit code {proc.poll()})")
+            time.sleep(1.0)
+        yield
+    finally:
+        proc.send_signal(signal.SIGTERM)  # graceful: running jobs are released to QUEUED
+        try:
+            proc.wait(timeout=90)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=30)
+
+
+def running_jobs(queue: JobQueue) -> int:
+    return queue.stats().jobs_by_state.get("RUNNING", 0)
+
+
 def bench_polling(url: str, args: argparse.Namespace) -> list[PollFigures]:
     engine = create_engine_for(url)
-    queue = JobQueue(engine)
-    _, key = queue.create_api_key("bench")
-    engine.dispose()
+    queue = JobQueue(engine, Settings(max_active_jobs_per_key=100_000))
+    owner, key = ApiKeyStore(engine).create("bench")
+    try:
+        with refining_workers(url, queue, owner, args.refine_workers):
+            return _poll_runs(url, key, queue, args)
+    finally:
+        engine.dispose()
+
+
+def _poll_runs(url: str, key: str, queue: JobQueue, args: argparse.Namespace) -> list[PollFigures]:
     with server(url) as (base, pid):
         body = {**sequence_to_json_dict(tiny_sequence().validate()), "options": {}}
         job_ids = []
@@ -235,11 +295,14 @@ def bench_polling(url: str, args: argparse.Namespace) -> list[PollFigures]:
         out = []
         for run in (
             lambda: open_loop(base, key, job_ids, args.rate, args.duration),
+            lambda: open_loop(base, key, job_ids, args.rate, args.duration, conditional=True),
             lambda: closed_loop(base, key, job_ids, args.concurrency, args.closed_duration),
         ):
+            before = running_jobs(queue)
             cpu0 = process_cpu_seconds(pid)
             figures = asyncio.run(run())
             figures.server_cpu_ms = (process_cpu_seconds(pid) - cpu0) / figures.requests * 1e3
+            figures.running = f"{before}/{running_jobs(queue)}"
             out.append(figures)
     return out
 
@@ -247,7 +310,7 @@ def bench_polling(url: str, args: argparse.Namespace) -> list[PollFigures]:
 def bench_claims(url: str, jobs: int, claimers: int) -> ClaimFigures:
     engine = create_engine_for(url)
     queue = JobQueue(engine, Settings(max_active_jobs_per_key=1_000_000))
-    owner, _ = queue.create_api_key("bench")
+    owner, _ = ApiKeyStore(engine).create("bench")
     payload = tiny_payload()
     for i in range(jobs):
         queue.submit(owner, payload, JobOptions(seed=i), None, f"bench-{i}", 5)
@@ -268,20 +331,22 @@ def report(results: dict[str, tuple[list[PollFigures], ClaimFigures]], args: arg
         f"{os.cpu_count()} CPU cores shared by the client, one uvicorn worker and the database; Python "
         f"{platform.python_version()}. Command: `.venv/bin/python bench/api_load.py "
         f"--rate {args.rate:g} --duration {args.duration:g} --claim-jobs {args.claim_jobs} "
-        f"--claimers {args.claimers}`. Load average (1/5/15 min) before: "
+        f"--claimers {args.claimers} --refine-workers {args.refine_workers}`. Load average (1/5/15 min) before: "
         f"{'/'.join(f'{x:.1f}' for x in args.load_before)}, after: {'/'.join(f'{x:.1f}' for x in args.load_after)}"
-        " (other work on the machine competes for the same cores).",
+        " (other work on the machine competes for the same cores). Refinement workers on the same machine: "
+        f"{args.refine_workers} (`hoi-refine worker --workers {args.refine_workers}`, nice "
+        f"{Settings().worker_nice}, refining the built-in example sequence throughout the polling runs).",
         "",
         "## Status polling: `GET /v1/jobs/{id}` (auth, ETag, progress) against a uvicorn subprocess",
         "",
-        "| backend | load (connections) | requests | errors | achieved req/s | p50 ms | p99 ms "
-        "| server CPU ms/request |",
-        "|---|---|---:|---:|---:|---:|---:|---:|",
+        "| backend | load (connections) | jobs refining (start/end) | requests | errors | 304s | achieved req/s "
+        "| p50 ms | p99 ms | server CPU ms/request |",
+        "|---|---|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for backend, (polls, _) in results.items():
         for p in polls:
-            lines.append(f"| {backend} | {p.mode} | {p.requests} | {p.errors} | {p.rate:.0f} | "
-                         f"{p.p50_ms:.1f} | {p.p99_ms:.1f} | {p.server_cpu_ms:.2f} |")  # fmt: skip
+            lines.append(f"| {backend} | {p.mode} | {p.running} | {p.requests} | {p.errors} | {p.not_modified} | "
+                         f"{p.rate:.0f} | {p.p50_ms:.1f} | {p.p99_ms:.1f} | {p.server_cpu_ms:.2f} |")  # fmt: skip
     lines += [
         "",
         f"## Claim throughput: {args.claimers} claimer processes, claim + complete until the queue is empty",
@@ -320,6 +385,8 @@ def main() -> int:
     parser.add_argument("--poll-jobs", type=int, default=50, help="jobs submitted for polling")
     parser.add_argument("--claim-jobs", type=int, default=400)
     parser.add_argument("--claimers", type=int, default=8)
+    parser.add_argument("--refine-workers", type=int, default=0,
+                        help="run `hoi-refine worker --workers N` refining real sequences during the polling runs")
     parser.add_argument("--out", type=Path, help="also write the markdown report here")
     args = parser.parse_args()
     results = {}

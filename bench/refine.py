@@ -6,11 +6,13 @@
 Reads the sample list ``bench/samples/<sample>.txt`` (file names under ../shared/data/dexycb/dev), refines each
 sequence with ``worker.refine.run.refine_sequence`` (sequentially; ``--threads`` simulation threads each) and
 writes ``bench/results/refine_dev.md`` (``refine_<sample>.md`` for other samples): per-sequence rows and the
-aggregate (success rate, mean E_t, E_r, E_j, E_ft, median wall seconds per sequence, share of wall time inside
-simulation, windows skipped) against the issue's targets, split by hand side and by the awkward classes tagged in
-the sample list (``# awkward: ...``, see bench/samples/draw.py). Per-sequence summaries are cached in
-``var/bench/refine/`` so an interrupted run resumes (``--fresh`` ignores the cache); the cache key holds a hash of
-the ``common``/``worker`` sources, so a run never mixes results of different code.
+aggregate (success rate, first-attempt success, mean E_t, E_r, E_j, E_ft on both protocols — all frames, and the
+paper's: frames 10 onward —, penetration and the hand-held share of lifted frames, median wall seconds per
+sequence, share of wall time inside simulation, windows skipped) against the issue's targets, split by hand side
+and by the awkward classes tagged in the sample list (``# awkward: ...``, see bench/samples/draw.py).
+Per-sequence summaries are cached in ``var/bench/refine/`` so an interrupted run resumes (``--fresh`` ignores the
+cache); the cache key holds a hash of the ``common``/``worker`` sources, so a run never mixes results of
+different code.
 """
 
 from __future__ import annotations
@@ -52,6 +54,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def run_one(path: Path, args: argparse.Namespace, cache: Path, awkward: list[str] | None = None) -> dict[str, Any]:
     from common.dexycb import load_dexycb_npz
     from common.job_options import JobOptions
+    from common.settings import get_settings
     from worker.refine.run import refine_sequence
 
     key = f"{path.stem}__p{args.popsize}_g{args.max_generations}_s{args.seed}_t{args.threads}_c{code_digest()}.json"
@@ -60,15 +63,15 @@ def run_one(path: Path, args: argparse.Namespace, cache: Path, awkward: list[str
         out: dict[str, Any] = json.loads(hit.read_text())
         out["awkward"] = awkward or []
         if "table" not in out:  # cached before results recorded their table: the same fit, recomputed
-            from worker.scene import SimConfig
-            from worker.table_fit import fit_table
+            from worker.simulation.scene import SimConfig
+            from worker.simulation.table_fit import fit_table
 
             out["table"] = fit_table(load_dexycb_npz(path), SimConfig())[1].to_dict()
         return out
     seq = load_dexycb_npz(path)
     options = JobOptions(seed=args.seed, popsize=args.popsize, max_generations=args.max_generations)
     t0 = time.perf_counter()
-    outcome = refine_sequence(seq, options, threads=args.threads)
+    outcome = refine_sequence(seq, options, threads=args.threads, cache_dir=get_settings().resolved_cache_dir())
     summary = dict(outcome.summary)
     summary["bench_wall_s"] = time.perf_counter() - t0
     summary["object"] = seq.object.name
@@ -92,37 +95,48 @@ def code_digest() -> str:
     return h.hexdigest()[:12]
 
 
-def aggregate(rows: list[dict[str, Any]], which: str) -> dict[str, float]:
-    ms = [r["metrics"][which] for r in rows]
+def aggregate(rows: list[dict[str, Any]], which: str, protocol: str = "all") -> dict[str, float]:
+    """Means over the sequences of ``metrics[which]`` on one protocol ("all" frames, or the "paper"'s: frames 10
+    onward): SR (and the first attempt's, refined only), the errors, penetration (mean of the per-sequence mean
+    per-frame maximum; mean and maximum of the sequence maxima, mm) and the hand-held share of lifted frames.
+    Figures a summary does not have (older cached results) come out NaN."""
+    ms = [r["metrics"][which] if protocol == "all" else r["metrics"][which].get("paper") or {} for r in rows]
+
+    def mean(key: str) -> float:
+        vals = [float(m[key]) for m in ms if m.get(key) is not None]
+        return statistics.fmean(vals) if vals else float("nan")
+
+    first = [m.get("success_first_attempt") for m in ms]
+    pen_max = [float(m["penetration_max_mm"]) for m in ms if m.get("penetration_max_mm") is not None]
     return {
-        "SR": 100.0 * sum(bool(m["success"]) for m in ms) / len(ms),
-        **{k: statistics.fmean(float(m[k]) for m in ms) for k in ("E_t", "E_r", "E_j", "E_ft")},
+        "SR": 100.0 * sum(bool(m.get("success")) for m in ms) / len(ms) if all("success" in m for m in ms)
+        else float("nan"),
+        "SR_first": 100.0 * sum(bool(f) for f in first) / len(ms) if all(f is not None for f in first)
+        else float("nan"),
+        **{k: mean(k) for k in ("E_t", "E_r", "E_j", "E_ft")},
+        "pen_mean": mean("penetration_mean_mm"),
+        "pen_max_mean": statistics.fmean(pen_max) if pen_max else float("nan"),
+        "pen_max_max": max(pen_max) if pen_max else float("nan"),
+        "held": 100.0 * mean("hand_only_fraction"),
     }
 
 
-def groups(rows: list[dict[str, Any]]) -> list[tuple[str, list[dict[str, Any]]]]:
-    """The report's splits: by hand side, each awkward class (``bench/samples/draw.py``), and the rest."""
-    from bench.samples.draw import AWKWARD
-
-    out = [("all", rows), *((f"{s} hands", [r for r in rows if r["side"] == s]) for s in ("right", "left"))]
-    out += [(f"awkward: {c}", [r for r in rows if c in r.get("awkward", [])]) for c in AWKWARD]
-    out.append(("not awkward", [r for r in rows if not r.get("awkward")]))
-    return [(label, members) for label, members in out if members]
-
-
-def group_table(rows: list[dict[str, Any]]) -> list[str]:
-    """Markdown rows: raw and refined success and errors, and median wall time, per ``groups`` split."""
+def metrics_table(rows: list[dict[str, Any]]) -> list[str]:
+    """Raw vs refined on both protocols, clearly labelled, with the plausibility figures (issue #15 items 3-4)."""
     lines = [
-        "| group | n | raw SR % | raw E_t | SR % | E_t cm | E_r deg | E_j cm | E_ft cm | median wall s |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| | protocol | SR % | SR 1st attempt % | E_t cm | E_r deg | E_j cm | E_ft cm | penetration mm (mean per-frame "
+        "max) | sequence max mm (mean / worst) | lifted frames hand-held % |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for label, members in groups(rows):
-        raw, ref = aggregate(members, "raw"), aggregate(members, "refined")
-        wall = statistics.median(r["timings"]["wall_s"] for r in members)
-        lines.append(
-            f"| {label} | {len(members)} | {raw['SR']:.1f} | {raw['E_t']:.2f} | {ref['SR']:.1f} | {ref['E_t']:.2f} | "
-            f"{ref['E_r']:.2f} | {ref['E_j']:.2f} | {ref['E_ft']:.2f} | {wall:.1f} |"
-        )
+    for label, which in (("raw replay", "raw"), ("refined", "refined")):
+        for protocol, name in (("all", "all frames"), ("paper", "paper: frames 10+")):
+            m = aggregate(rows, which, protocol)
+            first = "" if which == "raw" else f"{m['SR_first']:.1f}"
+            lines.append(
+                f"| {label} | {name} | {m['SR']:.1f} | {first} | {m['E_t']:.2f} | {m['E_r']:.2f} | {m['E_j']:.2f} | "
+                f"{m['E_ft']:.2f} | {m['pen_mean']:.2f} | {m['pen_max_mean']:.2f} / {m['pen_max_max']:.2f} | "
+                f"{m['held']:.0f} |"
+            )
     return lines
 
 
@@ -134,7 +148,6 @@ def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) 
     import os
     import platform
 
-    raw, ref = aggregate(rows, "raw"), aggregate(rows, "refined")
     walls = [r["timings"]["wall_s"] for r in rows]
     share = 100.0 * sum(r["timings"]["sim_s"] for r in rows) / sum(walls)
     steps_s = sum(r["timings"]["steps"] for r in rows) / sum(r["timings"]["sim_s"] for r in rows)
@@ -151,17 +164,16 @@ def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) 
         f"window, seed {args.seed}. Machine: {os.cpu_count()} cores shared with other work "
         f"({platform.processor() or platform.machine()}), MuJoCo {rows[0]['versions']['mujoco']}.",
         "",
-        "| | SR % | E_t cm | E_r deg | E_j cm | E_ft cm |",
+        *metrics_table(rows),
+        *by_side(rows),
+        "",
+        *group_table(rows),
+        "",
+        "| targets / paper | SR % | E_t cm | E_r deg | E_j cm | E_ft cm |",
         "|---|---|---|---|---|---|",
-        *(
-            f"| {label} | {m['SR']:.1f} | {m['E_t']:.2f} | {m['E_r']:.2f} | {m['E_j']:.2f} | {m['E_ft']:.2f} |"
-            for label, m in (("raw replay", raw), ("refined", ref))
-        ),
         f"| target | >= {TARGETS['SR']:.0f} | <= {TARGETS['E_t']} | <= {TARGETS['E_r']} | <= {TARGETS['E_j']} | "
         f"<= {TARGETS['E_ft']} |",
         f"| paper | {PAPER['SR']} | {PAPER['E_t']} | {PAPER['E_r']} | {PAPER['E_j']} | {PAPER['E_ft']} |",
-        "",
-        *group_table(rows),
         "",
         f"* median wall time per sequence: **{statistics.median(walls):.1f} s** (target <= 60 s, paper 557 s); "
         f"min {min(walls):.1f} s, max {max(walls):.1f} s",
@@ -170,7 +182,7 @@ def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) 
         f"* windows skipped (no hand-object contact and loss already low): {skipped} of {windows}; windows given a "
         f"second, larger CMA-ES run (best loss still above {cma.get('escalate_loss', float('inf')):.0f}): "
         f"{escalated} of {windows}",
-        f"* table laid under the start pose (worker/table_fit.py, worker/rest_pose.py): tilted in {len(tilted)} of "
+        f"* table laid under the start pose (worker/simulation: table_fit, rest_pose): tilted in {len(tilted)} of "
         f"{len(rows)} sequences (median {statistics.median([r['table']['tilt_deg'] for r in tilted] or [0]):.1f} deg),"
         " level in the rest",
         f"* where the time goes (sums over the sequences): batched CMA-ES rollouts {_sum(rows, 'rollout_s'):.0f} s "
@@ -183,20 +195,71 @@ def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) 
         "",
         "## Per sequence",
         "",
-        "| sequence | object | side | frames | raw ok | raw E_t | refined ok | E_t | E_r | E_j | E_ft | wall s | sim % "
-        "| skipped | escalated | table tilt deg | awkward |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| sequence | object | side | frames | raw ok | raw E_t | refined ok (1st) | E_t | E_r | E_j | E_ft | "
+        "E_t 10+ | E_r 10+ | pen mm | pen max | held % | wall s | sim % | skipped | escalated | table tilt deg | "
+        "awkward |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         a, b, t = r["metrics"]["raw"], r["metrics"]["refined"], r["timings"]
+        p = b.get("paper") or {}
+        first = {True: " (yes)", False: " (no)", None: ""}[b.get("success_first_attempt")]
         lines.append(
             f"| {r['sequence']} | {r['object']} | {r['side']} | {r['frames']} | {'yes' if a['success'] else 'no'} "
-            f"| {a['E_t']:.2f} | {'yes' if b['success'] else 'no'} | {b['E_t']:.2f} | {b['E_r']:.2f} | "
-            f"{b['E_j']:.2f} | {b['E_ft']:.2f} | {t['wall_s']:.1f} | {100 * t['sim_share']:.0f} | "
+            f"| {a['E_t']:.2f} | {'yes' if b['success'] else 'no'}{first} | {b['E_t']:.2f} | {b['E_r']:.2f} | "
+            f"{b['E_j']:.2f} | {b['E_ft']:.2f} | {_f(p.get('E_t'))} | {_f(p.get('E_r'))} | "
+            f"{_f(b.get('penetration_mean_mm'))} | {_f(b.get('penetration_max_mm'))} | "
+            f"{_f(None if b.get('hand_only_fraction') is None else 100 * b['hand_only_fraction'], 0)} | "
+            f"{t['wall_s']:.1f} | {100 * t['sim_share']:.0f} | "
             f"{r['windows']['skipped']}/{r['windows']['count']} | {r['windows'].get('escalated', 0)} | "
             f"{r.get('table', {}).get('tilt_deg', float('nan')):.1f} | {','.join(r.get('awkward', []))} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def groups(rows: list[dict[str, Any]]) -> list[tuple[str, list[dict[str, Any]]]]:
+    """The report's splits: by hand side, each awkward class (``bench/samples/draw.py``), and the rest."""
+    from bench.samples.draw import AWKWARD
+
+    out = [("all", rows), *((f"{s} hands", [r for r in rows if r["side"] == s]) for s in ("right", "left"))]
+    out += [(f"awkward: {c}", [r for r in rows if c in r.get("awkward", [])]) for c in AWKWARD]
+    out.append(("not awkward", [r for r in rows if not r.get("awkward")]))
+    return [(label, members) for label, members in out if members]
+
+
+def group_table(rows: list[dict[str, Any]]) -> list[str]:
+    """One line per ``groups`` split: raw and refined success (final and first attempt), object errors on both
+    protocols, hand errors and median wall time, so the awkward sequences are reported separately."""
+    lines = [
+        "| group | n | raw SR % | SR % | SR 1st % | E_t cm | E_r deg | E_t 10+ | E_r 10+ | E_j cm | E_ft cm | "
+        "median wall s |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for label, members in groups(rows):
+        raw, ref = aggregate(members, "raw"), aggregate(members, "refined")
+        paper = aggregate(members, "refined", "paper")
+        wall = statistics.median(r["timings"]["wall_s"] for r in members)
+        lines.append(
+            f"| {label} | {len(members)} | {raw['SR']:.1f} | {ref['SR']:.1f} | {ref['SR_first']:.1f} | "
+            f"{ref['E_t']:.2f} | {ref['E_r']:.2f} | {paper['E_t']:.2f} | {paper['E_r']:.2f} | {ref['E_j']:.2f} | "
+            f"{ref['E_ft']:.2f} | {wall:.1f} |"
+        )
+    return lines
+
+
+def by_side(rows: list[dict[str, Any]]) -> list[str]:
+    """The same table for each hand side (left hands failed more often on outside data; issue #15); nothing when
+    the rows have one side only."""
+    sides = sorted({str(r.get("side")) for r in rows})
+    out: list[str] = []
+    for side in sides if len(sides) > 1 else []:
+        some = [r for r in rows if str(r.get("side")) == side]
+        out += ["", f"{side} hands ({len(some)} sequences):", "", *metrics_table(some)]
+    return out
+
+
+def _f(v: Any, digits: int = 2) -> str:
+    return "-" if v is None else f"{float(v):.{digits}f}"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -219,7 +282,10 @@ def main(argv: list[str] | None = None) -> int:
         m, t = row["metrics"], row["timings"]
         print(f"[{i}/{len(todo)}] {name}: raw {'ok' if m['raw']['success'] else 'FAIL'} E_t {m['raw']['E_t']:.2f} "
               f"-> refined {'ok' if m['refined']['success'] else 'FAIL'} E_t {m['refined']['E_t']:.2f} "
-              f"E_r {m['refined']['E_r']:.2f}  {t['wall_s']:.1f}s", flush=True)
+              f"E_r {m['refined']['E_r']:.2f} (frames 10+: E_t {_f(m['refined'].get('paper', {}).get('E_t'))} "
+              f"E_r {_f(m['refined'].get('paper', {}).get('E_r'))}) penetration "
+              f"{_f(m['refined'].get('penetration_mean_mm'))}/{_f(m['refined'].get('penetration_max_mm'))} mm  "
+              f"{t['wall_s']:.1f}s", flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(render(rows, args, len(names)))
     print(f"wrote {args.out}")

@@ -53,6 +53,7 @@ def sample_files(sample: str, count: int) -> list[Path]:
 
 
 def run_config(workers: int, threads: int, payloads: list[tuple[str, bytes]], options: Any) -> dict[str, Any]:
+    from common.api_key_store import ApiKeyStore
     from common.database import create_engine_for, upgrade_to_head
     from common.queue import JobQueue
     from common.settings import get_settings
@@ -65,7 +66,7 @@ def run_config(workers: int, threads: int, payloads: list[tuple[str, bytes]], op
         get_settings.cache_clear()
         upgrade_to_head(url)
         queue = JobQueue(create_engine_for(url))
-        owner, _ = queue.create_api_key("bench")
+        owner, _ = ApiKeyStore(queue.engine).create("bench")
         ids = [queue.submit(owner, blob, options, None, name, 0)[0].id for name, blob in payloads]
         pool = WorkerPool(PoolConfig(workers=workers, threads_per_worker=threads, log_to_driver=False))
         load_before = os.getloadavg()[0]

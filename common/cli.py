@@ -1,26 +1,28 @@
-"""``hoi-refine``: one command, subcommands registered by the packages that own them.
+"""``hoi-refine``: one command; its subcommands are registered by the packages that own them.
 
-Each module in ``SUBCOMMAND_MODULES`` exposes ``register(subparsers)`` and keeps heavy imports (MuJoCo,
-Ray, FastAPI) inside its handlers, so ``hoi-refine --help`` stays fast. Handlers take the parsed
-namespace and return an exit code. Project errors print one clear line and exit 2.
+Every subcommand is an entry point in the ``hoi_refine.commands`` group (pyproject.toml): the name is the
+subcommand, the value a ``register(subparsers)`` function in the module that holds its code. That is the one
+way ``main`` finds a command, and it keeps this bottom layer free of imports of ``worker`` and ``service``
+(import-linter checks it). Command modules keep heavy imports (MuJoCo, Ray, FastAPI) inside their handlers, so
+``hoi-refine --help`` stays fast. Handlers take the parsed namespace and return an exit code; project errors
+print one clear line and exit 2.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
+from importlib.metadata import entry_points
 
-from common.errors import HoiRefineError
+from common.errors import ConfigurationError, HoiRefineError
 
-#: Modules that add subcommands (each has ``register(subparsers)``).
-SUBCOMMAND_MODULES: tuple[str, ...] = (
-    "worker.cli_local",
-    "worker.cli_refine",
-    "service.submit.cli",
-    "worker.cli_runtime",
-    "service.cli",
-)
+#: The entry-point group that names every subcommand.
+COMMAND_GROUP = "hoi_refine.commands"
+#: The order subcommands are listed in ``--help``: the science a user starts with, then the service.
+HELP_ORDER = (
+    "inspect", "replay", "refine", "verify", "render", "view", "plot", "export", "demo", "submit", "up", "serve",
+    "worker", "ray-head", "keys",
+)  # fmt: skip
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -33,13 +35,23 @@ def build_parser() -> argparse.ArgumentParser:
         ),
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for name in SUBCOMMAND_MODULES:
-        importlib.import_module(name).register(sub)
+    commands = {ep.name: ep for ep in entry_points(group=COMMAND_GROUP)}
+    if not commands:
+        raise ConfigurationError(
+            f"no {COMMAND_GROUP!r} entry points: hoi-refine is not installed (pip install -e . in the checkout)"
+        )
+    rank = {name: i for i, name in enumerate(HELP_ORDER)}
+    for name in sorted(commands, key=lambda n: (rank.get(n, len(rank)), n)):
+        commands[name].load()(sub)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    try:
+        parser = build_parser()
+    except HoiRefineError as exc:
+        print(f"hoi-refine: error: {exc}", file=sys.stderr)
+        return 2
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # usage errors and --help: return argparse's code, so main() always returns

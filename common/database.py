@@ -16,12 +16,14 @@ from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from functools import lru_cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import sqlalchemy as sa
-from sqlalchemy.engine import Engine
+from sqlalchemy.engine import Connection, Engine
 from sqlalchemy.engine.url import make_url
 
 from common.errors import DatabaseUnavailableError
@@ -62,13 +64,42 @@ def create_engine_for(url: str, **kwargs: Any) -> Engine:
 
     @sa.event.listens_for(engine, "begin")
     def _on_begin(conn: sa.Connection) -> None:
-        immediate = conn.get_execution_options().get(IMMEDIATE, False)
-        conn.exec_driver_sql("BEGIN IMMEDIATE" if immediate else "BEGIN")
+        options = conn.get_execution_options()
+        if options.get("isolation_level") == "AUTOCOMMIT":
+            return  # one statement, its own implicit transaction (the status poll's version read)
+        conn.exec_driver_sql("BEGIN IMMEDIATE" if options.get(IMMEDIATE, False) else "BEGIN")
 
     return engine
 
 
 # ---------------------------------------------------------------------- migrations
+
+
+class Transactions:
+    """Transactions on one engine, for the stores that speak SQL (``JobQueue``, ``WebhookStore``): writes take
+    SQLite's database lock up front (BEGIN IMMEDIATE, so two writers never deadlock upgrading their read
+    locks), and row locks exist on PostgreSQL only."""
+
+    def __init__(self, engine: Engine) -> None:
+        self.engine = engine
+        self.postgres = engine.dialect.name == "postgresql"
+
+    @contextmanager
+    def write(self) -> Iterator[Connection]:
+        with self.engine.connect() as conn:
+            conn.execution_options(**{IMMEDIATE: True})
+            with conn.begin():
+                yield conn
+
+    @contextmanager
+    def read(self) -> Iterator[Connection]:
+        with self.engine.connect() as conn, conn.begin():
+            yield conn
+
+    def locked(self, query: sa.Select[Any], skip_locked: bool = False) -> sa.Select[Any]:
+        """``SELECT ... FOR UPDATE [SKIP LOCKED]`` on PostgreSQL; unchanged on SQLite, which has no row locks
+        (its BEGIN IMMEDIATE already holds the whole database)."""
+        return query.with_for_update(skip_locked=skip_locked) if self.postgres else query
 
 
 def alembic_config(url: str) -> Config:

@@ -1,8 +1,10 @@
-"""Database models: jobs, their inputs and results, the append-only event log, and API keys (DESIGN §2).
+"""Database models: jobs, their inputs and results, the append-only event log, API keys, batches and webhooks
+(DESIGN §2, issue #20).
 
 The schema changes only through an Alembic migration (``migrations/versions``); ``alembic check`` in
-``tests/migration`` proves these models and the migrations agree. Queue queries live in ``common.queue``
-only; other modules read these classes for their column names, never to write SQL.
+``tests/migration`` proves these models and the migrations agree. Queries live in ``common.queue`` (jobs)
+and ``common.api_key_store`` (API keys) only; other modules read these classes for their column names,
+never to write SQL.
 
 Times are timezone-aware UTC in Python. SQLite has no time zone type, so ``UTCDateTime`` stores naive UTC
 there and re-attaches UTC on the way out; comparisons in SQL stay correct because every value is UTC.
@@ -18,10 +20,7 @@ from sqlalchemy.engine import Dialect
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 from sqlalchemy.types import TypeDecorator
 
-#: Job states (DESIGN §2): QUEUED -> RUNNING -> SUCCEEDED | FAILED | CANCELLED.
-JOB_STATES: tuple[str, ...] = ("QUEUED", "RUNNING", "SUCCEEDED", "FAILED", "CANCELLED")
-TERMINAL_STATES: frozenset[str] = frozenset({"SUCCEEDED", "FAILED", "CANCELLED"})
-ACTIVE_STATES: frozenset[str] = frozenset({"QUEUED", "RUNNING"})
+from common.job_state import JobState
 
 NAMING_CONVENTION = {
     "ix": "ix_%(column_0_label)s",
@@ -78,18 +77,23 @@ class ApiKey(Base):
 class Job(Base):
     __tablename__ = "jobs"
     __table_args__ = (
-        sa.CheckConstraint(f"state IN ({', '.join(repr(s) for s in JOB_STATES)})", name="state"),
+        sa.CheckConstraint(f"state IN ({', '.join(repr(s.value) for s in JobState)})", name="state"),
         sa.UniqueConstraint("owner_key_id", "idempotency_key", name="uq_jobs_owner_idempotency"),
         # claim: the oldest, highest-priority QUEUED job.
         sa.Index("ix_jobs_claim", "state", "priority", "created_at"),
         # listing: keyset pagination per owner, newest first.
         sa.Index("ix_jobs_owner_created", "owner_key_id", "created_at", "id"),
         sa.Index("ix_jobs_lease", "state", "lease_expires_at"),
+        # a batch's counts, report and events.
+        sa.Index("ix_jobs_batch", "batch_id", "state"),
     )
 
     id: Mapped[str] = mapped_column(sa.String(32), primary_key=True)
     owner_key_id: Mapped[str] = mapped_column(sa.String(32), sa.ForeignKey("api_keys.id"))
+    #: The batch the job was submitted into (same owner), or None.
+    batch_id: Mapped[str | None] = mapped_column(sa.String(32), sa.ForeignKey("batches.id"))
     name: Mapped[str] = mapped_column(sa.String(200))
+    #: A ``common.job_state.JobState`` value.
     state: Mapped[str] = mapped_column(sa.String(16))
     priority: Mapped[int] = mapped_column(sa.Integer, default=0)
     #: 1 on the first run; +1 each time an expired lease or a retryable failure requeues the job.
@@ -138,6 +142,22 @@ class JobResult(Base):
     created_at: Mapped[datetime]
 
 
+class JobArtifact(Base):
+    """A file made beside a job's result (``name`` e.g. ``video.mp4``, ``plots/errors.png``): written with the
+    result in the same transaction, deleted with the job."""
+
+    __tablename__ = "job_artifacts"
+
+    job_id: Mapped[str] = mapped_column(
+        sa.String(32), sa.ForeignKey("jobs.id", ondelete="CASCADE"), primary_key=True
+    )
+    name: Mapped[str] = mapped_column(sa.String(100), primary_key=True)
+    content_type: Mapped[str] = mapped_column(sa.String(100))
+    data: Mapped[bytes] = mapped_column(sa.LargeBinary)
+    size_bytes: Mapped[int] = mapped_column(sa.Integer)
+    created_at: Mapped[datetime]
+
+
 class JobEvent(Base):
     """Append-only log of state changes. No foreign key: a deleted job's history stays readable."""
 
@@ -149,3 +169,70 @@ class JobEvent(Base):
     at: Mapped[datetime]
     kind: Mapped[str] = mapped_column(sa.String(32))
     detail: Mapped[dict[str, Any]]
+
+
+class Batch(Base):
+    """A named set of jobs of one key (a dataset submitted together); its counts and metrics are derived."""
+
+    __tablename__ = "batches"
+    __table_args__ = (sa.Index("ix_batches_owner_created", "owner_key_id", "created_at", "id"),)
+
+    id: Mapped[str] = mapped_column(sa.String(32), primary_key=True)
+    owner_key_id: Mapped[str] = mapped_column(sa.String(32), sa.ForeignKey("api_keys.id"))
+    name: Mapped[str] = mapped_column(sa.String(200))
+    meta: Mapped[dict[str, Any]]
+    #: The batch state last announced to webhooks (ACTIVE / COMPLETED), so each change is sent once.
+    notified_state: Mapped[str | None] = mapped_column(sa.String(16))
+    created_at: Mapped[datetime]
+
+
+class Webhook(Base):
+    """An endpoint of one key that receives signed job and batch state changes (Standard Webhooks)."""
+
+    __tablename__ = "webhooks"
+    __table_args__ = (sa.Index("ix_webhooks_owner", "owner_key_id", "created_at"),)
+
+    id: Mapped[str] = mapped_column(sa.String(32), primary_key=True)
+    owner_key_id: Mapped[str] = mapped_column(sa.String(32), sa.ForeignKey("api_keys.id"))
+    url: Mapped[str] = mapped_column(sa.String(2000))
+    #: ``whsec_<base64>``: needed in clear to sign; shown to the client once, at creation.
+    secret: Mapped[str] = mapped_column(sa.String(100))
+    #: Event types sent (``job.succeeded``, ``batch.completed``...); empty = all.
+    event_types: Mapped[list[Any]]
+    created_at: Mapped[datetime]
+
+
+class WebhookDelivery(Base):
+    """The outbox and the delivery log: one row per (webhook, event), retried with backoff until delivered."""
+
+    __tablename__ = "webhook_deliveries"
+    __table_args__ = (
+        sa.Index("ix_webhook_deliveries_due", "state", "next_attempt_at"),
+        sa.Index("ix_webhook_deliveries_webhook", "webhook_id", "id"),
+    )
+
+    id: Mapped[int] = mapped_column(sa.BigInteger().with_variant(sa.Integer, "sqlite"), primary_key=True)
+    webhook_id: Mapped[str] = mapped_column(sa.String(32), sa.ForeignKey("webhooks.id", ondelete="CASCADE"))
+    #: ``webhook-id`` header: the same on every retry so receivers can drop duplicates.
+    msg_id: Mapped[str] = mapped_column(sa.String(40))
+    event_type: Mapped[str] = mapped_column(sa.String(40))
+    payload: Mapped[dict[str, Any]]
+    #: PENDING (due at ``next_attempt_at``), DELIVERED, or FAILED (attempts used up).
+    state: Mapped[str] = mapped_column(sa.String(16))
+    attempts: Mapped[int] = mapped_column(sa.Integer, default=0)
+    next_attempt_at: Mapped[datetime]
+    last_status: Mapped[int | None] = mapped_column(sa.Integer)
+    last_error: Mapped[str | None] = mapped_column(sa.String(500))
+    #: One entry per attempt: {at, status, error, ms}.
+    log: Mapped[list[Any]]
+    created_at: Mapped[datetime]
+    delivered_at: Mapped[datetime | None]
+
+
+class EventCursor(Base):
+    """How far a consumer of ``job_events`` has read (the webhook fan-out), so each event is handled once."""
+
+    __tablename__ = "event_cursors"
+
+    name: Mapped[str] = mapped_column(sa.String(40), primary_key=True)
+    last_event_id: Mapped[int] = mapped_column(sa.BigInteger)

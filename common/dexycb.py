@@ -16,8 +16,11 @@ from typing import Any, cast
 import numpy as np
 
 from common.errors import ConfigurationError, SequenceValidationError
-from common.sequence import HandTrack, ManoParams, ObjectSpec, Sequence
-from common.sequence_io import load_mesh_file
+from common.mesh_io import load_mesh_file
+from common.npz_safe import SafeNpz, Spec
+from common.safe_text import shown
+from common.sequence import NUM_JOINTS, HandTrack, ManoParams, ObjectSpec, Sequence
+from common.sequence_npz import ParseLimits, get_float, get_floats, get_str, open_npz
 from common.settings import get_settings
 
 DEXYCB_KEYS = ("fps", "side", "object_name", "hand_joints", "hand_valid", "object_pose", "world_from_camera")
@@ -41,46 +44,49 @@ def find_ycb_dir(near: Path | None = None, ycb_dir: Path | None = None) -> Path:
 def _ycb_object(ycb_dir: Path, name: str) -> tuple[float, np.ndarray, np.ndarray]:
     table = json.loads((ycb_dir / "objects.json").read_text())
     if name not in table:
-        raise SequenceValidationError.single("object_name", f"{name!r} is not in {ycb_dir / 'objects.json'}")
+        # The message names the object only: the folder is this server's business, not the client's.
+        raise SequenceValidationError.single("object_name", f"{shown(name)} is not a known YCB object")
     entry = table[name]
     vertices, faces = load_mesh_file(ycb_dir / entry.get("mesh", f"{name}.obj"), field="object_name")
     return float(entry["mass_kg"]), vertices, faces
 
 
 def sequence_from_dexycb_npz(
-    data: Any, max_frames: int | None = None, path: Path | None = None, ycb_dir: Path | None = None
+    data: SafeNpz, max_frames: int | None = None, path: Path | None = None, ycb_dir: Path | None = None
 ) -> Sequence:
-    """Build a validated ``Sequence`` from an open DexYCB development NPZ."""
-    missing = [k for k in DEXYCB_KEYS if k not in data.files]
+    """Build a validated ``Sequence`` from an open DexYCB development NPZ (see ``common.sequence_npz``)."""
+    missing = [k for k in DEXYCB_KEYS if k not in data]
     if missing:
         raise SequenceValidationError.single(missing[0], "is missing from the DexYCB NPZ file")
-    name = str(data["object_name"])
-    mass, vertices, faces = _ycb_object(find_ycb_dir(path, ycb_dir), name)
-    pose_pca = np.asarray(data["mano_pose_pca"], dtype=np.float64) if "mano_pose_pca" in data.files else None
-    valid = np.asarray(data["hand_valid"], dtype=bool)
-    hand = HandTrack(
-        side=cast(Any, str(data["side"])),
-        valid=valid,
-        keypoints=np.asarray(data["hand_joints"], dtype=np.float64),
-    )
-    if pose_pca is not None and "mano_trans" in data.files:
-        hand.mano = ManoParams(
+    name = get_str(data, "object_name")
+    side = get_str(data, "side")
+    # Every member is checked before the YCB folder is looked at (or its absence reported).
+    valid = data.get("hand_valid", Spec("b", ("T",)))
+    keypoints = get_floats(data, "hand_joints", ("T", NUM_JOINTS, 3))
+    pose = get_floats(data, "object_pose", ("T", 7))
+    world = get_floats(data, "world_from_camera", (4, 4))
+    fps = get_float(data, "fps")
+    mano = None
+    if "mano_pose_pca" in data and "mano_trans" in data and "mano_betas" in data:
+        pose_pca = get_floats(data, "mano_pose_pca", ("T", 48))
+        mano = ManoParams(
             global_orient=pose_pca[:, :3],
             hand_pose=pose_pca[:, 3:],
-            trans=np.asarray(data["mano_trans"], dtype=np.float64),
-            betas=np.asarray(data["mano_betas"], dtype=np.float64),
+            trans=get_floats(data, "mano_trans", ("T", 3)),
+            betas=get_floats(data, "mano_betas", ("B",)),
             pose_format="pca",
             flat_hand_mean=False,
         )
-    subject = str(data["subject"]) if "subject" in data.files else "unknown"
-    sequence = str(data["sequence"]) if "sequence" in data.files else (path.stem if path else "sequence")
+    subject = get_str(data, "subject") if "subject" in data else "unknown"
+    sequence = get_str(data, "sequence") if "sequence" in data else (path.stem if path else "sequence")
+    mass, vertices, faces = _ycb_object(find_ycb_dir(path, ycb_dir), name)
     seq = Sequence(
         name=f"{subject}__{sequence}",
-        fps=float(data["fps"]),
+        fps=fps,
         object=ObjectSpec(name=name, mass_kg=mass, mesh_vertices=vertices.copy(), mesh_faces=faces.copy()),
-        object_pose=np.asarray(data["object_pose"], dtype=np.float64),
-        hands=[hand],
-        world_from_source=np.asarray(data["world_from_camera"], dtype=np.float64),
+        object_pose=pose,
+        hands=[HandTrack(side=cast(Any, side), valid=valid, keypoints=keypoints, mano=mano)],
+        world_from_source=world,
         meta={"source": "dexycb-dev", "subject": subject, "sequence": sequence},
     )
     if path is not None:
@@ -90,7 +96,8 @@ def sequence_from_dexycb_npz(
 
 def load_dexycb_npz(path: Path | str, ycb_dir: Path | None = None, max_frames: int | None = None) -> Sequence:
     path = Path(path)
-    with np.load(path, allow_pickle=False) as data:
+    limits = ParseLimits() if max_frames is None else ParseLimits(max_frames=max_frames)
+    with open_npz(path.read_bytes(), limits) as data:
         return sequence_from_dexycb_npz(data, max_frames=max_frames, path=path, ycb_dir=ycb_dir)
 
 

@@ -21,12 +21,13 @@ of the table, table plane z = 0 (DESIGN §1 "gravity-aligned world frame").
 MANO parameters follow DexYCB's convention (``use_pca=True, ncomps=45, flat_hand_mean=False``); a frame
 whose ``pose_m`` row is all zeros has no hand. Keypoints come from the master camera's ``labels_*.npz``
 (``joint_3d``); without them the hands carry only MANO parameters, which needs a MANO model
-(``HOI_REFINE_MANO_DIR``; decoding is ``worker.mano.ensure_keypoints``).
+(``HOI_REFINE_MANO_DIR``; decoding is ``worker.hand.mano.ensure_keypoints``).
 """
 
 from __future__ import annotations
 
 import json
+import re
 from functools import lru_cache
 from pathlib import Path
 from typing import Any, cast
@@ -36,14 +37,21 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from common.errors import ManoModelMissingError, SequenceValidationError
-from common.sequence import NUM_JOINTS, FloatArray, HandTrack, ManoParams, ObjectSpec, Sequence
-from common.sequence_io import load_mesh_file
+from common.geometry import FloatArray
+from common.mesh_io import load_mesh_file
+from common.npz_safe import Spec
+from common.safe_text import shown
+from common.sequence import NUM_JOINTS, HandTrack, ManoParams, ObjectSpec, Sequence
+from common.sequence_npz import ParseLimits, open_npz
 from common.settings import get_settings
 
 #: DexYCB records at 30 fps; meta.yml does not say so.
 DEXYCB_FPS = 30.0
 META_KEYS = ("num_frames", "ycb_ids", "ycb_grasp_ind", "mano_sides", "mano_calib", "extrinsics")
 MASSES_FILE = Path(__file__).resolve().parent / "data" / "ycb_masses.json"
+MAX_YAML_BYTES = 1 << 20
+#: Calibration and camera names become folder names under the DexYCB root.
+SAFE_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]{0,99}")
 
 
 @lru_cache(maxsize=1)
@@ -66,15 +74,57 @@ def is_dexycb_sequence_dir(path: Path) -> bool:
 
 def _read_yaml(path: Path, what: str) -> dict[str, Any]:
     if not path.is_file():
-        raise SequenceValidationError.single(what, f"{path} does not exist")
-    doc = yaml.safe_load(path.read_text())
+        raise SequenceValidationError.single(what, f"{path.name} does not exist")
+    if path.stat().st_size > MAX_YAML_BYTES:
+        raise SequenceValidationError.single(what, f"is larger than {MAX_YAML_BYTES} bytes")
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except (yaml.YAMLError, UnicodeDecodeError, RecursionError) as exc:
+        raise SequenceValidationError.single(what, f"is not valid YAML ({type(exc).__name__})") from exc
     if not isinstance(doc, dict):
-        raise SequenceValidationError.single(what, f"{path} is not a YAML mapping")
+        raise SequenceValidationError.single(what, "is not a YAML mapping")
     return doc
 
 
+def _meta_int(meta: dict[str, Any], key: str) -> int:
+    value = meta[key]
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 10**7:
+        raise SequenceValidationError.single(f"meta.yml:{key}", f"must be a non-negative integer, got {shown(value)}")
+    return value
+
+
+def _meta_list(meta: dict[str, Any], key: str, kind: type) -> list[Any]:
+    value = meta[key]
+    if not isinstance(value, list) or not value or len(value) > 64 or not all(
+        isinstance(v, kind) and not isinstance(v, bool) for v in value
+    ):
+        raise SequenceValidationError.single(f"meta.yml:{key}", f"must be a non-empty list of {kind.__name__}")
+    return [kind(v) for v in value]
+
+
+def _floats(values: Any, field: str) -> FloatArray:
+    try:
+        arr = np.asarray(values, dtype=np.float64)
+    except (ValueError, TypeError, OverflowError) as exc:
+        raise SequenceValidationError.single(field, "must be a list of numbers") from exc
+    if not np.all(np.isfinite(arr)):
+        raise SequenceValidationError.single(field, "contains NaN or Inf")
+    return arr
+
+
+def _load_npz(path: Path, field: str, specs: dict[str, Spec], limits: ParseLimits) -> dict[str, np.ndarray] | None:
+    """The members of ``specs`` from an NPZ read through ``SafeNpz``; None when one is missing."""
+    with open_npz(path.read_bytes(), limits) as npz:
+        if not all(k in npz for k in specs):
+            return None
+        try:
+            return {k: npz.get(k, spec) for k, spec in specs.items()}
+        except SequenceValidationError as exc:
+            raise SequenceValidationError.single(f"{field}:{exc.problems[0].field}", exc.problems[0].problem) from exc
+
+
 def _rigid_3x4(values: Any, field: str) -> FloatArray:
-    arr = np.asarray(values, dtype=np.float64)
+    arr = _floats(values, field)
     if arr.size != 12:
         raise SequenceValidationError.single(field, f"must hold 12 numbers (a 3x4 [R|t]), got {arr.size}")
     out = np.eye(4)
@@ -85,7 +135,7 @@ def _rigid_3x4(values: Any, field: str) -> FloatArray:
 def world_from_master(extrinsics: dict[str, Any], field: str = "extrinsics.yml") -> FloatArray:
     """The table frame from an extrinsics.yml document: ``inverse(apriltag)`` (see module doc)."""
     table = extrinsics.get("extrinsics", {})
-    if "apriltag" not in table:
+    if not isinstance(table, dict) or "apriltag" not in table:
         raise SequenceValidationError.single(
             field, "has no 'apriltag' entry: the table frame is needed for the gravity direction"
         )
@@ -135,10 +185,13 @@ def _master_keypoints(seq_dir: Path, master: str, num_frames: int, n_hands: int)
         return None
     out = np.zeros((num_frames, n_hands, NUM_JOINTS, 3))
     for i, f in enumerate(files):
-        with np.load(f) as label:
-            if "joint_3d" not in label.files:
-                return None
-            j = np.asarray(label["joint_3d"], dtype=np.float64).reshape(-1, NUM_JOINTS, 3)
+        label = _load_npz(f, f.name, {"joint_3d": Spec("iuf", None)}, ParseLimits())
+        if label is None:
+            return None
+        raw = np.asarray(label["joint_3d"], dtype=np.float64)
+        if raw.size % (NUM_JOINTS * 3) or raw.size > 4 * NUM_JOINTS * 3:
+            raise SequenceValidationError.single(f"{f.name}:joint_3d", f"must hold (n_hands, 21, 3), got {raw.shape}")
+        j = raw.reshape(-1, NUM_JOINTS, 3)
         if j.shape[0] != n_hands:
             raise SequenceValidationError.single(
                 f"{f.name}:joint_3d", f"holds {j.shape[0]} hands but meta.yml lists {n_hands}"
@@ -177,15 +230,25 @@ def load_dexycb_native(
     missing = [k for k in META_KEYS if k not in meta]
     if missing:
         raise SequenceValidationError.single(f"meta.yml:{missing[0]}", "is missing")
-    with np.load(seq_dir / "pose.npz") as data:
-        if "pose_y" not in data.files or "pose_m" not in data.files:
-            raise SequenceValidationError.single("pose.npz", "must hold pose_y and pose_m")
-        pose_y, pose_m = np.asarray(data["pose_y"]), np.asarray(data["pose_m"], dtype=np.float64)
-
-    num_frames = int(meta["num_frames"])
-    ycb_ids = [int(i) for i in meta["ycb_ids"]]
-    sides = [str(s) for s in meta["mano_sides"]]
-    calibs = [str(c) for c in meta["mano_calib"]]
+    num_frames = _meta_int(meta, "num_frames")
+    limits = ParseLimits(max_frames=max_frames) if max_frames is not None else ParseLimits()
+    if num_frames > limits.max_frames:
+        raise SequenceValidationError.single("meta.yml:num_frames", f"{num_frames} is more than {limits.max_frames}")
+    ycb_ids = _meta_list(meta, "ycb_ids", int)
+    sides = _meta_list(meta, "mano_sides", str)
+    calibs = _meta_list(meta, "mano_calib", str)
+    for name_ in (*calibs, str(meta["extrinsics"])):
+        if not SAFE_NAME.fullmatch(name_):  # these name folders under the root: no '..' or '/'
+            raise SequenceValidationError.single("meta.yml", f"calibration name {shown(name_)} is not a plain name")
+    data = _load_npz(
+        seq_dir / "pose.npz", "pose.npz",
+        {"pose_y": Spec("iuf", None), "pose_m": Spec("iuf", ("T", "O", 51))}, limits,
+    )  # fmt: skip
+    if data is None:
+        raise SequenceValidationError.single("pose.npz", "must hold pose_y and pose_m")
+    pose_y, pose_m = np.asarray(data["pose_y"], dtype=np.float64), np.asarray(data["pose_m"], dtype=np.float64)
+    if pose_y.ndim not in (3, 4) or not np.all(np.isfinite(pose_y)):
+        raise SequenceValidationError.single("pose.npz:pose_y", f"must be finite (T, n_obj, 7), got {pose_y.shape}")
     if pose_y.shape[0] != num_frames or pose_m.shape[0] != num_frames:
         raise SequenceValidationError.single(
             "pose.npz", f"has {pose_y.shape[0]} / {pose_m.shape[0]} frames but meta.yml num_frames is {num_frames}"
@@ -201,7 +264,7 @@ def load_dexycb_native(
         )
 
     # --- the grasped object
-    grasp = int(meta["ycb_grasp_ind"])
+    grasp = _meta_int(meta, "ycb_grasp_ind")
     if not 0 <= grasp < len(ycb_ids):
         raise SequenceValidationError.single("meta.yml:ycb_grasp_ind", f"{grasp} is not an index into ycb_ids")
     name = ycb_classes().get(ycb_ids[grasp])
@@ -219,7 +282,10 @@ def load_dexycb_native(
     extr_file = root_dir / "calibration" / f"extrinsics_{meta['extrinsics']}" / "extrinsics.yml"
     extr = _read_yaml(extr_file, "extrinsics.yml")
     world = world_from_master(extr)
-    master = str(extr.get("master", (meta.get("serials") or [""])[0]))
+    serials = meta.get("serials") if isinstance(meta.get("serials"), list) else None
+    master = str(extr.get("master", (serials or [""])[0]))
+    if not SAFE_NAME.fullmatch(master):
+        raise SequenceValidationError.single("extrinsics.yml:master", f"{shown(master)} is not a camera serial")
 
     # --- hands
     keypoints = _master_keypoints(seq_dir, master, num_frames, len(sides))
@@ -227,9 +293,8 @@ def load_dexycb_native(
         _require_mano_files(sides)
     hands = []
     for h, (side, calib) in enumerate(zip(sides, calibs, strict=True)):
-        betas = np.asarray(
-            _read_yaml(root_dir / "calibration" / f"mano_{calib}" / "mano.yml", "mano.yml")["betas"], np.float64
-        )
+        mano_doc = _read_yaml(root_dir / "calibration" / f"mano_{calib}" / "mano.yml", "mano.yml")
+        betas = _floats(mano_doc.get("betas"), "mano.yml:betas").reshape(-1)
         pm = pose_m[:, h]
         valid = np.any(pm != 0.0, axis=1)
         kp = None
@@ -255,7 +320,7 @@ def load_dexycb_native(
     subject, sequence = seq_dir.resolve().parent.name, seq_dir.resolve().name
     seq = Sequence(
         name=f"{subject}__{sequence}",
-        fps=float(meta.get("fps", DEXYCB_FPS)),
+        fps=float(_floats(meta.get("fps", DEXYCB_FPS), "meta.yml:fps").reshape(-1)[:1].sum()),
         object=ObjectSpec(name=name, mass_kg=float(mass), mesh_vertices=vertices, mesh_faces=faces),
         object_pose=pose,
         hands=hands,

@@ -5,7 +5,7 @@ Everything here is optional; ``None`` means "the refinement's documented default
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -23,7 +23,8 @@ LOSS_NAMES: tuple[str, ...] = LossName.__args__  # type: ignore[attr-defined]
 
 
 class JobOptions(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # Every float finite (issue #16): JSON's non-standard Infinity/NaN are refused, not stored.
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     seed: int = Field(default=0, ge=0, le=2**31 - 1, description="CMA-ES seed; same input+options+seed => same bytes")
     keyframe_interval: int | None = Field(
@@ -31,8 +32,8 @@ class JobOptions(BaseModel):
     )
     max_generations: int | None = Field(default=None, ge=1, le=1000, description="CMA-ES generations per window")
     popsize: int | None = Field(default=None, ge=2, le=256, description="CMA-ES population size")
-    loss_weights: dict[LossName, float] = Field(
-        default_factory=dict, description="Overrides of the default loss weights (each >= 0)"
+    loss_weights: dict[LossName, Annotated[float, Field(ge=0, le=1e6, allow_inf_nan=False)]] = Field(
+        default_factory=dict, description="Overrides of the default loss weights (each finite, >= 0)"
     )
     free_wrist_translation: bool = Field(default=False, description="Also optimise a 3-D wrist translation offset")
     restarts: int = Field(
@@ -41,6 +42,12 @@ class JobOptions(BaseModel):
         "within 3 cm / 30 deg); the best attempt is kept",
     )  # fmt: skip
     priority: int = Field(default=0, ge=-100, le=100, description="Higher runs first (queue only)")
+    preview_video: bool = Field(
+        default=True,
+        description="After the job succeeds, the worker also renders a preview video (320x240 per panel, raw vs "
+        "refined), plots, a Rerun recording and a plain-MuJoCo export, served under /v1/jobs/{id}/video etc. "
+        "(the service only; no effect on the result)",
+    )
 
     def model_post_init(self, __context: object) -> None:
         for name, weight in self.loss_weights.items():

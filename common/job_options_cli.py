@@ -52,6 +52,10 @@ def add_job_option_arguments(parser: argparse.ArgumentParser, queue: bool = Fals
     )  # fmt: skip
     if queue:
         g.add_argument("--priority", type=int, default=0, help="queue priority, -100..100 (higher runs first)")
+        g.add_argument(
+            "--no-preview", dest="preview_video", action="store_false",
+            help="skip the preview the worker renders after a job succeeds (video, plots, recording, export)",
+        )  # fmt: skip
 
 
 def job_options_from_args(args: argparse.Namespace) -> JobOptions:
@@ -66,6 +70,7 @@ def job_options_from_args(args: argparse.Namespace) -> JobOptions:
             free_wrist_translation=args.free_wrist_translation,
             restarts=args.restarts,
             priority=getattr(args, "priority", 0),
+            preview_video=getattr(args, "preview_video", True),
         )
     except ValidationError as exc:
         problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'options'}: {e['msg']}" for e in exc.errors())

@@ -7,6 +7,7 @@ from datetime import datetime
 from typing import Any
 
 from common.job_options import JobOptions
+from common.job_state import ACTIVE, FINISHED, JobState
 
 
 @dataclass(frozen=True)
@@ -16,7 +17,7 @@ class JobRecord:
     id: str
     owner_key_id: str
     name: str
-    state: str
+    state: JobState
     priority: int
     attempt: int
     max_attempts: int
@@ -37,10 +38,21 @@ class JobRecord:
     updated_at: datetime
     #: The result's summary (metrics, config, versions) once SUCCEEDED; None before, or when not loaded.
     summary: dict[str, Any] | None = None
+    batch_id: str | None = None
 
     @property
     def is_terminal(self) -> bool:
-        return self.state in ("SUCCEEDED", "FAILED", "CANCELLED")
+        return self.state in FINISHED
+
+
+@dataclass(frozen=True)
+class Artifact:
+    """A file stored beside a job's result (``common.db_models.JobArtifact``); ``data`` empty in listings."""
+
+    name: str
+    content_type: str
+    data: bytes = b""
+    size_bytes: int = 0
 
 
 @dataclass(frozen=True)
@@ -66,15 +78,6 @@ class JobEventRecord:
 
 
 @dataclass(frozen=True)
-class ApiKeyRecord:
-    id: str
-    name: str
-    prefix: str
-    created_at: datetime
-    revoked_at: datetime | None
-
-
-@dataclass(frozen=True)
 class QueueStats:
     """Figures for ``/metrics``: jobs per state, claims so far, and recent durations in seconds."""
 
@@ -82,3 +85,67 @@ class QueueStats:
     claims_total: int
     queue_wait_seconds: list[float]
     run_seconds: list[float]
+
+
+@dataclass(frozen=True)
+class BatchRecord:
+    """A batch with its jobs counted per state; ``metrics`` (``common.batch_metrics``) only from ``get_batch``."""
+
+    id: str
+    owner_key_id: str
+    name: str
+    meta: dict[str, Any]
+    created_at: datetime
+    counts: dict[str, int]
+    metrics: dict[str, Any] | None = None
+
+    @property
+    def total(self) -> int:
+        return sum(self.counts.values())
+
+    @property
+    def state(self) -> str:
+        """EMPTY (no job yet), ACTIVE (a job is QUEUED or RUNNING) or COMPLETED (every job finished)."""
+        if self.total == 0:
+            return "EMPTY"
+        return "ACTIVE" if any(self.counts.get(s, 0) for s in ACTIVE) else "COMPLETED"
+
+
+@dataclass(frozen=True)
+class WebhookRecord:
+    id: str
+    owner_key_id: str
+    url: str
+    event_types: list[str]
+    created_at: datetime
+
+
+@dataclass(frozen=True)
+class DeliveryRecord:
+    """One row of the delivery log (``payload`` is what is, or was, sent)."""
+
+    id: int
+    webhook_id: str
+    msg_id: str
+    event_type: str
+    payload: dict[str, Any]
+    state: str
+    attempts: int
+    next_attempt_at: datetime
+    last_status: int | None
+    last_error: str | None
+    log: list[dict[str, Any]]
+    created_at: datetime
+    delivered_at: datetime | None
+
+
+@dataclass(frozen=True)
+class DeliveryToSend:
+    """A due delivery claimed by the dispatcher: where to send it, with what secret, which attempt this is."""
+
+    id: int
+    url: str
+    secret: str
+    msg_id: str
+    payload: dict[str, Any]
+    attempt: int

@@ -12,19 +12,28 @@ Native NPZ (``format == "hoi-refine-sequence"``, ``format_version == 1``), keys:
 Native JSON: the same content nested, see ``sequence_to_json_dict``; ``object.mesh_file`` may name an
 OBJ/PLY/STL/GLB file relative to the JSON file instead of inline ``object.mesh``.
 The DexYCB development NPZs in ``shared/data/dexycb`` are read by ``common.dexycb``.
+
+Reading is done for untrusted bytes: NPZ through ``common.sequence_npz`` (headers checked before anything is
+decompressed), JSON through ``parse_json_text`` + ``sequence_from_json_dict`` (every value type-checked);
+both end in ``Sequence.validate`` (at least ``MIN_FRAMES`` = 2 frames, finite bounded numbers, safe names).
+Every problem is a ``SequenceValidationError`` naming its field.
 """
 
 from __future__ import annotations
 
-import io
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, cast
 
 import numpy as np
 
+from common.dexycb import sequence_from_dexycb_npz
+from common.dexycb_native import is_dexycb_sequence_dir, load_dexycb_native
 from common.errors import FieldProblem, SequenceValidationError, UnsupportedFormatError
+from common.mesh_io import load_mesh_file
 from common.npz_writer import deterministic_npz_bytes
+from common.safe_text import shown
 from common.sequence import (
     PRIMITIVE_SIZE_LEN,
     HandTrack,
@@ -32,35 +41,9 @@ from common.sequence import (
     ObjectSpec,
     Sequence,
 )
+from common.sequence_npz import FORMAT_NAME, FORMAT_VERSION, ParseLimits, native_sequence, open_npz
 
-FORMAT_NAME = "hoi-refine-sequence"
-FORMAT_VERSION = 1
-MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
-
-
-# ---------------------------------------------------------------------- meshes
-
-
-def load_mesh_file(path: Path, field: str = "object.mesh_file") -> tuple[np.ndarray, np.ndarray]:
-    """Read a triangle mesh (vertices, faces) with trimesh; scenes are merged into one mesh."""
-    import trimesh
-
-    if not path.is_file():
-        raise SequenceValidationError.single(field, f"mesh file {path} does not exist")
-    if path.suffix.lower() not in MESH_SUFFIXES:
-        raise SequenceValidationError.single(
-            field, f"unsupported mesh type {path.suffix!r}; use one of {', '.join(MESH_SUFFIXES)}"
-        )
-    try:
-        loaded = trimesh.load(path, force="mesh", process=False)
-    except Exception as exc:  # trimesh raises many types for corrupt files
-        raise SequenceValidationError.single(field, f"could not read mesh {path.name}: {exc}") from exc
-    mesh = cast(Any, loaded)
-    vertices = np.asarray(mesh.vertices, dtype=np.float64)
-    faces = np.asarray(mesh.faces, dtype=np.int64)
-    if vertices.size == 0 or faces.size == 0:
-        raise SequenceValidationError.single(field, f"mesh {path.name} is empty")
-    return vertices, faces
+# ---------------------------------------------------------------------- NPZ
 
 
 # ---------------------------------------------------------------------- NPZ
@@ -111,88 +94,23 @@ def sequence_to_npz_bytes(seq: Sequence) -> bytes:
     return deterministic_npz_bytes(arrays)
 
 
-def _npz_get(data: Any, key: str, required: bool = True) -> Any:
-    if key in data.files:
-        return data[key]
-    if required:
-        raise SequenceValidationError.single(key, "is missing from the NPZ file")
-    return None
-
-
-def _as_float(x: Any) -> np.ndarray:
-    return np.asarray(x, dtype=np.float64)
-
-
 def sequence_from_npz_bytes(
-    blob: bytes, max_frames: int | None = None, source_path: Path | None = None
+    blob: bytes, max_frames: int | None = None, source_path: Path | None = None, limits: ParseLimits | None = None
 ) -> Sequence:
-    """Parse the native NPZ format (or the DexYCB development NPZ) and validate.
+    """Parse the native NPZ format (or the DexYCB development NPZ) from untrusted bytes and validate.
 
-    ``source_path`` (when the bytes came from a file) lets DexYCB files find the YCB folder beside them.
+    ``source_path`` (when the bytes came from a file) lets DexYCB files find the YCB folder beside them;
+    ``limits`` (frames, mesh size, uncompressed bytes) default to ``ParseLimits()``, ``max_frames`` overrides
+    its frame limit. Every member is checked before it is decompressed (``common.sequence_npz``).
     """
-    try:
-        data = np.load(io.BytesIO(blob), allow_pickle=False)
-    except Exception as exc:
-        raise UnsupportedFormatError(f"not a readable NPZ file: {exc}") from exc
-    with data:
-        if "hand_joints" in data.files and "object_name" in data.files and "format" not in data.files:
-            from common.dexycb import sequence_from_dexycb_npz
-
-            return sequence_from_dexycb_npz(data, max_frames=max_frames, path=source_path)
-        fmt = str(_npz_get(data, "format"))
-        if fmt != FORMAT_NAME:
-            raise SequenceValidationError.single("format", f"expected {FORMAT_NAME!r}, got {fmt!r}")
-        version = int(_npz_get(data, "format_version"))
-        if version != FORMAT_VERSION:
-            raise SequenceValidationError.single(
-                "format_version", f"unsupported version {version} (this build reads {FORMAT_VERSION})"
-            )
-        obj = ObjectSpec(
-            name=str(_npz_get(data, "object_name")),
-            mass_kg=float(_npz_get(data, "object_mass_kg")),
-            friction=_opt_float(_npz_get(data, "object_friction", required=False)),
-        )
-        primitive = _npz_get(data, "object_primitive", required=False)
-        if primitive is not None:
-            obj.primitive = cast(Any, str(primitive))
-            obj.size = _as_float(_npz_get(data, "object_size"))
-        else:
-            obj.mesh_vertices = _as_float(_npz_get(data, "object_mesh_vertices"))
-            obj.mesh_faces = np.asarray(_npz_get(data, "object_mesh_faces"), dtype=np.int64)
-        hands = []
-        for side in [str(s) for s in _npz_get(data, "hand_sides")]:
-            hand = HandTrack(side=cast(Any, side), valid=np.asarray(_npz_get(data, f"{side}_valid")))
-            kp = _npz_get(data, f"{side}_keypoints", required=False)
-            hand.keypoints = None if kp is None else _as_float(kp)
-            if f"{side}_mano_hand_pose" in data.files:
-                hand.mano = ManoParams(
-                    global_orient=_as_float(_npz_get(data, f"{side}_mano_global_orient")),
-                    hand_pose=_as_float(_npz_get(data, f"{side}_mano_hand_pose")),
-                    trans=_as_float(_npz_get(data, f"{side}_mano_trans")),
-                    betas=_as_float(_npz_get(data, f"{side}_mano_betas")),
-                    pose_format=cast(Any, str(_npz_get(data, f"{side}_mano_pose_format"))),
-                    flat_hand_mean=bool(_npz_get(data, f"{side}_mano_flat_hand_mean")),
-                )
-            hands.append(hand)
-        wfc = _npz_get(data, "world_from_camera", required=False)
-        up = _npz_get(data, "up", required=False)
-        meta_raw = _npz_get(data, "meta_json", required=False)
-        seq = Sequence(
-            name=str(_npz_get(data, "name")),
-            fps=float(_npz_get(data, "fps")),
-            frame_start=int(_npz_get(data, "frame_start", required=False) or 0),
-            object=obj,
-            object_pose=_as_float(_npz_get(data, "object_pose")),
-            hands=hands,
-            world_from_source=None if wfc is None else _as_float(wfc),
-            up=None if up is None else _as_float(up),
-            meta={} if meta_raw is None else json.loads(str(meta_raw)),
-        )
-    return seq.validate(max_frames=max_frames)
-
-
-def _opt_float(x: Any) -> float | None:
-    return None if x is None else float(x)
+    limits = limits or ParseLimits()
+    if max_frames is not None:
+        limits = replace(limits, max_frames=max_frames)
+    with open_npz(blob, limits) as npz:
+        if "hand_joints" in npz and "object_name" in npz and "format" not in npz:
+            return sequence_from_dexycb_npz(npz, max_frames=limits.max_frames, path=source_path)
+        seq = native_sequence(npz)
+    return seq.validate(max_frames=limits.max_frames)
 
 
 # ---------------------------------------------------------------------- JSON
@@ -247,7 +165,11 @@ def sequence_to_json_dict(seq: Sequence) -> dict[str, Any]:
 def sequence_from_json_dict(
     doc: Any, base_dir: Path | None = None, max_frames: int | None = None
 ) -> Sequence:
-    """Parse the native JSON form and validate. ``base_dir`` resolves ``object.mesh_file``."""
+    """Parse the native JSON form and validate. ``base_dir`` resolves ``object.mesh_file``.
+
+    ``doc`` may be anything ``json.loads`` returns: every value is type-checked before use, and every
+    problem found is reported in one ``SequenceValidationError``.
+    """
     problems: list[FieldProblem] = []
 
     def need(d: Any, key: str, path: str) -> Any:
@@ -259,18 +181,37 @@ def sequence_from_json_dict(
     def arr(value: Any, path: str, dtype: Any = np.float64) -> Any:
         if value is None:
             return None
-        try:
-            return np.asarray(value, dtype=dtype)
-        except (ValueError, TypeError, OverflowError):
+        if not isinstance(value, list) or any(isinstance(v, (str, dict)) for v in _flat_head(value)):
             problems.append(FieldProblem(path, "must be a (nested) list of numbers of a regular shape"))
             return None
+        try:
+            out = np.asarray(value, dtype=dtype)
+        except (ValueError, TypeError, OverflowError, RecursionError):
+            problems.append(FieldProblem(path, "must be a (nested) list of numbers of a regular shape"))
+            return None
+        if out.dtype.kind not in "biuf":
+            problems.append(FieldProblem(path, "must be a (nested) list of numbers (or booleans) of a regular shape"))
+            return None
+        return out
 
     def num(value: Any, path: str) -> float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             if value is not None:
                 problems.append(FieldProblem(path, f"must be a number, got {type(value).__name__}"))
             return float("nan")
-        return float(value)
+        try:
+            return float(value)
+        except OverflowError:
+            problems.append(FieldProblem(path, "is out of range"))
+            return float("nan")
+
+    def text(value: Any, path: str, default: str) -> str:
+        if value is None:
+            return default
+        if not isinstance(value, str):
+            problems.append(FieldProblem(path, f"must be a string, got {type(value).__name__}"))
+            return default
+        return value
 
     if not isinstance(doc, dict):
         raise SequenceValidationError.single("body", "must be a JSON object")
@@ -279,30 +220,32 @@ def sequence_from_json_dict(
     if doc.get("format_version", FORMAT_VERSION) != FORMAT_VERSION:
         raise SequenceValidationError.single("format_version", f"this build reads version {FORMAT_VERSION}")
 
-    od = need(doc, "object", "object") or {}
+    od = need(doc, "object", "object")
+    if od is not None and not isinstance(od, dict):
+        problems.append(FieldProblem("object", "must be an object"))
+    od = od if isinstance(od, dict) else {}
     obj = ObjectSpec(
-        name=str(od.get("name", "object")) if isinstance(od, dict) else "object",
+        name=text(od.get("name"), "object.name", "object"),
         mass_kg=num(need(od, "mass_kg", "object.mass_kg"), "object.mass_kg"),
-        friction=None if not isinstance(od, dict) or od.get("friction") is None
-        else num(od["friction"], "object.friction"),
+        friction=None if od.get("friction") is None else num(od["friction"], "object.friction"),
     )
-    if isinstance(od, dict):
-        if "primitive" in od:
-            prim = od["primitive"]
-            kind = prim.get("kind") if isinstance(prim, dict) else None
-            if kind not in PRIMITIVE_SIZE_LEN:
-                problems.append(FieldProblem("object.primitive.kind", f"must be one of {sorted(PRIMITIVE_SIZE_LEN)}"))
-            else:
-                obj.primitive = kind
-                obj.size = arr(prim.get("size"), "object.primitive.size")
-                if prim.get("size") is None:
-                    problems.append(FieldProblem("object.primitive.size", "is required"))
-        if "mesh" in od:
-            mesh = od["mesh"] if isinstance(od["mesh"], dict) else {}
-            obj.mesh_vertices = arr(need(mesh, "vertices", "object.mesh.vertices"), "object.mesh.vertices")
-            obj.mesh_faces = arr(need(mesh, "faces", "object.mesh.faces"), "object.mesh.faces", np.int64)
-        if "mesh_file" in od:
-            mesh_path = Path(str(od["mesh_file"]))
+    if "primitive" in od:
+        prim = od["primitive"]
+        kind = prim.get("kind") if isinstance(prim, dict) else None
+        if not isinstance(kind, str) or kind not in PRIMITIVE_SIZE_LEN:
+            problems.append(FieldProblem("object.primitive.kind", f"must be one of {sorted(PRIMITIVE_SIZE_LEN)}"))
+        else:
+            obj.primitive = cast(Any, kind)
+            obj.size = arr(need(prim, "size", "object.primitive.size"), "object.primitive.size")
+    if "mesh" in od:
+        mesh = od["mesh"] if isinstance(od["mesh"], dict) else {}
+        obj.mesh_vertices = arr(need(mesh, "vertices", "object.mesh.vertices"), "object.mesh.vertices")
+        obj.mesh_faces = arr(need(mesh, "faces", "object.mesh.faces"), "object.mesh.faces", np.int64)
+    if "mesh_file" in od:
+        if not isinstance(od["mesh_file"], str):
+            problems.append(FieldProblem("object.mesh_file", "must be a path (string)"))
+        else:
+            mesh_path = Path(od["mesh_file"])
             if not mesh_path.is_absolute() and base_dir is not None:
                 mesh_path = base_dir / mesh_path
             obj.mesh_vertices, obj.mesh_faces = load_mesh_file(mesh_path)
@@ -312,7 +255,7 @@ def sequence_from_json_dict(
     if hand_docs is not None and not isinstance(hand_docs, list):
         problems.append(FieldProblem("hands", "must be a list"))
         hand_docs = []
-    for i, hd in enumerate(hand_docs or []):
+    for i, hd in enumerate((hand_docs or [])[:3]):  # more than two is an error; three are enough to say so
         p = f"hands[{i}]"
         if not isinstance(hd, dict):
             problems.append(FieldProblem(p, "must be an object"))
@@ -320,20 +263,28 @@ def sequence_from_json_dict(
         valid = arr(need(hd, "valid", f"{p}.valid"), f"{p}.valid", None)
         if valid is not None and valid.dtype != np.bool_:
             problems.append(FieldProblem(f"{p}.valid", "must be a list of booleans"))
+        side = hd.get("side")
+        if not isinstance(side, str):
+            problems.append(FieldProblem(f"{p}.side", "must be 'right' or 'left'"))
         hand = HandTrack(
-            side=cast(Any, hd.get("side")),  # validated in Sequence.validate
+            side=cast(Any, side),  # the value is validated in Sequence.validate
             valid=valid if valid is not None else np.zeros(0, dtype=bool),
             keypoints=arr(hd.get("keypoints"), f"{p}.keypoints"),
         )
         md = hd.get("mano")
+        if md is not None and not isinstance(md, dict):
+            problems.append(FieldProblem(f"{p}.mano", "must be an object"))
         if isinstance(md, dict):
+            flat = md.get("flat_hand_mean", False)
+            if not isinstance(flat, bool):
+                problems.append(FieldProblem(f"{p}.mano.flat_hand_mean", "must be true or false"))
             hand.mano = ManoParams(
                 global_orient=arr(need(md, "global_orient", f"{p}.mano.global_orient"), f"{p}.mano.global_orient"),
                 hand_pose=arr(need(md, "hand_pose", f"{p}.mano.hand_pose"), f"{p}.mano.hand_pose"),
                 trans=arr(need(md, "trans", f"{p}.mano.trans"), f"{p}.mano.trans"),
                 betas=arr(md.get("betas", [0.0] * 10), f"{p}.mano.betas"),
-                pose_format=md.get("pose_format", "axis_angle"),
-                flat_hand_mean=bool(md.get("flat_hand_mean", False)),
+                pose_format=cast(Any, text(md.get("pose_format"), f"{p}.mano.pose_format", "axis_angle")),
+                flat_hand_mean=bool(flat),
             )
         hands.append(hand)
 
@@ -343,21 +294,53 @@ def sequence_from_json_dict(
     if not isinstance(frame_start, int) or isinstance(frame_start, bool):
         problems.append(FieldProblem("frame_start", "must be an integer"))
         frame_start = 0
+    world = arr(doc.get("world_from_camera"), "world_from_camera")
+    up = arr(doc.get("up"), "up")
+    meta = doc.get("meta") or {}
+    if not isinstance(meta, dict) or not all(isinstance(v, str) for v in meta.values()):
+        problems.append(FieldProblem("meta", "must be an object whose values are strings"))
+        meta = {}
+    name = text(doc.get("name"), "name", "sequence")
     if problems:
         raise SequenceValidationError(problems)
     seq = Sequence(
-        name=str(doc.get("name", "sequence")),
-        fps=fps,
-        frame_start=frame_start,
-        object=obj,
-        object_pose=pose,
-        hands=hands,
-        world_from_source=arr(doc.get("world_from_camera"), "world_from_camera"),
-        up=arr(doc.get("up"), "up"),
-        meta={str(k): str(v) for k, v in (doc.get("meta") or {}).items()},
-    )
+        name=name, fps=fps, frame_start=frame_start, object=obj, object_pose=pose, hands=hands,
+        world_from_source=world, up=up, meta=dict(meta),
+    )  # fmt: skip
     return seq.validate(max_frames=max_frames)
 
+
+def parse_json_text(blob: bytes | str, field: str = "sequence") -> Any:
+    """``json.loads`` for untrusted text: NaN/Infinity literals, too-deep nesting, oversized integers and
+    bad UTF-8 become a ``SequenceValidationError`` naming ``field``."""
+
+    def no_constants(name: str) -> Any:
+        raise ValueError(f"{name} is not valid JSON (numbers must be finite)")
+
+    try:
+        return json.loads(blob, parse_constant=no_constants)
+    except RecursionError as exc:
+        raise SequenceValidationError.single(field, "is nested too deeply") from exc
+    except (ValueError, UnicodeDecodeError) as exc:  # JSONDecodeError is a ValueError
+        reason = exc.args[0] if isinstance(exc, ValueError) and exc.args else "not UTF-8"
+        raise SequenceValidationError.single(field, f"is not valid JSON: {shown(str(reason), 120)}") from exc
+
+
+def sequence_from_json_bytes(
+    blob: bytes, base_dir: Path | None = None, max_frames: int | None = None
+) -> Sequence:
+    """Parse native JSON text and validate (every problem a ``SequenceValidationError``)."""
+    return sequence_from_json_dict(parse_json_text(blob), base_dir=base_dir, max_frames=max_frames)
+
+
+def _flat_head(value: list[Any], depth: int = 0) -> list[Any]:
+    """The first element at each nesting level (a cheap look for strings or objects inside a number list)."""
+    out: list[Any] = []
+    while isinstance(value, list) and value and depth < 8:
+        value = value[0]
+        out.append(value)
+        depth += 1
+    return out
 
 # ---------------------------------------------------------------------- files
 
@@ -367,8 +350,6 @@ def load_sequence(path: Path | str, max_frames: int | None = None) -> Sequence:
     path = Path(path)
     if path.is_dir() or path.name == "meta.yml":
         # DexYCB native layout: <root>/<subject>/<sequence>/{meta.yml,pose.npz}
-        from common.dexycb_native import is_dexycb_sequence_dir, load_dexycb_native
-
         seq_dir = path if path.is_dir() else path.parent
         if is_dexycb_sequence_dir(seq_dir):
             return load_dexycb_native(seq_dir, max_frames=max_frames)
@@ -381,11 +362,7 @@ def load_sequence(path: Path | str, max_frames: int | None = None) -> Sequence:
             seq.meta["source_path"] = str(path)
         return seq
     if suffix == ".json":
-        try:
-            doc = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise UnsupportedFormatError(f"{path.name} is not valid JSON: {exc}") from exc
-        return sequence_from_json_dict(doc, base_dir=path.parent, max_frames=max_frames)
+        return sequence_from_json_bytes(path.read_bytes(), base_dir=path.parent, max_frames=max_frames)
     raise UnsupportedFormatError(f"{path.name}: unknown sequence format {suffix!r} (expected .npz or .json)")
 
 

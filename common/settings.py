@@ -8,9 +8,13 @@ from __future__ import annotations
 
 from functools import lru_cache
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+if TYPE_CHECKING:
+    from common.sequence_npz import ParseLimits
 
 
 class Settings(BaseSettings):
@@ -32,8 +36,18 @@ class Settings(BaseSettings):
     #: Sequences longer than this are rejected at validation.
     max_frames: int = Field(default=3000, gt=0)
 
+    #: Largest object mesh a sequence may carry (vertices / triangles).
+    max_mesh_vertices: int = Field(default=200_000, gt=0)
+    max_mesh_faces: int = Field(default=400_000, gt=0)
+    #: An uploaded NPZ's members may add up to this many bytes uncompressed (checked before decompressing).
+    max_sequence_bytes: int = Field(default=64 * 1024 * 1024, gt=0)
+
     # --- service -------------------------------------------------------------------------------
+    #: Request bodies are counted as they arrive (any transfer encoding): 413 beyond this.
     max_request_bytes: int = Field(default=64 * 1024 * 1024, gt=0)
+    #: JSON submissions are parsed into Python objects (tens of bytes per number), so they get a smaller
+    #: limit than NPZ uploads; large sequences go as NPZ (multipart).
+    max_json_request_bytes: int = Field(default=16 * 1024 * 1024, gt=0)
     max_active_jobs_per_key: int = Field(default=100, gt=0)
     #: Seconds a worker's lease lasts without a heartbeat.
     lease_seconds: float = Field(default=30.0, gt=0)
@@ -47,6 +61,36 @@ class Settings(BaseSettings):
     poll_retry_after_seconds: int = Field(default=2, gt=0)
     #: How long ``hoi-refine serve`` waits for the database at start-up.
     database_wait_seconds: float = Field(default=60.0, gt=0)
+    #: Seconds between the reads of a server-sent event stream (``/v1/jobs/{id}/events`` etc.).
+    events_poll_seconds: float = Field(default=1.0, gt=0)
+    #: Seconds between keep-alive comments on an idle event stream (proxies close silent connections).
+    events_heartbeat_seconds: float = Field(default=15.0, gt=0)
+    #: Longest life of one event stream; the client reconnects with Last-Event-ID and loses nothing.
+    events_max_seconds: float = Field(default=900.0, gt=0)
+
+    # --- webhooks (sent by a background task of the API process; never by a worker) ----------
+    #: Seconds between the dispatcher's looks for new events and due deliveries.
+    webhook_poll_seconds: float = Field(default=1.0, gt=0)
+    #: Timeout of one delivery (connect + answer).
+    webhook_timeout_seconds: float = Field(default=5.0, gt=0)
+    #: Attempts before a delivery is given up (FAILED in the delivery log).
+    webhook_max_attempts: int = Field(default=8, gt=0)
+    #: Base of the exponential backoff between attempts (doubling, capped at one hour).
+    webhook_backoff_seconds: float = Field(default=5.0, ge=0)
+    #: Run the dispatcher in this API process (off when a separate process sends the webhooks).
+    webhook_dispatcher: bool = True
+
+    # --- workers -------------------------------------------------------------------------------
+    #: Niceness added to worker processes (0-19): the physics yields the CPU to the API's status polls.
+    worker_nice: int = Field(default=10, ge=0, le=19)
+
+    def parse_limits(self) -> ParseLimits:
+        """What one uploaded sequence may hold (frames, mesh size, uncompressed bytes)."""
+        from common.npz_safe import NpzLimits  # local: settings stay importable without NumPy
+        from common.sequence_npz import ParseLimits
+
+        npz = NpzLimits(max_member_bytes=self.max_sequence_bytes, max_total_bytes=self.max_sequence_bytes)
+        return ParseLimits(self.max_frames, self.max_mesh_vertices, self.max_mesh_faces, npz)
 
     def resolved_cache_dir(self) -> Path:
         return self.cache_dir if self.cache_dir is not None else self.var_dir / "cache"

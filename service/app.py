@@ -1,4 +1,4 @@
-"""The FastAPI application: ``create_app()`` wires the queue, the routes, the problem handlers and limits.
+"""The FastAPI application: ``create_app()`` wires the queue, the API keys, the routes, problem handlers, limits.
 
 ``uvicorn --factory service.app:create_app`` (what ``hoi-refine serve`` runs) or ``create_app(settings,
 engine)`` in tests. The database must already be at the migration head (``serve`` upgrades it first;
@@ -7,6 +7,7 @@ engine)`` in tests. The database must already be at the migration head (``serve`
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Any
@@ -14,48 +15,44 @@ from typing import Any
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 from sqlalchemy.engine import Engine
-from starlette.types import ASGIApp, Receive, Scope, Send
 
+from common.api_key_store import ApiKeyStore
 from common.database import create_engine_for
 from common.queue import JobQueue
 from common.settings import Settings, get_settings
+from common.webhook_store import WebhookStore
 from service.metrics import make_registry
-from service.problems import install_problem_handlers, problem_response
-from service.routes import jobs, ops
+from service.middleware import BodySizeLimit, CatchAll
+from service.problems import install_problem_handlers
+from service.routes import artifacts, batches, dashboard, job_status, jobs, ops, webhooks
 from service.schemas import JobCreate
+from service.webhook_dispatcher import WebhookDispatcher
 
 API_VERSION = "1.0.0"
-
-
-class BodySizeLimit:
-    """413 before reading a body whose declared Content-Length is over the limit (chunked bodies are
-    measured after reading, in ``service.submission``)."""
-
-    def __init__(self, app: ASGIApp, max_bytes: int) -> None:
-        self.app = app
-        self.max_bytes = max_bytes
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] == "http":
-            for name, value in scope["headers"]:
-                if name == b"content-length" and value.isdigit() and int(value) > self.max_bytes:
-                    detail = f"request body is {int(value)} bytes, over the limit of {self.max_bytes}"
-                    await problem_response(413, "Payload too large", detail)(scope, receive, send)
-                    return
-        await self.app(scope, receive, send)
 
 
 def create_app(settings: Settings | None = None, engine: Engine | None = None) -> FastAPI:
     settings = settings if settings is not None else get_settings()
     owns_engine = engine is None
-    engine = engine if engine is not None else create_engine_for(settings.resolved_database_url())
+    # No pre-ping on the API's pool: it would add a round trip to every request (the status poll is one
+    # short read). After a database restart the first request on a dead connection answers 503 and the
+    # pool drops its connections, so the next one reconnects.
+    engine = engine if engine is not None else create_engine_for(settings.resolved_database_url(), pool_pre_ping=False)
     queue = JobQueue(engine, settings)
 
     @asynccontextmanager
     async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
-        yield
-        if owns_engine:
-            engine.dispose()
+        dispatcher = WebhookDispatcher(_app.state.webhooks) if settings.webhook_dispatcher else None
+        task = asyncio.create_task(dispatcher.run()) if dispatcher is not None else None
+        _app.state.webhook_dispatcher = dispatcher
+        try:
+            yield
+        finally:
+            if dispatcher is not None and task is not None:
+                dispatcher.stop()
+                await task
+            if owns_engine:
+                engine.dispose()
 
     app = FastAPI(
         title="hoi-refine",
@@ -66,12 +63,21 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None) -
     app.state.settings = settings
     app.state.engine = engine
     app.state.queue = queue
+    app.state.api_keys = ApiKeyStore(engine)
+    app.state.webhooks = WebhookStore(engine, settings)
     app.state.key_cache = {}
+    app.state.job_cache = job_status.RepresentationCache()
     app.state.metrics_registry = make_registry(queue)
     install_problem_handlers(app)
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_request_bytes)
+    app.add_middleware(CatchAll)  # added last: the outermost of ours, so it sees every escaped exception
+    app.include_router(job_status.router)
     app.include_router(jobs.router)
+    app.include_router(artifacts.router)
+    app.include_router(batches.router)
+    app.include_router(webhooks.router)
     app.include_router(ops.router)
+    app.include_router(dashboard.router)
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app
 

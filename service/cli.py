@@ -9,10 +9,15 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import Any
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from common.api_key_store import ApiKeyStore
 
 
-def register(subparsers: Any) -> None:
+def register_serve(subparsers: Any) -> None:
     serve = subparsers.add_parser(
         "serve",
         help="run the REST API (waits for the database and upgrades it to the latest migration first)",
@@ -26,6 +31,8 @@ def register(subparsers: Any) -> None:
     serve.add_argument("--no-migrate", action="store_true", help="do not upgrade the database at start-up")
     serve.set_defaults(func=_cmd_serve)
 
+
+def register_keys(subparsers: Any) -> None:
     keys = subparsers.add_parser("keys", help="manage API keys", description="Create, list and revoke API keys.")
     keys_sub = keys.add_subparsers(dest="keys_command", required=True, metavar="ACTION")
     create = keys_sub.add_parser("create", help="create a key and print it (shown once; only a hash is stored)")
@@ -41,6 +48,12 @@ def register(subparsers: Any) -> None:
         "few more seconds (its lookup cache). Exit status 2 when nothing or more than one key matches.",
     )
     revoke.add_argument("name_or_prefix", metavar="NAME_OR_PREFIX", help="the key's name, prefix, id, or the key")
+    revoke.add_argument(
+        "--cancel-jobs",
+        action="store_true",
+        help="also cancel the key's QUEUED jobs and ask its RUNNING ones to stop (otherwise they still run, "
+        "and nobody can read their results: the key that owns them no longer works)",
+    )
     revoke.set_defaults(func=_cmd_keys_revoke)
 
 
@@ -76,29 +89,33 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     return 0
 
 
-def _queue() -> Any:
+@contextmanager
+def _key_store() -> Iterator[ApiKeyStore]:
+    """The ``ApiKeyStore`` of the configured database (migrated to head first); its engine is closed after."""
+    from common.api_key_store import ApiKeyStore
     from common.database import create_engine_for
-    from common.queue import JobQueue
     from common.settings import get_settings
 
     settings = get_settings()
     prepare_database(settings.resolved_database_url(), settings.database_wait_seconds)
-    return JobQueue(create_engine_for(settings.resolved_database_url()), settings)
+    engine = create_engine_for(settings.resolved_database_url())
+    try:
+        yield ApiKeyStore(engine)
+    finally:
+        engine.dispose()
 
 
 def _cmd_keys_create(args: argparse.Namespace) -> int:
-    queue = _queue()
-    key_id, plaintext = queue.create_api_key(args.name)
-    queue.engine.dispose()
+    with _key_store() as store:
+        key_id, plaintext = store.create(args.name)
     print(plaintext)
     print(f"created API key {key_id} for {args.name!r}; it is shown only this once", file=sys.stderr)
     return 0
 
 
 def _cmd_keys_list(_args: argparse.Namespace) -> int:
-    queue = _queue()
-    rows = queue.list_api_keys()
-    queue.engine.dispose()
+    with _key_store() as store:
+        rows = store.list()
     for key in rows:
         revoked = f"  REVOKED {key.revoked_at:%Y-%m-%d %H:%M:%S}" if key.revoked_at else ""
         print(f"{key.id}  {key.prefix}...  {key.created_at:%Y-%m-%d %H:%M:%S}  {key.name}{revoked}")
@@ -107,13 +124,17 @@ def _cmd_keys_list(_args: argparse.Namespace) -> int:
 
 def _cmd_keys_revoke(args: argparse.Namespace) -> int:
     # No match or several matches raise a project error: ``hoi-refine`` prints it and exits 2.
-    queue = _queue()
-    try:
-        key, newly = queue.revoke_api_key(args.name_or_prefix)
-    finally:
-        queue.engine.dispose()
+    with _key_store() as store:
+        key, newly = store.revoke(args.name_or_prefix)
+        cancelled = None
+        if args.cancel_jobs:
+            from common.queue import JobQueue
+
+            cancelled = JobQueue(store.engine).cancel_jobs_of_key(key.id)
     assert key.revoked_at is not None
     when = f"{key.revoked_at:%Y-%m-%d %H:%M:%S} UTC"
     state = "revoked" if newly else f"was already revoked (at {when})"
     print(f"API key {key.id} ({key.prefix}..., {key.name!r}) {state}")
+    if cancelled is not None:
+        print(f"its jobs: {cancelled[0]} queued cancelled, {cancelled[1]} running asked to stop")
     return 0

@@ -10,7 +10,7 @@ from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily, Metric
 from prometheus_client.registry import Collector
 
-from common.db_models import JOB_STATES
+from common.job_state import JobState
 from common.queue import JobQueue
 
 WAIT_BUCKETS = (0.1, 0.5, 1, 5, 15, 60, 300, 900, 3600)
@@ -31,8 +31,8 @@ class QueueCollector(Collector):
     def collect(self) -> Iterator[Metric]:
         stats = self.queue.stats()
         jobs = GaugeMetricFamily("hoi_refine_jobs", "Jobs per state", labels=["state"])
-        for state in JOB_STATES:
-            jobs.add_metric([state], stats.jobs_by_state.get(state, 0))
+        for state in JobState:
+            jobs.add_metric([state.value], stats.jobs_by_state.get(state, 0))
         yield jobs
         yield CounterMetricFamily("hoi_refine_claims", "Jobs claimed by workers (all attempts)", stats.claims_total)
         yield _histogram(

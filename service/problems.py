@@ -2,12 +2,13 @@
 
 Project errors (``common.errors.HoiRefineError``) carry their HTTP status and title; request-validation
 errors from FastAPI become 422 with one ``{field, problem}`` per problem; anything unexpected becomes a
-500 without internals in the body (it is logged).
+500 without internals in the body (``service.middleware.CatchAll``: logged with a correlation id).
 """
 
 from __future__ import annotations
 
 import logging
+import uuid
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -24,6 +25,7 @@ from common.errors import (
     LimitExceededError,
     SequenceValidationError,
 )
+from common.safe_text import shown
 
 PROBLEM_JSON = "application/problem+json"
 log = logging.getLogger("hoi_refine.service")
@@ -35,12 +37,14 @@ def problem_response(
     detail: str | None = None,
     errors: list[FieldProblem] | None = None,
     headers: dict[str, str] | None = None,
+    extra: dict[str, Any] | None = None,
 ) -> JSONResponse:
     body: dict[str, Any] = {"type": "about:blank", "title": title, "status": status}
     if detail:
         body["detail"] = detail
     if errors is not None:
         body["errors"] = [{"field": p.field, "problem": p.problem} for p in errors]
+    body.update(extra or {})
     return JSONResponse(body, status_code=status, media_type=PROBLEM_JSON, headers=headers)
 
 
@@ -56,7 +60,9 @@ def _field_path(loc: tuple[Any, ...] | list[Any]) -> str:
         if isinstance(part, int):
             out += f"[{part}]"
         else:
-            out += ("." if out else "") + str(part)
+            # A client's own dict keys can appear here (an unknown member): echo them escaped and short.
+            text = str(part)
+            out += ("." if out else "") + (text if text.isidentifier() or text == "[key]" else shown(text, 40))
     return out or "body"
 
 
@@ -71,10 +77,14 @@ async def _hoi_refine_error(_request: Request, exc: Exception) -> JSONResponse:
         headers["Retry-After"] = str(exc.retry_after)
     if exc.http_status == 401:
         headers["WWW-Authenticate"] = "Bearer"
+    extra = None
     if exc.http_status >= 500:
-        log.error("request failed: %s", exc)
+        correlation_id = uuid.uuid4().hex
+        log.error("request failed [correlation id %s]: %s", correlation_id, exc)
+        headers["X-Correlation-ID"] = correlation_id
+        extra = {"correlation_id": correlation_id}
     problems = exc.problems if isinstance(exc, SequenceValidationError) else None
-    return problem_response(exc.http_status, exc.title, str(exc), problems, headers or None)
+    return problem_response(exc.http_status, exc.title, str(exc), problems, headers or None, extra)
 
 
 async def _request_validation_error(_request: Request, exc: Exception) -> JSONResponse:
@@ -109,15 +119,12 @@ async def _database_unavailable(_request: Request, exc: Exception) -> JSONRespon
     return problem_response(503, DatabaseUnavailableError.title, detail, headers={"Retry-After": "5"})
 
 
-async def _unexpected_error(_request: Request, exc: Exception) -> JSONResponse:
-    log.exception("unhandled error", exc_info=exc)
-    return problem_response(500, "Internal error", "an unexpected error occurred; it has been logged")
-
-
 def install_problem_handlers(app: FastAPI) -> None:
     app.add_exception_handler(HoiRefineError, _hoi_refine_error)
     app.add_exception_handler(RequestValidationError, _request_validation_error)
     app.add_exception_handler(StarletteHTTPException, _http_error)
     app.add_exception_handler(sa_exc.OperationalError, _database_unavailable)
     app.add_exception_handler(sa_exc.TimeoutError, _database_unavailable)
-    app.add_exception_handler(Exception, _unexpected_error)
+    # Anything else is answered by ``service.middleware.CatchAll`` (a 500 with a correlation id that keeps
+    # the connection open); an ``Exception`` handler here would be run by Starlette's ServerErrorMiddleware,
+    # which re-raises after answering, and uvicorn then drops the keep-alive connection.

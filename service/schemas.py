@@ -13,15 +13,15 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from common.job_options import JobOptions
+from common.job_state import JobState
 from common.queue_types import JobRecord
 
 VertexIndex = Annotated[int, Field(ge=0, le=2**31 - 1)]
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
-JobState = Literal["QUEUED", "RUNNING", "SUCCEEDED", "FAILED", "CANCELLED"]
 
 
 class PrimitiveIn(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     kind: Literal["box", "cylinder", "sphere", "capsule"]
     size: list[float] = Field(
         min_length=1, max_length=3, description="box half-extents (3); cylinder/capsule (radius, half-length); sphere r"
@@ -29,22 +29,22 @@ class PrimitiveIn(BaseModel):
 
 
 class MeshIn(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     vertices: list[Annotated[list[float], Field(min_length=3, max_length=3)]] = Field(min_length=4)
     faces: list[Annotated[list[VertexIndex], Field(min_length=3, max_length=3)]] = Field(min_length=4)
 
 
 class ObjectIn(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     name: str = "object"
-    mass_kg: float = Field(gt=0)
+    mass_kg: float = Field(gt=0, le=1000)
     friction: float | None = Field(default=None, ge=0)
     primitive: PrimitiveIn | None = None
     mesh: MeshIn | None = None
 
 
 class ManoIn(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     global_orient: list[list[float]]
     hand_pose: list[list[float]]
     trans: list[list[float]]
@@ -54,7 +54,7 @@ class ManoIn(BaseModel):
 
 
 class HandIn(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     side: Literal["right", "left"]
     valid: list[bool]
     keypoints: list[Annotated[list[Vec3], Field(min_length=21, max_length=21)]] | None = Field(
@@ -66,12 +66,12 @@ class HandIn(BaseModel):
 class JobCreate(BaseModel):
     """A sequence in the native JSON form, with the job's options."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     format: Literal["hoi-refine-sequence"] = "hoi-refine-sequence"
     format_version: Literal[1] = 1
     name: str = "sequence"
-    fps: float = Field(gt=0)
-    frame_start: int = Field(default=0, ge=0)
+    fps: float = Field(gt=0, le=1000)
+    frame_start: int = Field(default=0, ge=0, le=2**31 - 1)
     object: ObjectIn
     object_pose: list[Annotated[list[float], Field(min_length=7, max_length=7)]] = Field(
         min_length=1, description="(T, 7): x y z qw qx qy qz per frame"
@@ -83,6 +83,7 @@ class JobCreate(BaseModel):
     up: Vec3 | None = None
     meta: dict[str, str] = Field(default_factory=dict)
     options: JobOptions = Field(default_factory=JobOptions)
+    batch_id: str | None = Field(default=None, max_length=32, description="Submit into this batch (POST /v1/batches)")
 
 
 class ProgressPublic(BaseModel):
@@ -105,6 +106,7 @@ class JobError(BaseModel):
 
 class JobPublic(BaseModel):
     id: str
+    batch_id: str | None = None
     name: str
     state: JobState
     attempt: int
@@ -128,12 +130,12 @@ class JobPublic(BaseModel):
         progress = None
         if job.progress is not None:
             progress = ProgressPublic.model_validate(job.progress)
-            if progress.eta_s is None and job.state == "RUNNING" and job.started_at:
+            if progress.eta_s is None and job.state == JobState.RUNNING and job.started_at:
                 # Rate up to the last heartbeat (updated_at), not up to now: the representation, and so its
                 # ETag, then changes only when the job does.
                 progress.eta_s = _eta(progress, (job.updated_at - job.started_at).total_seconds())
         return cls(
-            id=job.id, name=job.name, state=job.state,
+            id=job.id, batch_id=job.batch_id, name=job.name, state=job.state,
             attempt=job.attempt, max_attempts=job.max_attempts, priority=job.priority, num_frames=job.num_frames,
             options=job.options, cancel_requested=job.cancel_requested, created_at=job.created_at,
             queued_at=job.queued_at, started_at=job.started_at, finished_at=job.finished_at,
@@ -157,8 +159,8 @@ class JobsPublic(BaseModel):
 class JobEventPublic(BaseModel):
     id: int
     at: datetime
-    kind: str = Field(description="submitted, claimed, requeued, released, cancel_requested, cancelled, "
-                      "succeeded, failed, retried, deleted")  # fmt: skip
+    kind: str = Field(description="submitted, claimed, progress, requeued, released, cancel_requested, cancelled, "
+                      "succeeded, failed, retried, batched, deleted")  # fmt: skip
     detail: dict[str, Any]
 
 
@@ -190,6 +192,17 @@ class ContactsPublic(BaseModel):
 class MetricsPublic(BaseModel):
     job_id: str
     metrics: dict[str, Any] = Field(description="``raw`` (reference replay) and ``refined`` metrics, DESIGN §1.8")
+
+
+class PlotPublic(BaseModel):
+    name: str = Field(description="file name, e.g. errors.png")
+    url: str = Field(description="where to GET the PNG (same API key)")
+    size_bytes: int
+
+
+class PlotsPublic(BaseModel):
+    job_id: str
+    plots: list[PlotPublic]
 
 
 class ResultJson(BaseModel):

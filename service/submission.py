@@ -7,13 +7,12 @@ a ``sequence`` file part (native NPZ, or a DexYCB development NPZ when ``HOI_REF
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from typing import Any
 
 from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
-from starlette.datastructures import UploadFile
+from starlette.datastructures import FormData, UploadFile
 from starlette.requests import Request
 
 from common.errors import (
@@ -24,6 +23,7 @@ from common.errors import (
     UnsupportedFormatError,
 )
 from common.job_options import JobOptions
+from common.safe_text import shown
 from common.sequence import Sequence
 from common.sequence_io import sequence_from_json_dict, sequence_from_npz_bytes, sequence_to_npz_bytes
 from common.settings import Settings
@@ -35,6 +35,7 @@ MULTIPART_SCHEMA: dict[str, Any] = {
     "properties": {
         "sequence": {"type": "string", "format": "binary", "description": "native or DexYCB development NPZ"},
         "options": {"type": "string", "description": "JobOptions as JSON"},
+        "batch_id": {"type": "string", "description": "submit into this batch (POST /v1/batches)"},
     },
     "required": ["sequence"],
 }
@@ -46,6 +47,8 @@ class Submission:
     options: JobOptions
     #: The sequence as native NPZ bytes: what the queue stores and the worker reads.
     payload: bytes
+    #: The batch to submit into, or None.
+    batch_id: str | None = None
 
 
 def _invalid(problems: list[FieldProblem]) -> InvalidRequestError:
@@ -58,57 +61,83 @@ def _prefixed(exc: ValidationError, prefix: str) -> list[FieldProblem]:
 
 
 async def read_submission(request: Request, settings: Settings) -> Submission:
-    body = await request.body()  # cached: request.form() below parses these same bytes
-    if len(body) > settings.max_request_bytes:
-        raise PayloadTooLargeError(f"request body is {len(body)} bytes, over the limit of {settings.max_request_bytes}")
+    """The request's sequence and options, validated; every problem is a 4xx naming its field.
+
+    The body's size is enforced while it streams (``service.middleware.BodySizeLimit``); a JSON body has
+    its own, smaller limit because parsing it costs far more memory per byte than an NPZ upload.
+    """
     content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if content_type == "application/json":
-        seq, options = await run_in_threadpool(_from_json, body, settings)
+        body = await _read_json_body(request, settings.max_json_request_bytes)
+        seq, options, batch_id = await run_in_threadpool(_from_json, body, settings)
     elif content_type == "multipart/form-data":
-        blob, options = await _read_multipart(request, settings)
+        blob, options, batch_id = await _read_multipart(request, settings)
         seq = await run_in_threadpool(_from_npz, blob, settings)
     else:
         raise UnsupportedFormatError(
-            f"Content-Type {content_type or '(none)'} is not accepted: send application/json or multipart/form-data"
+            f"Content-Type {shown(content_type or '(none)')} is not accepted: send application/json or "
+            "multipart/form-data"
         )
     payload = await run_in_threadpool(sequence_to_npz_bytes, seq)
-    return Submission(seq, options, payload)
+    return Submission(seq, options, payload, batch_id)
 
 
-def _from_json(body: bytes, settings: Settings) -> tuple[Sequence, JobOptions]:
+async def _read_json_body(request: Request, limit: int) -> bytes:
+    chunks: list[bytes] = []
+    size = 0
+    async for chunk in request.stream():
+        size += len(chunk)
+        if size > limit:
+            raise PayloadTooLargeError(
+                f"a JSON submission may be at most {limit} bytes (HOI_REFINE_MAX_JSON_REQUEST_BYTES); "
+                "send large sequences as NPZ (multipart/form-data)"
+            )
+        chunks.append(chunk)
+    return b"".join(chunks)
+
+
+def _from_json(body: bytes, settings: Settings) -> tuple[Sequence, JobOptions, str | None]:
     try:
-        doc = json.loads(body)
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise _invalid([FieldProblem("body", f"is not valid JSON: {exc}")]) from exc
-    try:
-        parsed = JobCreate.model_validate(doc)
+        # pydantic parses the bytes straight into the model (no intermediate Python objects); NaN and
+        # Infinity are refused by the models' allow_inf_nan=False, too-deep nesting by its recursion limit.
+        parsed = JobCreate.model_validate_json(body)
     except ValidationError as exc:
         raise _invalid(validation_problems(exc.errors())) from exc
-    seq_doc = parsed.model_dump(exclude={"options"}, exclude_none=True)
-    return sequence_from_json_dict(seq_doc, max_frames=settings.max_frames), parsed.options
+    seq_doc = parsed.model_dump(exclude={"options", "batch_id"}, exclude_none=True)
+    return sequence_from_json_dict(seq_doc, max_frames=settings.max_frames), parsed.options, parsed.batch_id
 
 
-async def _read_multipart(request: Request, settings: Settings) -> tuple[bytes, JobOptions]:
-    form = await request.form(max_files=1, max_fields=10, max_part_size=1024 * 1024)
+async def _read_multipart(request: Request, settings: Settings) -> tuple[bytes, JobOptions, str | None]:
+    # The context closes the spooled temporary files of the parts (else each request leaks one until GC).
+    async with request.form(max_files=1, max_fields=10, max_part_size=1024 * 1024) as form:
+        return await _read_form(form)
+
+
+async def _read_form(form: FormData) -> tuple[bytes, JobOptions, str | None]:
     seq_part = form.get("sequence")
     if seq_part is None:
         raise _invalid([FieldProblem("sequence", "is required (a file part holding the sequence NPZ)")])
     blob = await seq_part.read() if isinstance(seq_part, UploadFile) else seq_part.encode()
     raw_options = form.get("options")
     if isinstance(raw_options, UploadFile):
-        raw_options = (await raw_options.read()).decode(errors="replace")
+        raw_options = (await raw_options.read(1024 * 1024 + 1)).decode(errors="replace")
     try:
         options = JobOptions.model_validate_json(raw_options) if raw_options else JobOptions()
     except ValidationError as exc:
         raise _invalid(_prefixed(exc, "options")) from exc
-    return blob, options
+    batch_id = form.get("batch_id")
+    if batch_id is not None and (not isinstance(batch_id, str) or not 0 < len(batch_id) <= 32):
+        raise _invalid([FieldProblem("batch_id", "must be a batch id (text, at most 32 characters)")])
+    return blob, options, batch_id
 
 
 def _from_npz(blob: bytes, settings: Settings) -> Sequence:
     try:
-        return sequence_from_npz_bytes(blob, max_frames=settings.max_frames)
-    except UnsupportedFormatError as exc:
-        raise _invalid([FieldProblem("sequence", str(exc))]) from exc
+        seq = sequence_from_npz_bytes(blob, limits=settings.parse_limits())
     except ConfigurationError as exc:
-        # A DexYCB file names its YCB object; without HOI_REFINE_YCB_DIR this server cannot read it.
-        raise _invalid([FieldProblem("sequence", f"this server cannot read DexYCB files: {exc}")]) from exc
+        # A DexYCB file names its YCB object; without HOI_REFINE_YCB_DIR this server cannot read it. The
+        # message names the setting, never this server's folders.
+        raise _invalid([FieldProblem("sequence", "this server cannot read DexYCB development files (its "
+                                     "administrator has not set HOI_REFINE_YCB_DIR)")]) from exc  # fmt: skip
+    seq.meta.pop("source_path", None)  # a server path; an upload has none
+    return seq

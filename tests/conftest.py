@@ -34,5 +34,6 @@ def dexycb_dev_files(shared_data: Path) -> list[Path]:
     return files
 
 
-# Queue/API/migration fixtures (database per test on SQLite and PostgreSQL), see tests/queue_fixtures.py.
-pytest_plugins = ["tests.queue_fixtures"]
+# Fixtures for every test package: a database per test on SQLite and PostgreSQL (tests/support/queue_fixtures.py),
+# a MANO-format test model (tests/support/mano.py), a short refinement and offscreen OpenGL (tests/support/visual.py).
+pytest_plugins = ["tests.support.queue_fixtures", "tests.support.mano", "tests.support.visual"]

@@ -41,7 +41,7 @@ AWKWARD = ("on_object", "low_lift", "low_valid")
 def awkward_classes(path: Path) -> list[str]:
     """The awkward classes (``AWKWARD``) a DexYCB dev file falls in, computed from the file and its mesh."""
     from common.dexycb import load_dexycb_npz
-    from worker.hand_model import quat_to_matrix
+    from common.geometry import quat_to_matrix
 
     seq = load_dexycb_npz(path)
     pose = seq.object_pose_world()

@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
-import hashlib
 from typing import Annotated, Any, Literal
 
 import numpy as np
 from fastapi import APIRouter, Depends, Header, Query, Request, Response
+from fastapi.responses import StreamingResponse
 from starlette.concurrency import run_in_threadpool
 
 from common.errors import FieldProblem, InvalidRequestError
+from common.job_state import ACTIVE, JobState
+from common.queue_types import JobEventRecord
 from common.result_format import read_arrays, read_contacts
 from common.sequence_io import sequence_to_json_dict
+from service import event_stream
 from service.deps import KeyDep, QueueDep, SettingsDep, reject_unknown_query_parameters
 from service.schemas import (
     ContactsPublic,
@@ -19,7 +22,6 @@ from service.schemas import (
     JobEventsPublic,
     JobPublic,
     JobsPublic,
-    JobState,
     MetricsPublic,
     Problem,
     ResultJson,
@@ -38,7 +40,7 @@ router = APIRouter(
 
 
 def _job_response(response: Response, job: JobPublic, retry_after: int) -> JobPublic:
-    if job.state in ("QUEUED", "RUNNING"):
+    if job.state in ACTIVE:
         response.headers["Retry-After"] = str(retry_after)
     return job
 
@@ -66,11 +68,12 @@ async def submit_job(
     queue: QueueDep,
     settings: SettingsDep,
     key_id: KeyDep,
-    idempotency_key: Annotated[str | None, Header(max_length=200)] = None,
+    idempotency_key: Annotated[str | None, Header(max_length=200, pattern=r"^[\x20-\x7E]+$")] = None,
 ) -> JobPublic:
     sub = await read_submission(request, settings)
     job, _created = await run_in_threadpool(
-        queue.submit, key_id, sub.payload, sub.options, idempotency_key, sub.sequence.name, sub.sequence.num_frames
+        queue.submit, key_id, sub.payload, sub.options, idempotency_key, sub.sequence.name, sub.sequence.num_frames,
+        sub.batch_id,
     )
     response.headers["Location"] = f"/v1/jobs/{job.id}"
     return _job_response(response, JobPublic.from_record(job), settings.poll_retry_after_seconds)
@@ -83,34 +86,10 @@ def list_jobs(
     page_size: Annotated[int, Query(ge=1, le=500)] = 50,
     page_token: Annotated[str | None, Query(max_length=500)] = None,
     state: JobState | None = None,
+    batch_id: Annotated[str | None, Query(max_length=32, description="only the jobs of this batch")] = None,
 ) -> JobsPublic:
-    jobs, token = queue.list(key_id, state=state, page_size=page_size, page_token=page_token)
+    jobs, token = queue.list(key_id, state=state, page_size=page_size, page_token=page_token, batch_id=batch_id)
     return JobsPublic(data=[JobPublic.from_record(j) for j in jobs], count=len(jobs), next_page_token=token)
-
-
-@router.get(
-    "/{job_id}",
-    response_model=JobPublic,
-    summary="A job's state, attempt, progress and (when done) summary metrics",
-    responses={304: {"description": "Not modified (If-None-Match matched the ETag)"}},
-)
-def get_job(
-    job_id: str,
-    response: Response,
-    queue: QueueDep,
-    settings: SettingsDep,
-    key_id: KeyDep,
-    if_none_match: Annotated[str | None, Header()] = None,
-) -> Any:
-    job = JobPublic.from_record(queue.get(key_id, job_id))
-    body = job.model_dump_json().encode()
-    etag = f'"{hashlib.sha256(body).hexdigest()[:32]}"'
-    headers = {"ETag": etag}
-    if job.state in ("QUEUED", "RUNNING"):
-        headers["Retry-After"] = str(settings.poll_retry_after_seconds)
-    if if_none_match is not None and etag in [t.strip() for t in if_none_match.split(",")]:
-        return Response(status_code=304, headers=headers)
-    return Response(body, media_type="application/json", headers=headers)
 
 
 @router.post("/{job_id}:cancel", response_model=JobPublic, summary="Cancel (QUEUED at once, RUNNING by flag)",
@@ -177,12 +156,29 @@ def get_metrics(job_id: str, queue: QueueDep, key_id: KeyDep) -> MetricsPublic:
     return MetricsPublic(job_id=job_id, metrics=dict(summary.get("metrics", {})))
 
 
-@router.get("/{job_id}/events", response_model=JobEventsPublic, summary="The job's state changes, oldest first")
-def get_events(job_id: str, queue: QueueDep, key_id: KeyDep) -> JobEventsPublic:
-    rows = queue.events(key_id, job_id)
-    return JobEventsPublic(
-        job_id=job_id, events=[JobEventPublic(id=e.id, at=e.at, kind=e.kind, detail=e.detail) for e in rows]
-    )
+@router.get(
+    "/{job_id}/events",
+    response_model=JobEventsPublic,
+    summary="The job's state changes and progress, oldest first; as server-sent events with "
+    "'Accept: text/event-stream' (Last-Event-ID resumes)",
+    responses={200: {"content": {"application/json": {}, event_stream.MEDIA_TYPE: {}}}},
+)
+async def get_events(job_id: str, request: Request, queue: QueueDep, settings: SettingsDep, key_id: KeyDep) -> Any:
+    if not event_stream.wants_stream(request):
+        rows = await run_in_threadpool(queue.events, key_id, job_id)
+        return JobEventsPublic(
+            job_id=job_id, events=[JobEventPublic(id=e.id, at=e.at, kind=e.kind, detail=e.detail) for e in rows]
+        )
+    after = event_stream.last_event_id(request)
+
+    def read(after_id: int) -> tuple[bool, list[JobEventRecord], dict[str, Any]]:
+        job, events = queue.job_events_after(key_id, job_id, after_id)
+        snapshot = {"job_id": job.id, "state": job.state, "attempt": job.attempt, "progress": job.progress}
+        return job.is_terminal, events, snapshot
+
+    await run_in_threadpool(read, after)  # 404 before the stream starts
+    body = event_stream.stream(request, settings, read, after, "end")
+    return StreamingResponse(body, media_type=event_stream.MEDIA_TYPE, headers={"Cache-Control": "no-cache"})
 
 
 @router.get("/{job_id}/input", summary="The submitted sequence in the native JSON form")

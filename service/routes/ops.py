@@ -6,6 +6,7 @@ from fastapi import APIRouter, Request, Response
 from prometheus_client import CONTENT_TYPE_LATEST
 
 from common.database import database_ready
+from service.deps import KeyDep
 from service.metrics import render
 from service.problems import problem_response
 
@@ -26,7 +27,11 @@ def readyz(request: Request) -> Response:
     return Response('{"status":"ready"}', media_type="application/json")
 
 
-@router.get("/metrics", summary="Prometheus metrics", response_class=Response,
-            responses={200: {"content": {CONTENT_TYPE_LATEST: {}}}})  # fmt: skip
-def metrics(request: Request) -> Response:
+@router.get("/metrics", summary="Prometheus metrics (needs an API key: deployment-wide job totals)",
+            response_class=Response, responses={200: {"content": {CONTENT_TYPE_LATEST: {}}},
+                                                401: {"content": {"application/problem+json": {}}}})  # fmt: skip
+def metrics(request: Request, _key: KeyDep) -> Response:
+    # Protected rather than public (issue #16): the totals say how busy the deployment is and when its
+    # clients work, which is nobody's business without a key. Any valid key may scrape (Prometheus:
+    # ``authorization: {credentials: KEY}``); no job ids, names or key ids are in it.
     return Response(render(request.app.state.metrics_registry), media_type=CONTENT_TYPE_LATEST)

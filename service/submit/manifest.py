@@ -17,15 +17,21 @@ from pathlib import Path
 from typing import Any
 
 from common.errors import UnsupportedFormatError
+from common.job_state import JobState
 
 MANIFEST_NAME = "manifest.json"
 MANIFEST_FORMAT = "hoi-refine-submit-manifest"
 MANIFEST_VERSION = 1
 
-#: Job states of the service, plus the tool's own: PENDING (not yet accepted by the server), INVALID (failed
-#: local validation, never sent) and REJECTED (the server refused the submission with a 4xx).
-TERMINAL_JOB_STATES = frozenset({"SUCCEEDED", "FAILED", "CANCELLED"})
-FAILED_STATES = frozenset({"FAILED", "CANCELLED", "INVALID", "REJECTED"})
+#: An entry's state is a ``JobState`` of the service or one of the tool's own: PENDING (not yet accepted by the
+#: server), INVALID (failed local validation, never sent) and REJECTED (the server refused it with a 4xx).
+PENDING, INVALID, REJECTED = "PENDING", "INVALID", "REJECTED"
+#: Entries the server will never run as they stand: a re-run sends them again once the input changes.
+NOT_SENT = frozenset({INVALID, REJECTED})
+#: Jobs that ended without a result.
+UNSUCCESSFUL = frozenset({JobState.FAILED, JobState.CANCELLED})
+#: Entries that failed, whether here or on the server.
+FAILED_STATES = UNSUCCESSFUL | NOT_SENT
 
 
 @dataclass
@@ -36,7 +42,7 @@ class Entry:
     key: str | None = None
     sequence: str | None = None
     job_id: str | None = None
-    state: str = "PENDING"
+    state: str = PENDING
     attempt: int | None = None
     error: str | None = None
     #: Downloaded files, relative to the output folder: ``result`` and ``contacts``.

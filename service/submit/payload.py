@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import hashlib
 import io
-import json
 
 import numpy as np
 
+from common.api_client import options_json
 from common.job_options import JobOptions
 from common.sequence import Sequence
 from common.sequence_io import sequence_from_npz_bytes, sequence_to_npz_bytes
@@ -24,11 +24,6 @@ KEY_SCHEME = b"hoi-refine-submit/1"
 #: Meta entries that describe where a file lay on this machine, not what it holds: left out of the upload
 #: so that moving or re-mounting a dataset does not change the key.
 _LOCAL_META = ("source_path",)
-
-
-def options_json(options: JobOptions) -> str:
-    """Canonical JSON of the options: every field (defaults included), sorted keys, no spaces."""
-    return json.dumps(options.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
 
 
 def _npz_arrays(blob: bytes) -> dict[str, np.ndarray]:

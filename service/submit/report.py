@@ -10,27 +10,20 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from service.submit.manifest import FAILED_STATES, Entry
+from common.job_state import JobState
+from common.metrics_table import MEAN_KEYS, metrics_table
+from service.submit.manifest import FAILED_STATES, INVALID, PENDING, REJECTED, Entry
 
-#: Metrics of DESIGN §1.8 in table order: (key in the result summary, label, format). Keys are
-#: ``worker.metrics.METRIC_KEYS``; unit-suffixed spellings (``E_t_cm``) of older results are read too.
-METRICS: tuple[tuple[str, str, str], ...] = (
-    ("E_t", "E_t (cm)", "{:.2f}"),
-    ("E_r", "E_r (deg)", "{:.2f}"),
-    ("E_j", "E_j (cm)", "{:.2f}"),
-    ("E_ft", "E_ft (cm)", "{:.2f}"),
-    ("success", "success rate", "{:.0%}"),
-)
 _UNIT_SUFFIX = {"E_t": "_cm", "E_r": "_deg", "E_j": "_cm", "E_ft": "_cm"}
-STATE_ORDER = ("PENDING", "QUEUED", "RUNNING", "SUCCEEDED", "FAILED", "CANCELLED", "REJECTED", "INVALID")
+STATE_ORDER: tuple[str, ...] = (PENDING, *JobState, REJECTED, INVALID)
 
 
 def counts(entries: list[Entry]) -> dict[str, int]:
     """Progress counters: submitted (has a job), running, done (succeeded + downloaded if waiting), failed."""
     return {
         "submitted": sum(e.job_id is not None for e in entries),
-        "running": sum(e.state == "RUNNING" for e in entries),
-        "done": sum(e.state == "SUCCEEDED" for e in entries),
+        "running": sum(e.state == JobState.RUNNING for e in entries),
+        "done": sum(e.state == JobState.SUCCEEDED for e in entries),
         "failed": sum(e.state in FAILED_STATES for e in entries),
     }
 
@@ -60,6 +53,9 @@ def _number(value: Any) -> float | None:
 
 
 def _metric(stage: Any, key: str) -> float | None:
+    if "." in key:  # a nested block: "paper.E_t"
+        block, _, key = key.partition(".")
+        stage = stage.get(block) if isinstance(stage, dict) else None
     if not isinstance(stage, dict):
         return None
     for name in (key, key + _UNIT_SUFFIX.get(key, "")):
@@ -73,11 +69,11 @@ def metric_means(entries: list[Entry]) -> dict[str, dict[str, float | None]]:
     out: dict[str, dict[str, float | None]] = {}
     for stage in ("raw", "refined"):
         out[stage] = {}
-        for key, _, _ in METRICS:
+        for key in MEAN_KEYS:
             values = [
                 v
                 for e in entries
-                if e.state == "SUCCEEDED" and e.metrics
+                if e.state == JobState.SUCCEEDED and e.metrics
                 for v in [_metric(e.metrics.get(stage), key)]
                 if v is not None
             ]
@@ -92,7 +88,7 @@ def summary_document(entries: list[Entry], retried: int = 0) -> dict[str, Any]:
         "states": dict(sorted(Counter(e.state for e in entries).items())),
         "total": len(entries),
         "retried": retried,
-        "succeeded_with_metrics": sum(1 for e in entries if e.state == "SUCCEEDED" and e.metrics),
+        "succeeded_with_metrics": sum(1 for e in entries if e.state == JobState.SUCCEEDED and e.metrics),
         "mean_metrics": metric_means(entries),
     }
 
@@ -106,15 +102,12 @@ def summary_tables(entries: list[Entry]) -> tuple[Table, Table]:
         jobs.add_row(state, str(states[state]))
     jobs.add_row("total", str(len(entries)), style="bold")
 
-    with_metrics = sum(1 for e in entries if e.state == "SUCCEEDED" and e.metrics)
+    with_metrics = sum(1 for e in entries if e.state == JobState.SUCCEEDED and e.metrics)
     means = metric_means(entries)
-    metrics = Table(title=f"Mean metrics over {with_metrics} succeeded sequences")
-    metrics.add_column("metric")
-    metrics.add_column("raw replay", justify="right")
-    metrics.add_column("refined", justify="right")
-    for key, label, fmt in METRICS:
-        cells = [fmt.format(v) if v is not None else "-" for v in (means["raw"][key], means["refined"][key])]
-        metrics.add_row(label, *cells)
+    metrics = metrics_table(
+        {"raw replay": means["raw"], "refined": means["refined"]},
+        title=f"Mean metrics over {with_metrics} succeeded sequences",
+    )
     return jobs, metrics
 
 
@@ -126,15 +119,31 @@ def print_summary(console: Console, entries: list[Entry], retried: int = 0, retr
     console.print(metrics)
     if retried:
         console.print(f"retried {retried} FAILED job{'s' if retried != 1 else ''} (same job ids, new attempts)")
-    problems = [e for e in entries if e.state in FAILED_STATES or (e.error and e.state == "PENDING")]
+    problems = [e for e in entries if e.state in FAILED_STATES or (e.error and e.state == PENDING)]
     for e in problems[:20]:
         console.print(f"[red]{e.state}[/red] {e.label}: {e.error or 'no detail'}", highlight=False)
     if len(problems) > 20:
         console.print(f"... and {len(problems) - 20} more (see the manifest)")
-    failed = sum(e.state == "FAILED" for e in entries)
+    failed = sum(e.state == JobState.FAILED for e in entries)
     if retry_hint and failed:
         console.print(
             f"{failed} job{'s' if failed != 1 else ''} FAILED on the service: run the same command with "
             "--retry-failed to retry them",
             highlight=False,
         )
+
+
+def job_error(doc: dict[str, Any]) -> str:
+    """The last error of a FAILED/CANCELLED job (``errors`` holds one entry per attempt)."""
+    errors = doc.get("errors")
+    if isinstance(errors, list) and errors:
+        last = errors[-1]
+        return str(last.get("error") if isinstance(last, dict) else last)
+    return str(doc.get("error") or doc.get("detail") or f"job {str(doc.get('state', 'failed')).lower()}")
+
+
+def job_metrics(doc: dict[str, Any]) -> dict[str, Any] | None:
+    for holder in (doc.get("summary"), doc):
+        if isinstance(holder, dict) and isinstance(holder.get("metrics"), dict):
+            return dict(holder["metrics"])
+    return None

@@ -23,14 +23,33 @@ from typing import Any
 
 from rich.console import Console
 
+from common.api_client import ApiClient, Stopped, options_json
 from common.errors import ApiError, HoiRefineError
 from common.job_options import JobOptions
-from common.result_format import read_summary
-from service.submit.client import ApiClient, Stopped
+from common.job_state import FINISHED, JobState
+from common.result_format import content_digest, read_summary
+from service.submit.batch import ensure_batch, print_batch
 from service.submit.discovery import Source, SourceFormat, discover, load_source
-from service.submit.manifest import FAILED_STATES, TERMINAL_JOB_STATES, Entry, Manifest, write_atomic
-from service.submit.payload import idempotency_key, options_json, sequence_payload
-from service.submit.report import counts, describe, make_progress, print_summary, summary_document
+from service.submit.manifest import (
+    FAILED_STATES,
+    INVALID,
+    NOT_SENT,
+    REJECTED,
+    UNSUCCESSFUL,
+    Entry,
+    Manifest,
+    write_atomic,
+)
+from service.submit.payload import idempotency_key, sequence_payload
+from service.submit.report import (
+    counts,
+    describe,
+    job_error,
+    job_metrics,
+    make_progress,
+    print_summary,
+    summary_document,
+)
 
 RESULTS_DIR = "results"
 #: Machine-readable form of the closing summary, rewritten at the end of every run.
@@ -84,6 +103,8 @@ def _fingerprint(src: Source, options: JobOptions) -> str:
 class _Run:
     def __init__(self, cfg: SubmitConfig, client: ApiClient, manifest: Manifest, stop: threading.Event) -> None:
         self.cfg, self.client, self.manifest, self.stop = cfg, client, manifest, stop
+        #: The run's batch on the server (``service.submit.batch``); None for a server without batches.
+        self.batch_id: str | None = None
         self.results_dir = cfg.out_dir / RESULTS_DIR
         #: Why the run stopped early, when the service kept failing after all retries.
         self.unreachable: str | None = None
@@ -101,22 +122,22 @@ class _Run:
             seq = load_source(src, max_frames=self.cfg.max_frames)
             payload = sequence_payload(seq, max_frames=self.cfg.max_frames)
         except HoiRefineError as exc:
-            self.manifest.update(entry, state="INVALID", error=str(exc), job_id=None, key=None)
+            self.manifest.update(entry, state=INVALID, error=str(exc), job_id=None, key=None)
             return "invalid"
         key = idempotency_key(payload, self.cfg.options)
-        if entry.job_id is not None and entry.key == key and entry.state not in ("INVALID", "REJECTED"):
+        if entry.job_id is not None and entry.key == key and entry.state not in NOT_SENT:
             self.manifest.update(entry, fingerprint=fp)  # unchanged since it was submitted: just track it
             return "state"
-        if entry.key != key or entry.state in ("INVALID", "REJECTED"):
+        if entry.key != key or entry.state in NOT_SENT:
             self.manifest.reset(entry, key)
         self.manifest.update(entry, key=key, sequence=seq.name)
         if self.stop.is_set():
             return "stopped"
         try:
-            doc = self.client.submit(payload, f"{src.label}.npz", self.cfg.options, key)
+            doc = self.client.submit(payload, f"{src.label}.npz", self.cfg.options, key, self.batch_id)
         except ApiError as exc:
             if exc.status is not None and 400 <= exc.status < 500:
-                self.manifest.update(entry, state="REJECTED", error=str(exc), posts=entry.posts + 1)
+                self.manifest.update(entry, state=REJECTED, error=str(exc), posts=entry.posts + 1)
                 return "rejected"
             self.manifest.update(entry, error=str(exc), posts=entry.posts + 1)  # stays PENDING: re-run retries
             self.give_up(str(exc))
@@ -124,7 +145,7 @@ class _Run:
         self.manifest.update(
             entry,
             job_id=doc["id"],
-            state=str(doc.get("state") or "QUEUED"),
+            state=str(doc.get("state") or JobState.QUEUED),
             attempt=doc.get("attempt"),
             error=None,
             posts=entry.posts + 1,
@@ -147,11 +168,11 @@ class _Run:
             self.manifest.reset(entry, entry.key)
             return "lost", None
         state = str(doc.get("state", entry.state))
-        error = _job_error(doc) if state in ("FAILED", "CANCELLED") else None
-        metrics = _job_metrics(doc) or entry.metrics
+        error = job_error(doc) if state in UNSUCCESSFUL else None
+        metrics = job_metrics(doc) or entry.metrics
         self.manifest.update(entry, state=state, attempt=doc.get("attempt", entry.attempt), error=error,
                              metrics=metrics)
-        if state == "SUCCEEDED" and download:
+        if state == JobState.SUCCEEDED and download:
             try:
                 self.download(entry)
             except ApiError as exc:
@@ -178,8 +199,8 @@ class _Run:
             doc, _ = self.client.job(entry.job_id)
             self.manifest.update(entry, state=str(doc.get("state", entry.state)), attempt=doc.get("attempt"))
             return "state"
-        self.manifest.update(entry, state=str(doc.get("state") or "QUEUED"), attempt=doc.get("attempt"), error=None,
-                             retries=entry.retries + 1)  # fmt: skip
+        state = str(doc.get("state") or JobState.QUEUED)
+        self.manifest.update(entry, state=state, attempt=doc.get("attempt"), error=None, retries=entry.retries + 1)
         return "retried"
 
     def download(self, entry: Entry) -> None:
@@ -190,8 +211,13 @@ class _Run:
         blob = self.client.result(entry.job_id)
         summary = read_summary(blob)  # also proves the file is a readable result before it is kept
         write_atomic(self.cfg.out_dir / result_rel, blob)
-        self.manifest.update(entry, files={**entry.files, "result": result_rel},
-                             metrics=summary.get("metrics") or entry.metrics)
+        metrics = dict(summary.get("metrics") or entry.metrics or {})
+        proof = (entry.metrics or {}).get("verification")
+        if isinstance(proof, dict):
+            # The worker's verification travels with the dataset, with whether this copy is the file it checked
+            # (``hoi-refine verify`` on the file prints the same content sha256).
+            metrics["verification"] = {**proof, "download_matches": content_digest(blob) == proof.get("content_sha256")}
+        self.manifest.update(entry, files={**entry.files, "result": result_rel}, metrics=metrics)
         contacts = self.client.contacts(entry.job_id)
         write_atomic(self.cfg.out_dir / contacts_rel, json.dumps(contacts).encode())
         self.manifest.update(entry, files={**entry.files, "contacts": contacts_rel})
@@ -199,26 +225,10 @@ class _Run:
     def downloaded(self, entry: Entry) -> bool:
         """Succeeded, and its result and contacts are on disk (nothing left to do for it)."""
         return (
-            entry.state == "SUCCEEDED"
+            entry.state == JobState.SUCCEEDED
             and {"result", "contacts"} <= entry.files.keys()
             and all((self.cfg.out_dir / p).is_file() for p in entry.files.values())
         )
-
-
-def _job_error(doc: dict[str, Any]) -> str:
-    """The last error of a FAILED/CANCELLED job (``errors`` holds one entry per attempt)."""
-    errors = doc.get("errors")
-    if isinstance(errors, list) and errors:
-        last = errors[-1]
-        return str(last.get("error") if isinstance(last, dict) else last)
-    return str(doc.get("error") or doc.get("detail") or f"job {str(doc.get('state', 'failed')).lower()}")
-
-
-def _job_metrics(doc: dict[str, Any]) -> dict[str, Any] | None:
-    for holder in (doc.get("summary"), doc):
-        if isinstance(holder, dict) and isinstance(holder.get("metrics"), dict):
-            return dict(holder["metrics"])
-    return None
 
 
 def run_submit(
@@ -248,19 +258,26 @@ def run_submit(
     entries = [(manifest.get_or_add(s.ident, s.label, s.kind), s) for s in sources]
     manifest.save()
     own_client = client is None
-    client = client or ApiClient(cfg.api_url, cfg.api_key, stop=stop, pool_size=2 * cfg.concurrency)
+    client = client or ApiClient(
+        cfg.api_url, cfg.api_key, stop=stop, pool_size=2 * cfg.concurrency, user_agent="hoi-refine-submit/1"
+    )
     client.stop = stop
     run = _Run(cfg, client, manifest, stop)
+    try:
+        run.batch_id = ensure_batch(client, manifest, cfg.api_url, cfg.out_dir.resolve().name, console)
+    except ApiError as exc:  # the service is down: nothing can be submitted now
+        run.give_up(str(exc))
 
     fp_cache = {e.source: _fingerprint(s, cfg.options) for e, s in entries}
     to_submit = [
         (e, s) for e, s in entries
-        if not (e.job_id and e.state not in ("INVALID", "REJECTED") and e.fingerprint == fp_cache[e.source])
+        if not (e.job_id and e.state not in NOT_SENT and e.fingerprint == fp_cache[e.source])
         and not run.downloaded(e)
     ]  # fmt: skip
     submitting = {e.source for e, _ in to_submit}
     visible = [e for e, _ in entries]
-    to_retry = sum(e.state == "FAILED" and e.source not in submitting for e in visible) if cfg.retry_failed else 0
+    retryable = [e for e in visible if e.state == JobState.FAILED and e.source not in submitting]
+    to_retry = len(retryable) if cfg.retry_failed else 0
     retrying = f"{to_retry} FAILED to retry, " if to_retry else ""
     console.print(
         f"{len(entries)} sequences: {sum(run.downloaded(e) for e in visible)} already done, "
@@ -284,8 +301,8 @@ def run_submit(
         if e.job_id is None or e.source in submitting or e.source in gave_up:
             return False
         if cfg.wait:
-            return not run.downloaded(e) and e.state not in ("FAILED", "CANCELLED")
-        return e.source not in polled_once and e.state not in TERMINAL_JOB_STATES
+            return not run.downloaded(e) and e.state not in UNSUCCESSFUL
+        return e.source not in polled_once and e.state not in FINISHED
 
     def finished_count() -> int:
         if cfg.wait:
@@ -306,7 +323,7 @@ def run_submit(
                 if cfg.retry_failed:
                     busy = {e.source for _, e in futures.values()}
                     for e in visible:
-                        if e.state == "FAILED" and e.job_id and e.source not in retry_asked | busy | submitting:
+                        if e.state == JobState.FAILED and e.job_id and e.source not in retry_asked | busy | submitting:
                             retry_asked.add(e.source)
                             futures[poll_pool.submit(run.retry, e)] = ("retry", e)
                 in_flight = {e.source for kind, e in futures.values() if kind == "poll"}
@@ -351,12 +368,16 @@ def run_submit(
         stop.set()  # ends every retry wait; requests in flight complete and are recorded
         submit_pool.shutdown(wait=True, cancel_futures=True)
         poll_pool.shutdown(wait=True, cancel_futures=True)
-        if own_client:
-            client.close()
         manifest.save()
 
     print_summary(console, visible, retried=len(retried), retry_hint=not cfg.retry_failed)
-    write_atomic(cfg.out_dir / SUMMARY_NAME, json.dumps(summary_document(visible, len(retried)), indent=1).encode())
+    document = summary_document(visible, len(retried))
+    if run.batch_id is not None and run.unreachable is None:
+        client.stop = threading.Event()  # the run's stop is set by now; this one last read may go out
+        document["batch"] = print_batch(console, client, cfg.api_url, run.batch_id)
+    if own_client:
+        client.close()
+    write_atomic(cfg.out_dir / SUMMARY_NAME, json.dumps(document, indent=1).encode())
     if run.unreachable is not None:
         console.print(
             f"[red]Stopped: the service keeps failing[/red] ({run.unreachable}). The manifest ({manifest.path}) is up "

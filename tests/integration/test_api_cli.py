@@ -8,23 +8,23 @@ import os
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
-import httpx
 import pytest
 import sqlalchemy as sa
 
-from common.api_keys import hash_key
+from common.api_client import wait_until_ready
+from common.api_key_store import ApiKeyStore, hash_key
 from common.database import create_engine_for, is_at_head
-from common.queue import JobQueue
 from common.settings import get_settings
 from service import cli
 
 
 def run_cli(*argv: str) -> int:
     parser = argparse.ArgumentParser()
-    cli.register(parser.add_subparsers(required=True))
+    commands = parser.add_subparsers(required=True)
+    cli.register_serve(commands)
+    cli.register_keys(commands)
     args = parser.parse_args(argv)
     return int(args.func(args))
 
@@ -40,7 +40,7 @@ def test_keys_create_prints_the_key_once_and_stores_only_its_hash(capsys: pytest
         with engine.connect() as conn:
             stored = conn.execute(sa.text("SELECT name, key_hash FROM api_keys")).all()
         assert [tuple(r) for r in stored] == [("alice", hash_key(plaintext))]
-        assert JobQueue(engine).authenticate(plaintext)
+        assert ApiKeyStore(engine).authenticate(plaintext)
     finally:
         engine.dispose()
     assert run_cli("keys", "list") == 0
@@ -58,16 +58,8 @@ def test_serve_upgrades_an_empty_database_and_becomes_ready(tmp_path: Path) -> N
     code = f"from tests.integration.test_api_cli import run_cli; run_cli('serve', '--port', '{port}')"
     proc = subprocess.Popen([sys.executable, "-c", code], env=env, cwd=Path(__file__).resolve().parents[2])
     try:
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                resp = httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=1)
-                break
-            except httpx.HTTPError:
-                assert proc.poll() is None, "serve exited"
-                assert time.monotonic() < deadline, "serve did not answer within 60 s"
-                time.sleep(0.3)
-        assert resp.status_code == 200 and resp.json() == {"status": "ready"}
+        resp = wait_until_ready(f"http://127.0.0.1:{port}", 60, alive=lambda: proc.poll() is None)
+        assert resp is not None and resp.json() == {"status": "ready"}
         assert (tmp_path / "served" / "hoi-refine.sqlite3").is_file()
     finally:
         proc.terminate()

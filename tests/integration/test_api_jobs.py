@@ -10,16 +10,9 @@ import numpy as np
 import pytest
 
 from common.result_format import read_summary
-from common.sequence_io import sequence_to_json_dict, sequence_to_npz_bytes
-from tests.queue_fixtures import ApiHarness, fake_result, tiny_sequence
-
-PROBLEM = "application/problem+json"
-
-
-def json_body(seed: int = 0, frames: int = 5, **options: object) -> dict[str, object]:
-    body = sequence_to_json_dict(tiny_sequence(seed, frames).validate())
-    body["options"] = {"seed": seed, **options}
-    return body
+from common.sequence_io import sequence_to_npz_bytes
+from tests.support.api import PROBLEM, json_body
+from tests.support.queue_fixtures import ApiHarness, fake_result, tiny_sequence
 
 
 def multipart(seed: int = 0, **options: object) -> dict[str, object]:
@@ -189,7 +182,8 @@ def test_health_readiness_and_prometheus_metrics(api: ApiHarness) -> None:
     lease = api.queue.claim("w")
     assert lease is not None
     api.queue.complete(lease.job_id, lease.lease_token, *fake_result())
-    text = api.client.get("/metrics").text
+    assert api.client.get("/metrics").status_code == 401  # deployment-wide totals: a key is needed
+    text = api.client.get("/metrics", headers=api.headers).text
     assert 'hoi_refine_jobs{state="SUCCEEDED"} 1.0' in text and 'hoi_refine_jobs{state="QUEUED"} 0.0' in text
     assert "hoi_refine_claims_total 1.0" in text
     assert "hoi_refine_queue_wait_seconds_count 1.0" in text and "hoi_refine_run_seconds_count 1.0" in text

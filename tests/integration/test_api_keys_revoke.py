@@ -7,13 +7,13 @@ from typing import Any
 
 import pytest
 
+from common.api_key_store import ApiKeyStore
 from common.cli import main
 from common.errors import AuthenticationError, ConflictError, NotFoundError
-from common.queue import JobQueue
 from common.settings import get_settings
 from service import deps
-from tests.integration.test_api_jobs import PROBLEM, json_body
-from tests.queue_fixtures import BACKENDS, ApiHarness
+from tests.support.api import PROBLEM, json_body
+from tests.support.queue_fixtures import BACKENDS, ApiHarness
 
 pytestmark = pytest.mark.parametrize("empty_db_url", BACKENDS, indirect=True)
 
@@ -41,11 +41,11 @@ def test_revoked_key_gets_401_everywhere_and_other_keys_still_work(
     clock = Clock()
     monkeypatch.setattr(deps, "time", clock)
     job_id = api.client.post("/v1/jobs", json=json_body(), headers=api.headers).json()["id"]
-    other_key, other_plain = api.queue.create_api_key("colleague")
+    other_key, other_plain = api.keys.create("colleague")
     other = {"Authorization": f"Bearer {other_plain}"}
     assert api.client.get("/v1/jobs", headers=other).status_code == 200
 
-    key, newly = api.queue.revoke_api_key("tests")
+    key, newly = api.keys.revoke("tests")
     assert newly and key.id == api.key_id and key.revoked_at is not None
     # The server remembers a good key for KEY_CACHE_SECONDS; after that the revocation is seen.
     assert api.client.get("/v1/jobs", headers=api.headers).status_code == 200
@@ -69,28 +69,28 @@ def test_revoked_key_gets_401_everywhere_and_other_keys_still_work(
     assert unknown.status_code == 401 and unknown.json()["detail"] != "API key revoked"
 
 
-def test_which_key_a_name_prefix_or_id_picks(queue: JobQueue) -> None:
-    a_id, a_plain = queue.create_api_key("alice")
-    b_id, b_plain = queue.create_api_key("bob")
-    c_id, c_plain = queue.create_api_key("bob")
+def test_which_key_a_name_prefix_or_id_picks(keys: ApiKeyStore) -> None:
+    a_id, a_plain = keys.create("alice")
+    b_id, b_plain = keys.create("bob")
+    c_id, c_plain = keys.create("bob")
     with pytest.raises(ConflictError, match="matches 2 keys") as err:
-        queue.revoke_api_key("bob")
+        keys.revoke("bob")
     assert b_id in str(err.value) and c_id in str(err.value)
     with pytest.raises(NotFoundError):
-        queue.revoke_api_key("carol")
+        keys.revoke("carol")
     with pytest.raises(NotFoundError):
-        queue.revoke_api_key("hoi_")  # too short to be a prefix: it must not pick a key by luck
-    assert queue.revoke_api_key(b_plain[:10] + "...")[0].id == b_id  # as `keys list` prints it
+        keys.revoke("hoi_")  # too short to be a prefix: it must not pick a key by luck
+    assert keys.revoke(b_plain[:10] + "...")[0].id == b_id  # as `keys list` prints it
     # bob's revoked key no longer competes: the name now names his live key alone.
-    assert queue.revoke_api_key("bob")[0].id == c_id
-    assert queue.revoke_api_key("bob") == (queue.revoke_api_key(c_id)[0], False)  # again: nothing changes
+    assert keys.revoke("bob")[0].id == c_id
+    assert keys.revoke("bob") == (keys.revoke(c_id)[0], False)  # again: nothing changes
     with pytest.raises(AuthenticationError, match="API key revoked"):
-        queue.authenticate(c_plain)
-    assert queue.authenticate(a_plain) == a_id
-    assert queue.revoke_api_key(a_plain[:20])[1]  # part of the leaked key names it
-    record, newly = queue.revoke_api_key(a_plain)  # so does the whole key
+        keys.authenticate(c_plain)
+    assert keys.authenticate(a_plain) == a_id
+    assert keys.revoke(a_plain[:20])[1]  # part of the leaked key names it
+    record, newly = keys.revoke(a_plain)  # so does the whole key
     assert not newly and record.id == a_id and record.name == "alice"
-    assert all(k.revoked_at is not None for k in queue.list_api_keys())
+    assert all(k.revoked_at is not None for k in keys.list())
 
 
 def _cli(*argv: str) -> int:

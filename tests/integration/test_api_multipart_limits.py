@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from tests.queue_fixtures import ApiHarness
+from tests.support.queue_fixtures import ApiHarness
 
 
 def test_too_many_multipart_fields_is_a_documented_400_problem(api: ApiHarness) -> None:

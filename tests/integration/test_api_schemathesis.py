@@ -33,7 +33,7 @@ schema = schemathesis.openapi.from_asgi("/openapi.json", app)
 @pytest.fixture(scope="module")
 def api_key() -> Iterator[str]:
     upgrade_to_head(_DB_URL)
-    _, plaintext = app.state.queue.create_api_key("schemathesis")
+    _, plaintext = app.state.api_keys.create("schemathesis")
     yield plaintext
     _ENGINE.dispose()
     shutil.rmtree(_DB_DIR, ignore_errors=True)

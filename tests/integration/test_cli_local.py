@@ -10,7 +10,7 @@ import pytest
 from common.cli import main
 from common.result_format import read_summary
 from common.sequence_io import sequence_to_npz_bytes
-from worker.example import short_example_sequence
+from worker.example.sequences import short_example_sequence
 
 
 @pytest.fixture()

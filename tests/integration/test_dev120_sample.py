@@ -53,7 +53,7 @@ def test_dev120_is_its_committed_draw_with_tags_from_the_data(shared_data: Path)
 
 @pytest.mark.parametrize("name", [ON_OBJECT, LOW_LIFT, LOW_VALID])
 def test_awkward_sequences_replay(dexycb_dev_files: list[Path], name: str) -> None:
-    from worker.replay import raw_replay
+    from worker.simulation.replay import raw_replay
 
     path = next((f for f in dexycb_dev_files if f.name == name), None)
     if path is None:

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from common.dexycb import load_dexycb_npz
+from common.geometry import quat_to_matrix
 from common.sequence import Sequence
-from worker.hand_model import quat_to_matrix
-from worker.retarget import retarget_hand
-from worker.scene import SimConfig
-from worker.table_fit import fit_table
+from worker.hand.retarget import retarget_hand
+from worker.simulation.scene import SimConfig
+from worker.simulation.table_fit import fit_table
 
 # Unflagged sequences (frame-0 object on the table), one per side, different objects.
 RIGHT = "20200709-subject-01__20200709_141754.npz"  # 002_master_chef_can
@@ -51,7 +51,7 @@ def test_retargeting_residual_is_small(dexycb_dev_files: list[Path], name: str) 
 
 
 def test_raw_replay_of_a_dev_sequence(dexycb_dev_files: list[Path]) -> None:
-    from worker.replay import raw_replay
+    from worker.simulation.replay import raw_replay
 
     seq = load_dexycb_npz(_file(dexycb_dev_files, RIGHT))
     result = raw_replay(seq)
@@ -76,8 +76,8 @@ NON_CONVEX = {
 @pytest.mark.parametrize("name", sorted(NON_CONVEX))
 def test_a_non_convex_object_rests_as_recorded_until_the_hand_arrives(dexycb_dev_files: list[Path],
                                                                       name: str) -> None:
-    from worker.metrics import rotation_error_deg
-    from worker.replay import raw_replay
+    from common.geometry import rotation_error_deg
+    from worker.simulation.replay import raw_replay
 
     before_touch = _before_the_hand_arrives(load_dexycb_npz(_file(dexycb_dev_files, name)), NON_CONVEX[name] - 2)
     result = raw_replay(before_touch)
@@ -99,8 +99,8 @@ def test_the_object_starts_from_its_rest_pose_averaged_over_the_approach(dexycb_
     """A large marker lying on the table: while the hand is still 5-50 cm away its recorded pose turns 7.6 degrees
     about its long axis (the turn a vision fit barely sees). The simulated marker rests still, so starting it from
     the mean of those poses instead of frame 0 lowers its error over the approach."""
-    from worker.metrics import rotation_error_deg
-    from worker.replay import raw_replay
+    from common.geometry import rotation_error_deg
+    from worker.simulation.replay import raw_replay
 
     seq = _before_the_hand_arrives(load_dexycb_npz(_file(dexycb_dev_files, "20200908-subject-05__20200908_152037.npz")),
                                    30)  # the hand is within 2 cm of it from frame 31 on

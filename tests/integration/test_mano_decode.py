@@ -10,12 +10,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from common.sequence import HandTrack, ManoParams, ObjectSpec, Sequence
-from common.settings import get_settings
-from worker.hand_model import forward_keypoints
-from worker.mano import build_test_mano_model, ensure_keypoints, load_mano_pickle
-from worker.mano.decode import MANO21_ORDER, decode_mano
-from worker.mano.hand_geometry import mano_hand_geometry
-from worker.mano.pose import (
+from worker.hand.mano import ensure_keypoints, load_mano_pickle
+from worker.hand.mano.decode import MANO21_ORDER, decode_mano
+from worker.hand.mano.hand_geometry import mano_hand_geometry
+from worker.hand.mano.pose import (
     hand_pose_to_mano,
     mano_hand_pose,
     mano_pca_basis,
@@ -23,20 +21,14 @@ from worker.mano.pose import (
     mano_result_arrays,
     refined_mano_params,
 )
-from worker.mano.synthetic_model import MANO_PARENTS
+from worker.hand.mano.synthetic_model import MANO_PARENTS
+from worker.hand.model import forward_keypoints
 
 pytest.importorskip("torch")
 pytest.importorskip("smplx")
 
 T = 4
 
-
-@pytest.fixture(scope="module")
-def mano_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    d = tmp_path_factory.mktemp("mano")
-    build_test_mano_model(d, "right", seed=0)
-    build_test_mano_model(d, "left", seed=0)
-    return d
 
 
 def _params(rng: np.random.Generator, pose_format: str = "axis_angle", n: int = 45, flat: bool = True) -> ManoParams:
@@ -115,9 +107,7 @@ def test_builtin_hand_reproduces_mano_and_back(mano_dir: Path, side: str) -> Non
     np.testing.assert_allclose(back.hand_pose, params.hand_pose, atol=1e-8)  # PCA 45 is a change of basis
 
 
-def test_ensure_keypoints_and_reference(mano_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setenv("HOI_REFINE_MANO_DIR", str(mano_dir))
-    get_settings.cache_clear()
+def test_ensure_keypoints_and_reference(mano_dir: Path) -> None:
     params = _params(np.random.default_rng(3), "pca", 10, flat=False)
     valid = np.array([False, True, True, True])
     world = np.eye(4)
@@ -129,19 +119,19 @@ def test_ensure_keypoints_and_reference(mano_dir: Path, monkeypatch: pytest.Monk
         object_pose=np.tile([0.0, 0, 0.02, 1, 0, 0, 0], (T, 1)),
         hands=[HandTrack(side="right", valid=valid, mano=params)], world_from_source=world,
     ).validate()  # fmt: skip
-    out = ensure_keypoints(seq)
+    out = ensure_keypoints(seq, mano_dir)
     assert out is not seq and seq.hands[0].keypoints is None
     kp = out.hands[0].keypoints
     assert kp is not None and np.all(kp[0] == 0.0)
-    np.testing.assert_allclose(kp[1:], decode_mano(params, "right").keypoints[1:])
-    ref = mano_reference(out, out.hands[0])
+    np.testing.assert_allclose(kp[1:], decode_mano(params, "right", mano_dir).keypoints[1:])
+    ref = mano_reference(out, out.hands[0], mano_dir)
     np.testing.assert_allclose(ref.keypoints[1:, :4], out.keypoints_world(out.hands[0])[1:, :4], atol=1e-6)
     np.testing.assert_allclose(ref.wrist_pos[0], ref.wrist_pos[1])  # invalid frame held at the nearest valid
     # The world-frame reference maps back to MANO parameters that decode to the same source keypoints.
-    back = refined_mano_params(out, out.hands[0], ref.wrist_pos, ref.wrist_quat, ref.q, pose_format="pca")
+    back = refined_mano_params(out, out.hands[0], ref.wrist_pos, ref.wrist_quat, ref.q, mano_dir, pose_format="pca")
     np.testing.assert_allclose(back.hand_pose[1:], params.hand_pose[1:] @ np.eye(10, 45), atol=1e-8)
-    np.testing.assert_allclose(decode_mano(back, "right").keypoints[1:], kp[1:], atol=1e-9)
-    arrays = mano_result_arrays(out, out.hands[0], ref.wrist_pos, ref.wrist_quat, ref.q)
+    np.testing.assert_allclose(decode_mano(back, "right", mano_dir).keypoints[1:], kp[1:], atol=1e-9)
+    arrays = mano_result_arrays(out, out.hands[0], ref.wrist_pos, ref.wrist_quat, ref.q, mano_dir)
     assert str(arrays["right_mano_pose_format"]) == "axis_angle" and arrays["right_mano_hand_pose"].shape == (T, 45)
 
 

@@ -13,8 +13,8 @@ from common.errors import ManoModelMissingError
 from common.sequence import HandTrack, ManoParams, ObjectSpec, Sequence
 from common.sequence_io import load_sequence, save_sequence
 from common.settings import get_settings
-from worker.mano import build_test_mano_model, ensure_keypoints
-from worker.mano.decode import decode_mano
+from worker.hand.mano import build_test_mano_model, ensure_keypoints
+from worker.hand.mano.decode import decode_mano
 
 T = 5
 
@@ -52,12 +52,12 @@ def test_dexycb_mano_only_hand_is_decoded(tmp_path: Path, monkeypatch: pytest.Mo
     build_test_mano_model(tmp_path / "mano", "right")
     monkeypatch.setenv("HOI_REFINE_MANO_DIR", str(tmp_path / "mano"))
     get_settings.cache_clear()
-    seq = ensure_keypoints(load_sequence(seq_dir))
+    seq = ensure_keypoints(load_sequence(seq_dir), tmp_path / "mano")
     hand = seq.hands[0]
     assert hand.mano is not None and hand.keypoints is not None
     np.testing.assert_array_equal(hand.valid, [False] + [True] * (T - 1))
     np.testing.assert_allclose(hand.mano.betas, [0.3] + [0.0] * 9)
-    np.testing.assert_allclose(hand.keypoints[1:], decode_mano(hand.mano, "right").keypoints[1:])
+    np.testing.assert_allclose(hand.keypoints[1:], decode_mano(hand.mano, "right", tmp_path / "mano").keypoints[1:])
     assert seq.object.name == "061_foam_brick" and seq.object.mass_kg == pytest.approx(0.028)
     # World = table frame: the camera-frame point (0, 0, -0.5) is the table origin.
     np.testing.assert_allclose(seq.object_pose_world()[:, :3], 0.0, atol=1e-12)

@@ -1,5 +1,5 @@
 """Refinement of a MANO hand (issue #6): MANO's PCA replaces the built-in pose basis, and the result carries
-refined MANO parameters (their exactness is tested on ``worker.mano.pose`` directly)."""
+refined MANO parameters (their exactness is tested on ``worker.hand.mano.pose`` directly)."""
 
 from __future__ import annotations
 
@@ -11,30 +11,31 @@ import pytest
 
 from common.job_options import JobOptions
 from common.result_format import read_summary
-from tests.integration.test_mano_scene import _use_mano_dir, mano_dir, mano_grasp_sequence  # noqa: F401
-from worker.mano.pose import mano_pca_basis
+from tests.support.mano import mano_grasp_sequence
+from worker.hand.mano.pose import mano_pca_basis
+
+pytest.importorskip("torch")  # the MANO reference decodes with smplx (the `mano` extra)
+pytest.importorskip("smplx")
 
 
 @pytest.mark.slow
 def test_mano_hand_is_refined_in_mano_pca_space_and_returns_mano_parameters(
-    mano_dir: Path,  # noqa: F811
-    monkeypatch: pytest.MonkeyPatch,
+    mano_dir: Path,
 ) -> None:
     from worker.refine.prepare import prepare
     from worker.refine.run import refine_sequence
 
-    _use_mano_dir(monkeypatch, mano_dir)
     seq = mano_grasp_sequence(frames=16)
     options = JobOptions(max_generations=1, popsize=4)
 
-    prep = prepare(seq, options)
+    prep = prepare(seq, options, mano_dir=mano_dir)
     basis = prep.spaces["right"].basis
-    mano = mano_pca_basis(None, "right", betas=seq.hands[0].mano.betas, n_components=10)  # type: ignore[union-attr]
+    mano = mano_pca_basis(mano_dir, "right", betas=seq.hands[0].mano.betas, n_components=10)  # type: ignore[union-attr]
     expected_dirs = mano.components[:10] / np.linalg.norm(mano.components[:10], axis=1, keepdims=True)
     np.testing.assert_allclose(basis.components, expected_dirs, atol=1e-12)
     assert "MANO PCA basis for right" in prep.basis_provenance
 
-    outcome = refine_sequence(seq, options, threads=1)
+    outcome = refine_sequence(seq, options, threads=1, mano_dir=mano_dir)
     blob = outcome.to_npz_bytes()
     with np.load(io.BytesIO(blob)) as data:
         keys = set(data.files)

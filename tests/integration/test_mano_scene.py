@@ -14,74 +14,36 @@ import pytest
 
 from common.errors import ManoModelMissingError
 from common.result_format import read_contacts, read_summary
-from common.sequence import HandTrack, ManoParams, ObjectSpec, Sequence
+from common.sequence import ManoParams
 from common.sequence_io import save_sequence
-from common.settings import get_settings
-from worker.mano import build_test_mano_model, ensure_keypoints
-from worker.retarget import retarget_sequence
-from worker.scene import Scene, build_scene
+from tests.support.mano import T, mano_grasp_sequence, use_mano_dir
+from worker.hand.mano import ensure_keypoints
+from worker.hand.retarget import retarget_sequence
+from worker.simulation.scene import Scene, build_scene
 
-T = 8
+pytest.importorskip("torch")  # the MANO reference decodes with smplx (the `mano` extra)
+pytest.importorskip("smplx")
 
-
-@pytest.fixture(scope="module")
-def mano_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    pytest.importorskip("torch")
-    pytest.importorskip("smplx")
-    d = tmp_path_factory.mktemp("mano")
-    build_test_mano_model(d, "right", seed=0)
-    return d
-
-
-def _use_mano_dir(monkeypatch: pytest.MonkeyPatch, mano_dir: Path | None) -> None:
-    if mano_dir is None:
-        monkeypatch.delenv("HOI_REFINE_MANO_DIR", raising=False)
-    else:
-        monkeypatch.setenv("HOI_REFINE_MANO_DIR", str(mano_dir))
-    get_settings.cache_clear()
-
-
-def mano_grasp_sequence(frames: int = T) -> Sequence:
-    """A right MANO hand (palm down, fingers slightly curled) over a 6 cm box on the table, fingertips
-    touching its top; the first frame is invalid."""
-    rng = np.random.default_rng(1)
-    pose = np.tile(np.abs(rng.normal(0, 0.1, 45)), (frames, 1))
-    mano = ManoParams(
-        global_orient=np.tile([np.pi, 0.0, 0.0], (frames, 1)), hand_pose=pose,
-        trans=np.tile([-0.06, 0.0, 0.075], (frames, 1)), betas=np.array([0.2] + [0.0] * 9),
-    )  # fmt: skip
-    valid = np.ones(frames, bool)
-    valid[0] = False
-    return Sequence(
-        name="mano-grasp", fps=30.0,
-        object=ObjectSpec(name="box", mass_kg=0.1, primitive="box", size=np.array([0.03, 0.03, 0.03])),
-        object_pose=np.tile([0.0, 0, 0.03, 1, 0, 0, 0], (frames, 1)),
-        hands=[HandTrack(side="right", valid=valid, mano=mano)],
-    ).validate()  # fmt: skip
-
-
-def test_retarget_sequence_dispatch(mano_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_retarget_sequence_dispatch(mano_dir: Path) -> None:
     seq = mano_grasp_sequence()
-    _use_mano_dir(monkeypatch, mano_dir)
-    decoded = ensure_keypoints(seq)
-    (ref,) = retarget_sequence(seq)
+    decoded = ensure_keypoints(seq, mano_dir)
+    (ref,) = retarget_sequence(seq, mano_dir=mano_dir)
     assert "mano_vertices" in ref.geometry.meta  # the subject's MANO hand, not a fitted built-in one
     kp = decoded.keypoints_world(decoded.hands[0])
     np.testing.assert_allclose(ref.fitted_keypoints()[1:], kp[1:], atol=2e-3)  # tips: pose correctives only
     np.testing.assert_allclose(ref.keypoints[0], ref.fitted_keypoints()[0])  # invalid frame: the MANO hand's
-    (ref_kp,) = retarget_sequence(decoded)  # keypoints and MANO: still the MANO hand, observation as target
+    # Keypoints and MANO: still the MANO hand, the observation as target.
+    (ref_kp,) = retarget_sequence(decoded, mano_dir=mano_dir)
     assert "mano_vertices" in ref_kp.geometry.meta and ref_kp.mean_residual_mm() < 2.0
     np.testing.assert_allclose(ref_kp.keypoints[1:], kp[1:])
 
-    _use_mano_dir(monkeypatch, None)
     (ik,) = retarget_sequence(decoded)  # no model: IK on the keypoints, as for any keypoint hand
     assert "frames_used" in ik.geometry.meta and ik.mean_residual_mm() < 3.0
     with pytest.raises(ManoModelMissingError, match=r"MANO_RIGHT\.pkl.*HOI_REFINE_MANO_DIR is not set"):
         retarget_sequence(seq)
     empty = dataclasses.replace(seq.hands[0], valid=np.zeros(T, bool))
-    _use_mano_dir(monkeypatch, mano_dir)
     with pytest.raises(Exception, match="no frame has a valid hand"):
-        retarget_sequence(dataclasses.replace(seq, hands=[empty]))
+        retarget_sequence(dataclasses.replace(seq, hands=[empty]), mano_dir=mano_dir)
 
 
 def test_replay_cli_mano_only(
@@ -91,9 +53,9 @@ def test_replay_cli_mano_only(
 
     src, out = tmp_path / "mano.npz", tmp_path / "result.npz"
     save_sequence(mano_grasp_sequence(), src)
-    _use_mano_dir(monkeypatch, None)
+    use_mano_dir(monkeypatch, None)
     assert main(["replay", str(src), "--out", str(out)]) == 2 and not out.exists()
-    _use_mano_dir(monkeypatch, mano_dir)
+    use_mano_dir(monkeypatch, mano_dir)
     capsys.readouterr()
     assert main(["inspect", str(src)]) == 0 and "the MANO hand is used" in capsys.readouterr().out
     assert main(["replay", str(src), "--out", str(out)]) == 0
@@ -112,17 +74,16 @@ def _part_world_vertices(scene: Scene, data: mujoco.MjData, part: str) -> np.nda
     return np.asarray(data.geom_xpos[geom] + verts @ data.geom_xmat[geom].reshape(3, 3).T)
 
 
-def test_scene_hand_is_the_mano_mesh(mano_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_scene_hand_is_the_mano_mesh(mano_dir: Path) -> None:
     """Every hand body carries its MANO part hull; posed by the reference, the hulls lie on the MANO mesh that
     smplx poses from the same parameters (up to pose correctives and blend skinning near the joints)."""
-    from worker.hand_mjcf import hand_mjcf
-    from worker.hand_model import BODY_PARTS, default_geometry
-    from worker.mano.decode import decode_mano, load_mano_model
-    from worker.mano.synthetic_model import MANO_FINGER_START
+    from worker.hand.mano.decode import decode_mano, load_mano_model
+    from worker.hand.mano.synthetic_model import MANO_FINGER_START
+    from worker.hand.model import BODY_PARTS, default_geometry
+    from worker.simulation.hand_mjcf import hand_mjcf
 
-    _use_mano_dir(monkeypatch, mano_dir)
     seq = mano_grasp_sequence()
-    (ref,) = retarget_sequence(seq)
+    (ref,) = retarget_sequence(seq, mano_dir=mano_dir)
     scene = build_scene(seq, [ref])
     capsule_scene = build_scene(seq, [dataclasses.replace(ref, geometry=default_geometry("right"))])
     for attr in ("njnt", "nu", "nsensor", "nsite", "nbody"):  # same bodies, hinges, servos, sites, sensors
@@ -132,11 +93,11 @@ def test_scene_hand_is_the_mano_mesh(mano_dir: Path, monkeypatch: pytest.MonkeyP
 
     t, hand = 4, scene.hands["right"]
     data = scene.make_data()
-    posed = decode_mano(seq.hands[0].mano, "right", return_vertices=True).vertices  # type: ignore[arg-type]
+    posed = decode_mano(seq.hands[0].mano, "right", mano_dir, return_vertices=True).vertices  # type: ignore[arg-type]
     assert posed is not None
     world = seq.world_transform()
     mesh = posed[t] @ world[:3, :3].T + world[:3, 3]
-    part_of = np.asarray(load_mano_model("right").data["weights"]).argmax(axis=1)
+    part_of = np.asarray(load_mano_model("right", mano_dir).data["weights"]).argmax(axis=1)
     joint = dict(zip(BODY_PARTS, [0] + [s + j for s in MANO_FINGER_START for j in range(3)], strict=True))
 
     def max_gap_mm(q: np.ndarray) -> float:
@@ -154,8 +115,8 @@ def test_scene_hand_is_the_mano_mesh(mano_dir: Path, monkeypatch: pytest.MonkeyP
 
 
 def test_part_meshes_are_checked() -> None:
-    from worker.hand_mjcf import hand_asset_xml
-    from worker.hand_model import default_geometry
+    from worker.hand.model import default_geometry
+    from worker.simulation.hand_mjcf import hand_asset_xml
 
     geo = default_geometry("left")
     assert hand_asset_xml(geo) == ""
@@ -168,16 +129,15 @@ def test_part_meshes_are_checked() -> None:
         dataclasses.replace(geo, part_meshes={"palm": cube[:3]})
 
 
-def test_raw_replay_result_carries_mano_params(mano_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_raw_replay_result_carries_mano_params(mano_dir: Path) -> None:
     """A MANO hand's replay result holds ``right_mano_*`` parameters that decode to the input hand (the driven
     reference is exact); a keypoint hand's result holds none."""
     from common.result_format import read_arrays
-    from worker.mano.decode import decode_mano
-    from worker.replay import raw_replay, replay_result_bytes
+    from worker.hand.mano.decode import decode_mano
+    from worker.simulation.replay import raw_replay, replay_result_bytes
 
-    _use_mano_dir(monkeypatch, mano_dir)
     seq = mano_grasp_sequence(5)
-    blob = replay_result_bytes(raw_replay(seq, record_contacts=True))
+    blob = replay_result_bytes(raw_replay(seq, record_contacts=True, mano_dir=mano_dir))
     arrays = read_arrays(blob)
     assert read_summary(blob)["hand_model"] == {"right": "MANO"}
     back = ManoParams(
@@ -186,9 +146,10 @@ def test_raw_replay_result_carries_mano_params(mano_dir: Path, monkeypatch: pyte
         bool(arrays["right_mano_flat_hand_mean"]),
     )  # fmt: skip
     np.testing.assert_allclose(back.betas, seq.hands[0].mano.betas)  # type: ignore[union-attr]
-    want = decode_mano(seq.hands[0].mano, "right").keypoints  # type: ignore[arg-type]
-    np.testing.assert_allclose(decode_mano(back, "right").keypoints[1:], want[1:], atol=1e-8)  # frame 0 invalid
+    want = decode_mano(seq.hands[0].mano, "right", mano_dir).keypoints  # type: ignore[arg-type]
+    back_kp = decode_mano(back, "right", mano_dir).keypoints
+    np.testing.assert_allclose(back_kp[1:], want[1:], atol=1e-8)  # frame 0 invalid
 
-    keypoint_hand = dataclasses.replace(ensure_keypoints(seq).hands[0], mano=None)
+    keypoint_hand = dataclasses.replace(ensure_keypoints(seq, mano_dir).hands[0], mano=None)
     arrays = read_arrays(replay_result_bytes(raw_replay(dataclasses.replace(seq, hands=[keypoint_hand]))))
     assert "right_q_target" in arrays and not any("mano" in k for k in arrays)

@@ -11,8 +11,8 @@ import pytest
 from common.job_options import JobOptions
 from common.queue import JobQueue
 from common.queue_types import JobRecord
-from tests.queue_claimer import run_claimers
-from tests.queue_fixtures import BACKENDS, tiny_payload
+from tests.support.queue_claimer import run_claimers
+from tests.support.queue_fixtures import BACKENDS, tiny_payload
 
 pytestmark = pytest.mark.parametrize("empty_db_url", BACKENDS, indirect=True)
 

@@ -6,6 +6,7 @@ from datetime import timedelta
 
 import pytest
 
+from common.api_key_store import ApiKeyStore
 from common.db_models import utcnow
 from common.errors import (
     AuthenticationError,
@@ -18,7 +19,7 @@ from common.errors import (
 )
 from common.job_options import JobOptions
 from common.queue import JobQueue
-from tests.queue_fixtures import BACKENDS, fake_result, submit_tiny, tiny_payload
+from tests.support.queue_fixtures import BACKENDS, fake_result, submit_tiny, tiny_payload
 
 pytestmark = pytest.mark.parametrize("empty_db_url", BACKENDS, indirect=True)
 
@@ -31,12 +32,16 @@ def test_submit_claim_heartbeat_complete_round_trip(queue: JobQueue, owner: str)
     progress = {"window": 2, "windows": 7, "best_loss": 0.5, "evaluations": 40, "eta_s": 12.0}
     assert queue.heartbeat(job_id, claimed.lease_token, progress) is False
     assert queue.get(owner, job_id).progress == progress
+    # A renewal with the same progress logs no second "progress" event.
+    assert queue.heartbeat(job_id, claimed.lease_token, progress) is False
     blob, summary = fake_result()
     queue.complete(job_id, claimed.lease_token, blob, summary)
     job = queue.get(owner, job_id)
     assert job.state == "SUCCEEDED" and job.summary == summary and job.finished_at is not None
     assert queue.get_result(owner, job_id) == (blob, summary)
-    assert [e.kind for e in queue.events(owner, job_id)] == ["submitted", "claimed", "succeeded"]
+    kinds = [e.kind for e in queue.events(owner, job_id)]
+    assert kinds == ["submitted", "claimed", "progress", "succeeded"]
+    assert queue.events(owner, job_id)[2].detail == {"progress": progress}
     assert queue.claim("w2") is None
     # The finished lease is spent: nothing more can be written with it.
     with pytest.raises(LeaseLostError):
@@ -166,11 +171,11 @@ def test_release_returns_job_without_consuming_an_attempt(queue: JobQueue, owner
     assert again is not None and again.attempt == 1
 
 
-def test_owner_scoping_delete_and_keys(queue: JobQueue, owner: str) -> None:
-    other, other_plain = queue.create_api_key("someone else")
-    assert queue.authenticate(other_plain) == other
+def test_owner_scoping_delete_and_keys(queue: JobQueue, keys: ApiKeyStore, owner: str) -> None:
+    other, other_plain = keys.create("someone else")
+    assert keys.authenticate(other_plain) == other
     with pytest.raises(AuthenticationError):
-        queue.authenticate(other_plain + "x")
+        keys.authenticate(other_plain + "x")
     job_id = submit_tiny(queue, owner)
     for action in (queue.get, queue.cancel, queue.retry, queue.delete, queue.get_result, queue.events):
         with pytest.raises(NotFoundError):
@@ -182,7 +187,7 @@ def test_owner_scoping_delete_and_keys(queue: JobQueue, owner: str) -> None:
     with pytest.raises(NotFoundError):
         queue.get(owner, job_id)
     assert [e.kind for e in queue.events(None, job_id)][-1] == "deleted"
-    assert {k.name for k in queue.list_api_keys()} == {"tests", "someone else"}
+    assert {k.name for k in keys.list()} == {"tests", "someone else"}
 
 
 def test_idempotency_and_active_job_limit(queue: JobQueue, owner: str) -> None:

@@ -29,11 +29,11 @@ def test_pragmas_and_write_transactions_take_the_lock_up_front(queue: JobQueue, 
         assert conn.exec_driver_sql("PRAGMA journal_mode").scalar() == "wal"
         assert conn.exec_driver_sql("PRAGMA busy_timeout").scalar() == SQLITE_BUSY_TIMEOUT_MS
         assert conn.exec_driver_sql("PRAGMA foreign_keys").scalar() == 1
-    with queue._write() as conn:
+    with queue.tx.write() as conn:
         conn.exec_driver_sql("SELECT 1")  # nothing written yet, but the write lock is already held
         assert not _try_write_lock(path)
     assert _try_write_lock(path)
-    with queue._read() as conn:
+    with queue.tx.read() as conn:
         conn.exec_driver_sql("SELECT count(*) FROM jobs")
         assert _try_write_lock(path)
 

@@ -14,19 +14,33 @@ E_j 0.20 cm (measured on the branch that added this test)."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import pytest
 
 from common.job_options import JobOptions
-from tests.integration.test_refine_synthetic import known_answer_case
-from worker.metrics import compute_metrics
+from tests.support.synthetic_push import known_answer_case
+from worker.refine.derive import replay_metrics
 from worker.refine.evaluator import ParallelEvaluator
-from worker.refine.prepare import initial_state
-from worker.refine.run import RefineOutcome, refine_sequence, replay
+from worker.refine.losses import resolve_weights
+from worker.refine.prepare import Prepared, settled_start
+from worker.refine.replay import replay, window_problem
+from worker.refine.run import cma_settings
+from worker.refine.windowed import optimise_windows
 
 BUDGET = JobOptions(seed=1, popsize=8, max_generations=4, restarts=0)
+
+
+@dataclass
+class Case:
+    prep: Prepared
+    truth: np.ndarray  # (K, 13) the known keyframes
+    truth_metrics: dict[str, Any]  # the known keyframes replayed
+    raw: dict[str, Any]  # zero keyframes (the perturbed start) replayed
+    refined: dict[str, Any]
+    keyframes: np.ndarray
 
 
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -34,38 +48,39 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def case() -> tuple[Any, Any, np.ndarray, RefineOutcome]:
-    seq, prep, truth = known_answer_case(BUDGET)
-    return seq, prep, truth, refine_sequence(seq, BUDGET, threads=2, prepared=prep)
+def case() -> Case:
+    """The refinement's window loop (``refine_sequence`` without restarts and without the result's derivation,
+    which would re-prepare the unperturbed sequence) on the perturbed problem."""
+    _, prep, truth = known_answer_case(BUDGET)
+    with ParallelEvaluator(prep.scene.model, 2) as ev:
+        start, _ = settled_start(prep, ev)
+        problem = window_problem(prep, ev, start, resolve_weights(BUDGET.loss_weights))
+        keyframes, _ = optimise_windows(problem, cma_settings(BUDGET, prep.interval))
+        zero = {"right": prep.spaces["right"].zero_keyframes()}
+        figures = [replay_metrics(prep, replay(prep, ev, start, k, record_contacts=False))
+                   for k in ({"right": truth}, zero, keyframes)]
+    return Case(prep, truth, *figures, keyframes["right"])
 
 
 @pytest.mark.slow
-def test_the_known_controls_reproduce_the_recorded_object(case: tuple[Any, Any, np.ndarray, RefineOutcome]) -> None:
-    _, prep, truth, _ = case
-    with ParallelEvaluator(prep.scene.model, 1) as ev:
-        start, _ = initial_state(prep, ev)
-        rec = replay(prep, ev, start, {"right": truth}, False)
-    m = compute_metrics(rec.object_pose, prep.obj_targets_pose(), rec.keypoints,
-                        {r.side: r.keypoints for r in prep.references}, {r.side: r.valid for r in prep.references})
-    lift = prep.obj_targets.pos[:, 2].max() - prep.obj_targets.pos[0, 2]
+def test_the_known_controls_reproduce_the_recorded_object(case: Case) -> None:
+    lift = case.prep.obj_targets.pos[:, 2].max() - case.prep.obj_targets.pos[0, 2]
     assert lift > 0.15  # a real lift, held by the hand
+    m = case.truth_metrics
     assert m["E_t"] < 0.05 and m["E_r"] < 0.5, m  # the answer is an answer (cm, deg)
 
 
 @pytest.mark.slow
-def test_refinement_from_a_perturbed_start_recovers_object_and_controls(
-    case: tuple[Any, Any, np.ndarray, RefineOutcome],
-) -> None:
-    _, prep, truth, outcome = case
-    raw, refined = outcome.summary["metrics"]["raw"], outcome.summary["metrics"]["refined"]
-    assert raw["E_r"] > 5.0  # the perturbed start turns the held box
+def test_refinement_from_a_perturbed_start_recovers_object_and_controls(case: Case) -> None:
+    assert case.raw["E_r"] > 5.0  # the perturbed start turns the held box
+    refined = case.refined
     assert refined["success"]
     assert refined["E_t"] <= 0.5 and refined["E_r"] <= 1.5, refined
-    assert outcome.summary["config"]["free_wrist_translation"] is False
-    space = prep.spaces["right"]
-    q_true, p_true, r_true = space.frame_controls(truth)
+    space = case.prep.spaces["right"]
+    assert space.dim == 13  # 10 pose coefficients + wrist rotation, no free translation
+    q_true, p_true, r_true = space.frame_controls(case.truth)
     q_start, p_start, r_start = space.frame_controls(space.zero_keyframes())
-    q_ref, p_ref, r_ref = space.frame_controls(outcome.keyframes["right"])
+    q_ref, p_ref, r_ref = space.frame_controls(case.keyframes)
 
     def errors(q: np.ndarray, p: np.ndarray, r: np.ndarray) -> tuple[float, float, float]:
         return (float(np.sqrt(np.mean((q - q_true) ** 2))), float(np.linalg.norm(p - p_true, axis=1).mean()),

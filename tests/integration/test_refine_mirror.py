@@ -15,7 +15,7 @@ from common.dexycb import load_dexycb_npz
 from common.job_options import JobOptions
 from common.sequence import Sequence
 from common.sequence_mirror import mirror_sequence
-from tests.integration.test_refine_synthetic import recovery_case
+from tests.support.synthetic_push import recovery_case
 from worker.refine.run import refine_sequence
 
 #: How far the refined errors of a sequence and its mirror may differ (cm, degrees).
@@ -60,22 +60,28 @@ def test_a_dexycb_right_hand_and_its_mirror_refine_alike(dexycb_dev_files: list[
     _assert_alike(a, b)
 
 
-def test_verify_re_simulates_a_left_hand_with_the_controls_it_was_made_with() -> None:
-    """Results made before left hands were mirrored record no ``left_hand_controls`` and verify as made."""
+def test_verify_re_simulates_a_left_hand_with_the_controls_it_was_made_with(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Results made before left hands were mirrored record no ``left_hand_controls`` and verify as made; a
+    convention other than the current one is a config change (``--allow-config``)."""
+    import worker.refine.prepare as prepare_module
     from common.errors import ResultMismatchError
-    from worker.refine.prepare import prepare
     from worker.refine.result import verify_result
     from worker.refine.run import RefineOutcome
 
     seq, _ = recovery_case(frames=16)
     left = mirror_sequence(seq)
     options = JobOptions(seed=1, popsize=4, max_generations=1, restarts=0)
-    old = refine_sequence(left, options, prepared=prepare(left, options, mirror_left=False))
+    with monkeypatch.context() as m:
+        m.setattr(prepare_module, "MIRROR_LEFT_HAND", False)  # the old treatment of left hands
+        old = refine_sequence(left, options)
     assert old.summary["config"]["left_hand_controls"] == "as right"
     assert abs(old.keyframes["left"]).max() > 0  # something was optimised, so the convention matters
     unrecorded = {**old.summary, "config": {k: v for k, v in old.summary["config"].items()
                                             if k != "left_hand_controls"}}
     verify_result(RefineOutcome(old.arrays, unrecorded).to_npz_bytes())
+    with pytest.raises(ResultMismatchError, match="left_hand_controls"):
+        verify_result(old.to_npz_bytes())  # recorded, not the default: a config change
+    verify_result(old.to_npz_bytes(), allow_config=True)
     as_if_new = {**old.summary, "config": {**old.summary["config"], "left_hand_controls": "mirrored"}}
     with pytest.raises(ResultMismatchError):
         verify_result(RefineOutcome(old.arrays, as_if_new).to_npz_bytes())

@@ -1,5 +1,6 @@
 """The refinement end to end on a synthetic push (tests/integration/test_refine_synthetic.py): parameter
-recovery, determinism (identical result bytes without the wall clock), verify, loss ablation, keyframe interval
+recovery, determinism (identical result bytes without the wall clock), verify (tests/integration/
+test_verify_forgeries.py has the forgeries of issue #15), loss ablation, keyframe interval
 at 60 fps, and the CLI."""
 
 from __future__ import annotations
@@ -17,10 +18,10 @@ from common.errors import ResultMismatchError
 from common.job_options import LOSS_NAMES, JobOptions
 from common.result_format import content_digest, read_arrays, read_summary, write_result_npz
 from common.sequence_io import save_sequence
-from tests.integration.test_refine_synthetic import push_sequence, recovery_case
+from tests.support.synthetic_push import push_sequence, recovery_case
 from worker.refine.evaluator import ParallelEvaluator
 from worker.refine.losses import ROT_SCALE
-from worker.refine.prepare import initial_state, prepare
+from worker.refine.prepare import prepare, settled_start
 from worker.refine.problem import SimWindowProblem
 from worker.refine.result import verify_result
 from worker.refine.run import RefineOutcome, refine_sequence
@@ -92,7 +93,7 @@ def test_zero_weight_changes_the_optimised_objective() -> None:
     seq, _ = push_sequence(frames=12), None
     base = prepare(seq, JobOptions())
     with ParallelEvaluator(base.scene.model, 1) as ev:
-        start, _ = initial_state(base, ev)
+        start, _ = settled_start(base, ev)
         kf = {s: sp.zero_keyframes() for s, sp in base.spaces.items()}
         cand = {"right": np.random.default_rng(0).normal(size=(3, base.spaces["right"].dim))}
 
@@ -147,7 +148,7 @@ def test_sixty_fps_uses_keyframes_every_ten_frames_and_cli_round_trip(
 
 def test_two_hands_get_independent_keyframes_in_one_simulation() -> None:
     from common.sequence import HandTrack
-    from worker.hand_model import default_geometry, forward_keypoints
+    from worker.hand.model import default_geometry, forward_keypoints
 
     seq = push_sequence(frames=16)
     # A left hand resting 30 cm to the side (it never touches the box) joins the right hand's push.
@@ -179,6 +180,12 @@ def test_a_failed_refinement_is_restarted_with_another_seed_and_the_best_attempt
     assert twice.summary["metrics"]["refined"]["E_t"] == best["E_t"]  # the result is the best attempt's replay
     assert twice.summary["timings"]["evaluations"] == first["evaluations"] + second["evaluations"]
     assert verify_result(twice.to_npz_bytes())["max_pos_diff_m"] == 0.0
+    # Both attempts' keyframes are stored, so the first attempt's failure is re-simulated too (issue #15 item 3).
+    assert twice.arrays["right_attempt_keyframes"].shape[0] == 2
+    assert twice.summary["metrics"]["refined"]["success_first_attempt"] is False
+    claimed = {**twice.summary, "attempts": [{**first, "success": True}, second]}
+    with pytest.raises(ResultMismatchError, match=r"attempts\[0\]\.success"):
+        verify_result(RefineOutcome(twice.arrays, claimed).to_npz_bytes())
 
 
 def test_verify_re_simulates_with_the_rotation_pivot_the_result_was_made_with(
@@ -192,7 +199,10 @@ def test_verify_re_simulates_with_the_rotation_pivot_the_result_was_made_with(
     monkeypatch.undo()
     assert old.summary["config"]["rotation_pivot"] == "wrist"
     assert np.any(old.arrays["right_keyframes"][:, 10:13] != 0)  # a rotation offset, so the pivot matters
-    assert verify_result(old.to_npz_bytes())["max_pos_diff_m"] == 0.0
+    # A recorded pivot other than today's is a non-default config: verify names it and wants --allow-config.
+    with pytest.raises(ResultMismatchError, match="rotation_pivot"):
+        verify_result(old.to_npz_bytes())
+    assert verify_result(old.to_npz_bytes(), allow_config=True)["max_pos_diff_m"] == 0.0
     unrecorded = {**old.summary, "config": {k: v for k, v in old.summary["config"].items() if k != "rotation_pivot"}}
     assert verify_result(RefineOutcome(old.arrays, unrecorded).to_npz_bytes())["max_pos_diff_m"] == 0.0
     as_if_hand = {**old.summary, "config": {**old.summary["config"], "rotation_pivot": "hand"}}
@@ -206,12 +216,12 @@ def test_verify_re_simulates_with_the_leads_the_result_was_made_with(monkeypatch
     """Results made before the wrist and finger leads existed drove the mocap and the servos along the
     reference itself (leads 0) and record neither: they still verify, and claiming a lead for them fails."""
     import worker.refine.run as run_module
-    from worker.example import short_example_sequence
-    from worker.scene import SimConfig
+    from worker.example.sequences import short_example_sequence
+    from worker.simulation.scene import SimConfig
 
     seq = short_example_sequence()  # a grasp and lift: the wrist moves and the fingers close
     unled = SimConfig(wrist_lead_s=0.0, finger_lead_s=0.0)
-    monkeypatch.setattr(run_module, "prepare", lambda s, o: prepare(s, o, unled))
+    monkeypatch.setattr(run_module, "prepare", lambda s, o, **dirs: prepare(s, o, unled, **dirs))
     old = refine_sequence(seq, JobOptions(popsize=4, max_generations=1, restarts=0), threads=1)
     monkeypatch.undo()
     sim = old.summary["config"]["sim"]

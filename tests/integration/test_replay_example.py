@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from common.result_format import CONTACT_KEYS, read_arrays, read_contacts, read_summary
-from worker.example import example_sequence
-from worker.replay import ReplayResult, raw_replay, replay_result_bytes
+from worker.example.sequences import example_sequence
+from worker.simulation.replay import ReplayResult, raw_replay, replay_result_bytes
 
 
 @pytest.fixture(scope="module")

@@ -12,6 +12,7 @@ import pytest
 from common.errors import ConfigurationError
 from common.settings import get_settings
 from worker.refine.windowed import RefineProgress
+from worker.runtime.backoff import WorkerStopping
 from worker.runtime.jobs import RefineJob, SelfTestJob, _progress_dict, make_job_function
 from worker.runtime.pool import PoolConfig, actor_environment
 from worker.runtime.supervisor import stop_on_signals
@@ -63,6 +64,42 @@ def test_pool_and_job_settings_are_checked() -> None:
     assert isinstance(make_job_function("selftest", 1), SelfTestJob)
     with pytest.raises(ConfigurationError, match="job kind"):
         make_job_function("nope", 1)
+
+
+def _fake_ray(tmp_path: Path, failures: int) -> Path:
+    """A `ray` executable that logs its arguments and fails its first ``failures`` `ray start` calls."""
+    script = tmp_path / "ray"
+    script.write_text(
+        "#!/bin/sh\n"
+        f'echo "$@" >> {tmp_path}/calls\n'
+        f'if [ "$1" = start ] && [ "$(grep -c ^start {tmp_path}/calls)" -le {failures} ]; then exit 1; fi\n'
+    )
+    script.chmod(0o755)
+    return script
+
+
+def test_joining_the_ray_cluster_retries_a_failed_ray_start(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import worker.runtime.pool as pool_module
+
+    monkeypatch.setattr(pool_module, "ray_executable", lambda: str(_fake_ray(tmp_path, failures=2)))
+    monkeypatch.setattr(pool_module, "NODE_START_RETRY_SECONDS", 0.01)
+    cfg = PoolConfig(ray_address="10.0.0.1:6380", join_as_node=True, node_start_args=("--node-ip-address", "10.0.0.2"))
+    pool = pool_module.WorkerPool(cfg)
+    pool._start_node(threading.Event())
+    calls = (tmp_path / "calls").read_text().splitlines()
+    start = "start --address 10.0.0.1:6380 --num-cpus 1 --disable-usage-stats --node-ip-address 10.0.0.2"
+    # Two failed starts, each cleaned up with `ray stop --force`, then the third joins.
+    assert calls == [start, "stop --force", start, "stop --force", start]
+    assert pool._node_started
+
+    (tmp_path / "calls").unlink()
+    monkeypatch.setattr(pool_module, "ray_executable", lambda: str(_fake_ray(tmp_path, failures=99)))
+    with pytest.raises(ConfigurationError, match="after 3 attempts"):
+        pool_module.WorkerPool(PoolConfig(ray_address="h:6380", join_as_node=True))._start_node(None)
+    stop = threading.Event()
+    stop.set()
+    with pytest.raises(WorkerStopping):  # a stop during the wait ends it at once
+        pool_module.WorkerPool(PoolConfig(ray_address="h:6380", join_as_node=True))._start_node(stop)
 
 
 def test_worker_waits_for_an_unmigrated_database_says_why_and_stops_on_sigterm(tmp_path: Path) -> None:

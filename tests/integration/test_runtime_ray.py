@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 
+from common.api_key_store import ApiKeyStore
 from common.database import create_engine_for, upgrade_to_head
 from common.job_options import JobOptions
 from common.queue import JobQueue
@@ -53,7 +54,7 @@ def test_killed_actor_job_is_finished_elsewhere_and_sigterm_leaves_nothing_runni
     get_settings.cache_clear()
     upgrade_to_head(url)
     q = JobQueue(create_engine_for(url))
-    owner, _ = q.create_api_key("t")
+    owner, _ = ApiKeyStore(q.engine).create("t")
     ids = [
         q.submit(owner, f"seq{i}".encode(), JobOptions(seed=i, max_generations=g), None, f"j{i}", 5)[0].id
         for i, g in enumerate([40, 40, 5])

@@ -7,12 +7,13 @@ import numpy as np
 import pytest
 
 from common.sequence import HandTrack, ObjectSpec, Sequence
-from worker.hand_model import JOINT_LOWER, JOINT_UPPER, default_geometry, forward_keypoints
-from worker.retarget import HandReference, retarget_sequence
-from worker.scene import Scene, SimConfig, build_scene
-from worker.sim_config import HAND_BIT, OBJECT_BIT, TABLE_BIT
-from worker.simulation import HandTargets, RolloutRecord, initial_state, lead_track, rollout, substep_controls
-from worker.table_fit import fit_table
+from worker.hand.model import JOINT_LOWER, JOINT_UPPER, default_geometry, forward_keypoints
+from worker.hand.reference import HandReference
+from worker.hand.retarget import retarget_sequence
+from worker.simulation.config import HAND_BIT, OBJECT_BIT, TABLE_BIT
+from worker.simulation.scene import Scene, SimConfig, build_scene
+from worker.simulation.stepping import HandTargets, RolloutRecord, initial_state, lead_track, rollout, substep_controls
+from worker.simulation.table_fit import fit_table
 
 
 def _box_sequence(

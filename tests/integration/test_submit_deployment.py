@@ -103,6 +103,9 @@ def test_submit_folder_to_two_workers_interrupt_and_resume(dexycb_dev_files: lis
     for e in entries:
         summary = read_summary((out / e["files"]["result"]).read_bytes())
         assert {"raw", "refined"} <= summary["metrics"].keys()
+        # The worker's proof travels with the dataset, and this copy is the file it verified (issue #15 item 2).
+        proof = e["metrics"]["verification"]
+        assert proof["verified"] is True and proof["download_matches"] is True
         contacts = json.loads((out / e["files"]["contacts"]).read_text())
         assert contacts["count"] == len(contacts["contacts"])
     assert "Jobs by state" in second.stderr and "SUCCEEDED" in second.stderr and "refined" in second.stderr

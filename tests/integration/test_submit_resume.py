@@ -2,7 +2,7 @@
 
 The FastAPI app runs under uvicorn in a thread on 127.0.0.1 over a migrated SQLite file; two in-test
 workers (``worker.runtime.loop.WorkerLoop`` over ``common.queue.JobQueue``) complete the jobs with a real
-raw replay in MuJoCo (``worker.replay``). The per-key active-job limit is set to 2, so the tool also meets
+raw replay in MuJoCo (``worker.simulation.replay``). The per-key active-job limit is set to 2, so the tool also meets
 real 429 answers with ``Retry-After`` and has to wait them out.
 """
 
@@ -24,6 +24,8 @@ import sqlalchemy as sa
 import uvicorn
 from rich.console import Console
 
+from common.api_client import ApiClient
+from common.api_key_store import ApiKeyStore
 from common.database import create_engine_for
 from common.errors import InputError
 from common.job_options import JobOptions
@@ -33,12 +35,11 @@ from common.sequence_io import save_sequence, sequence_from_npz_bytes
 from common.settings import Settings
 from service.app import create_app
 from service.submit import cli as submit_cli
-from service.submit.client import ApiClient
 from service.submit.manifest import Manifest
 from service.submit.runner import SubmitConfig, SubmitOutcome, run_submit
-from tests.queue_fixtures import tiny_sequence
-from worker.replay import raw_replay, replay_result_bytes, replay_summary
+from tests.support.queue_fixtures import tiny_sequence
 from worker.runtime.loop import WorkerLoop
+from worker.simulation.replay import raw_replay, replay_result_bytes, replay_summary
 
 SEQUENCES = 6
 
@@ -70,7 +71,7 @@ class Deployment:
         self.api_engine = create_engine_for(db_url)
         self.worker_engine = create_engine_for(db_url)
         self.queue = JobQueue(self.worker_engine, self.settings)
-        self.key_id, self.key = self.queue.create_api_key("bulk")
+        self.key_id, self.key = ApiKeyStore(self.worker_engine).create("bulk")
         self.throttled = 0  # 429 answers the tool met
         sock = socket.socket()
         sock.bind(("127.0.0.1", 0))
@@ -102,7 +103,7 @@ class Deployment:
 
     def jobs(self) -> list[Any]:
         with self.worker_engine.connect() as conn:
-            return list(conn.execute(sa.text("SELECT id, name, state, idempotency_key FROM jobs")).all())
+            return list(conn.execute(sa.text("SELECT id, name, state, idempotency_key, batch_id FROM jobs")).all())
 
 
 @pytest.fixture
@@ -187,6 +188,14 @@ def test_interrupt_and_resume_submits_each_sequence_once(
     doc = json.loads((out / "summary.json").read_text())
     assert doc["states"] == {"INVALID": 1, "SUCCEEDED": SEQUENCES}
     assert doc["mean_metrics"]["raw"]["E_t"] == pytest.approx(means)
+
+    # Both runs submitted into one server-side batch (its id kept in the manifest), printed at the end.
+    batch_id = Manifest.load_or_create(out).meta["batch_id"]
+    assert {j.batch_id for j in jobs} == {batch_id}
+    assert f"batch: {deployment.url}/v1/batches/{batch_id}" in text.replace("\n", "")
+    assert doc["batch"]["id"] == batch_id and doc["batch"]["counts"]["SUCCEEDED"] == SEQUENCES
+    assert doc["batch"]["metrics"]["all_frames"]["raw"]["E_t"] == pytest.approx(means)
+    assert "Batch metrics (all_frames)" in text
 
     # The per-key limit of 2 active jobs made the server answer 429 + Retry-After; the tool waited it out.
     assert deployment.throttled > 0

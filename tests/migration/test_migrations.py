@@ -8,11 +8,12 @@ import sqlalchemy as sa
 from alembic import command
 
 from common.database import alembic_config, create_engine_for, database_ready, head_revision, upgrade_to_head
-from tests.queue_fixtures import BACKENDS
+from tests.support.queue_fixtures import BACKENDS
 
 pytestmark = pytest.mark.parametrize("empty_db_url", BACKENDS, indirect=True)
 
-TABLES = {"alembic_version", "api_keys", "jobs", "job_inputs", "job_results", "job_events"}
+TABLES = {"alembic_version", "api_keys", "jobs", "job_inputs", "job_results", "job_artifacts", "job_events", "batches",
+          "webhooks", "webhook_deliveries", "event_cursors"}
 
 
 def test_upgrade_head_on_empty_database_then_check_reports_no_drift(empty_db_url: str) -> None:

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 import trimesh
 
-from worker import convex_cache
+from worker.simulation import convex_cache
 
 
 def _ring() -> trimesh.Trimesh:
@@ -55,11 +56,26 @@ def test_convex_mesh_skips_coacd(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     assert how == "hull" and len(parts) == 1 and len(parts[0]) == 8
 
 
-def test_default_cache_dir_comes_from_settings(tmp_path: Path) -> None:
-    box = trimesh.creation.box(extents=[0.05, 0.04, 0.1])
-    convex_cache.convex_parts(np.asarray(box.vertices), np.asarray(box.faces))
-    # conftest points HOI_REFINE_VAR_DIR at tmp_path / "var"
-    assert len(list((tmp_path / "var" / "cache" / "convex").glob("*.npz"))) == 1
+def test_without_cache_dir_nothing_is_written_and_the_process_remembers(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Science code reads no settings: without a ``cache_dir`` the parts stay in this process's memory."""
+    monkeypatch.chdir(tmp_path)
+    ring = _ring()
+    vertices, faces = np.asarray(ring.vertices) * 1.01, np.asarray(ring.faces)  # a key no other test used
+    calls: list[int] = []
+    real = convex_cache._run_coacd
+
+    def counting(*args: Any, **kwargs: Any) -> list[np.ndarray]:
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(convex_cache, "_run_coacd", counting)
+    parts, how = convex_cache.convex_parts(vertices, faces)
+    again, how2 = convex_cache.convex_parts(vertices, faces)
+    assert how == how2 == "coacd" and len(calls) == 1
+    assert all(np.array_equal(a, b) for a, b in zip(again, parts, strict=True))
+    assert not list(tmp_path.rglob("*.npz")) and not (tmp_path / "var").exists()
 
 
 def test_shape_checks_name_the_argument() -> None:

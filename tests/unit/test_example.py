@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from worker.example import example_sequence, short_example_sequence
-from worker.hand_model import quat_to_matrix
+from common.geometry import quat_to_matrix
+from worker.example.sequences import example_sequence, short_example_sequence
 
 
 def test_example_is_valid_and_deterministic() -> None:

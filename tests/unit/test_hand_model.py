@@ -6,8 +6,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from worker.hand_mjcf import hand_mjcf
-from worker.hand_model import (
+from worker.hand.model import (
     HINGE_NAMES,
     JOINT_LOWER,
     JOINT_UPPER,
@@ -15,6 +14,7 @@ from worker.hand_model import (
     fit_hand_geometry,
     forward_keypoints,
 )
+from worker.simulation.hand_mjcf import hand_mjcf
 
 
 def test_hinge_names_and_limits() -> None:

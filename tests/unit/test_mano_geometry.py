@@ -8,18 +8,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from worker.hand_model import forward_keypoints, wrist_frames
-from worker.mano import build_test_mano_model
-from worker.mano.hand_geometry import hinges_to_rotations, mano_hand_geometry, rotations_to_hinges
-from worker.mano.synthetic_model import skeleton
-
-
-@pytest.fixture(scope="module")
-def mano_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    d = tmp_path_factory.mktemp("mano")
-    build_test_mano_model(d, "right", seed=0)
-    build_test_mano_model(d, "left", seed=0)
-    return d
+from worker.hand.mano.hand_geometry import hinges_to_rotations, mano_hand_geometry, rotations_to_hinges
+from worker.hand.mano.synthetic_model import skeleton
+from worker.hand.model import forward_keypoints, wrist_frames
 
 
 @pytest.mark.parametrize("side", ["right", "left"])

@@ -11,9 +11,8 @@ import pytest
 
 from common.errors import ConfigurationError, ManoModelMissingError
 from common.sequence import HandTrack, ManoParams, ObjectSpec, Sequence
-from common.settings import get_settings
-from worker.mano import build_test_mano_model, ensure_keypoints, load_mano_pickle, mano_model_path
-from worker.mano.synthetic_model import MANO_PARENTS, skeleton
+from worker.hand.mano import build_test_mano_model, ensure_keypoints, load_mano_pickle, mano_model_path
+from worker.hand.mano.synthetic_model import MANO_PARENTS, skeleton
 
 
 def test_reads_chumpy_pickle_without_chumpy(tmp_path: Path) -> None:
@@ -62,24 +61,18 @@ def _mano_only_sequence() -> Sequence:
     ).validate()  # fmt: skip
 
 
-def test_missing_model_names_the_setting(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.delenv("HOI_REFINE_MANO_DIR", raising=False)
-    get_settings.cache_clear()
+def test_missing_model_names_the_setting(tmp_path: Path) -> None:
     seq = _mano_only_sequence()
     with pytest.raises(ManoModelMissingError, match=r"MANO_LEFT\.pkl.*HOI_REFINE_MANO_DIR is not set"):
         ensure_keypoints(seq)
     build_test_mano_model(tmp_path, "right")
-    monkeypatch.setenv("HOI_REFINE_MANO_DIR", str(tmp_path))
-    get_settings.cache_clear()
     with pytest.raises(ManoModelMissingError, match=rf"HOI_REFINE_MANO_DIR \({tmp_path}\) has no MANO_LEFT\.pkl"):
-        ensure_keypoints(seq)
-    assert mano_model_path("right") == tmp_path / "MANO_RIGHT.pkl"
+        ensure_keypoints(seq, tmp_path)
+    assert mano_model_path("right", tmp_path) == tmp_path / "MANO_RIGHT.pkl"
     assert ManoModelMissingError.http_status == 422
 
 
-def test_hands_with_keypoints_need_no_model(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.delenv("HOI_REFINE_MANO_DIR", raising=False)
-    get_settings.cache_clear()
+def test_hands_with_keypoints_need_no_model() -> None:
     seq = _mano_only_sequence()
     seq.hands[0].keypoints = np.zeros((3, 21, 3))
     assert ensure_keypoints(seq) is seq

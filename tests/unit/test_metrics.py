@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from worker.metrics import compute_metrics, rotation_error_deg, scalar_metrics
+from common.geometry import rotation_error_deg
+from worker.simulation.metrics import compute_metrics, scalar_metrics
 
 
 def _poses(n: int) -> np.ndarray:
@@ -71,3 +72,43 @@ def test_shape_errors_name_the_argument() -> None:
         compute_metrics(_poses(4), _poses(5), kp, kp, valid)
     with pytest.raises(ValueError, match="keypoints_sim"):
         compute_metrics(_poses(5), _poses(5), kp, kp, valid)
+
+
+def test_the_papers_protocol_leaves_out_the_first_ten_frames() -> None:
+    ref = _poses(30)
+    kp, valid = _hands(30)
+    sim = ref.copy()
+    sim[:10, 0] += 0.05  # 5 cm off during the approach only
+    sim[10:, 1] += 0.01  # 1 cm off afterwards
+    m = compute_metrics(sim, ref, kp, kp, valid)
+    assert m["success"] is False and m["E_t"] == pytest.approx((10 * 5.0 + 20 * 1.0) / 30)
+    paper = m["paper"]
+    assert paper["first_frame"] == 10 and paper["frames"] == 20
+    assert paper["success"] is True and paper["E_t"] == pytest.approx(1.0) and paper["max_E_t"] == pytest.approx(1.0)
+    short = compute_metrics(ref[:8], ref[:8], {"right": kp["right"][:8]}, {"right": kp["right"][:8]},
+                            {"right": valid["right"][:8]})
+    assert short["paper"]["frames"] == 0 and short["paper"]["E_t"] is None  # nothing to average: None, not NaN
+
+
+def test_penetration_and_the_hand_held_share_of_lifted_frames() -> None:
+    from worker.simulation.contacts import contact_frames
+
+    n = 12
+    ref = _poses(n)  # rises 0.2 m over 12 frames: lifted (> 2 cm above frame 0) from frame 2 on
+    kp, valid = _hands(n)
+    table_frames = np.array([0, 1, 2, 3])  # the object leaves the table at frame 4
+    rows = np.array([1, 1, 5, 5, 6, 9])  # contact rows' frames; depths in m
+    depth = np.array([0.001, 0.003, 0.0, 0.002, 0.0005, 0.004])
+    cf = contact_frames(rows, depth, table_frames, n)
+    np.testing.assert_allclose(cf.penetration_m[[0, 1, 5, 6, 9]], [0.0, 0.003, 0.002, 0.0005, 0.004])
+    m = compute_metrics(ref, ref, kp, kp, valid, cf)
+    assert m["penetration_max_mm"] == pytest.approx(4.0)
+    assert m["penetration_mean_mm"] == pytest.approx((3.0 + 2.0 + 0.5 + 4.0) / n)
+    # Lifted frames 2..11 (10); held by the hand alone: 5, 6, 9 (hand contact, no table).
+    assert m["lifted_frames"] == 10 and m["hand_only_fraction"] == pytest.approx(0.3)
+    assert m["per_frame"]["hand_only"][[1, 5]].tolist() == [0.0, 1.0]  # frame 1: hand and table
+    assert m["paper"]["lifted_frames"] == 2 and m["paper"]["hand_only_fraction"] == 0.0  # frames 10, 11
+    assert compute_metrics(ref * [1, 1, 0, 1, 1, 1, 1], ref * [1, 1, 0, 1, 1, 1, 1], kp, kp, valid,
+                           cf)["hand_only_fraction"] is None  # never lifted
+    with pytest.raises(ValueError, match="frames"):
+        contact_frames(np.array([n]), np.array([0.0]), np.zeros(0, dtype=int), n)

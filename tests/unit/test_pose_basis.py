@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from common.errors import ConfigurationError
-from worker.pose_basis import POSE_BASIS_FILE, fit_pose_basis, load_pose_basis, save_pose_basis
+from worker.hand.pose_basis import POSE_BASIS_FILE, fit_pose_basis, load_pose_basis, save_pose_basis
 
 
 def test_pca_recovers_a_known_subspace(tmp_path: Path) -> None:
@@ -39,7 +39,7 @@ def test_missing_file_is_a_configuration_error(tmp_path: Path) -> None:
 
 def test_packaged_basis_has_provenance() -> None:
     if not POSE_BASIS_FILE.is_file():
-        pytest.skip("worker/data/pose_basis.npz has not been built")
+        pytest.skip("worker/hand/data/pose_basis.npz has not been built")
     pb = load_pose_basis()
     assert pb.mean.shape == (45,) and pb.components.shape[0] >= 10
     assert np.all(np.diff(pb.stddev) <= 1e-12)  # ordered by variance

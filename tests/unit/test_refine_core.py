@@ -7,9 +7,10 @@ import mujoco
 import numpy as np
 import pytest
 
-from worker.refine.controls import HandControlSpace, PoseBasis10, quat_exp, quat_mul, quat_rotate
+from common.geometry import quat_exp, quat_mul, quat_rotate
+from worker.refine.controls import HandControlSpace, PoseBasis10
 from worker.refine.evaluator import ParallelEvaluator, SimState
-from worker.refine.losses import HandTargets, ObjectTargets, finite_difference_velocity, resolve_weights
+from worker.refine.losses import HandKeypointTargets, ObjectTargets, finite_difference_velocity, resolve_weights
 from worker.refine.problem import SimLayout, SimWindowProblem
 from worker.refine.spline import (
     catmull_rom_weights,
@@ -160,8 +161,8 @@ def _dummy_obj() -> ObjectTargets:
     return ObjectTargets(np.zeros((FRAMES, 3)), np.tile([1.0, 0, 0, 0], (FRAMES, 1)), np.zeros((FRAMES, 6)))
 
 
-def _dummy_hand() -> dict[str, HandTargets]:
-    return {"right": HandTargets(np.zeros((FRAMES, 3, 3)), np.ones(FRAMES, bool), (1, 2),
+def _dummy_hand() -> dict[str, HandKeypointTargets]:
+    return {"right": HandKeypointTargets(np.zeros((FRAMES, 3, 3)), np.ones(FRAMES, bool), (1, 2),
                                  np.zeros((FRAMES, 2), bool), np.zeros((FRAMES, 2, 3)))}
 
 

@@ -1,12 +1,12 @@
-"""The object's start pose averaged over the frames before a hand comes near (worker.rest_pose)."""
+"""The object's start pose averaged over the frames before a hand comes near (worker.simulation.rest_pose)."""
 
 from __future__ import annotations
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from worker.refine.losses import quat_geodesic
-from worker.rest_pose import approach_frame, mean_pose, moved_frame, rest_pose
+from common.geometry import rotation_angle
+from worker.simulation.rest_pose import approach_frame, mean_pose, moved_frame, rest_pose
 
 # A 2 x 2 x 2 cm cube's corners and face centres: the object surface.
 SURFACE = np.array([[x, y, z] for x in (-0.01, 0.01) for y in (-0.01, 0.01) for z in (-0.01, 0.01)]
@@ -44,7 +44,7 @@ def test_the_mean_keeps_the_sign_of_the_first_frame() -> None:
     poses = _track(np.array([170.0, 175.0, 180.0]))
     mean = mean_pose(poses)
     assert mean[3:] @ poses[0, 3:] > 0
-    assert np.degrees(quat_geodesic(mean[3:], _wxyz(Rotation.from_euler("z", 175, degrees=True)))) < 1e-6
+    assert np.degrees(rotation_angle(mean[3:], _wxyz(Rotation.from_euler("z", 175, degrees=True)))) < 1e-6
 
 
 def test_the_approach_is_the_first_frame_a_keypoint_is_within_the_distance_of_the_surface() -> None:
@@ -66,7 +66,7 @@ def test_the_rest_pose_is_the_mean_before_the_approach_only() -> None:
     hand = _hand_closing_in(t, arrive=30, target=np.array([0.3, 0.1, 0.02]))  # within 2.5 cm from frame 28
     rest = rest_pose(poses, SURFACE, [hand], 0.025)
     expected = _wxyz(Rotation.from_euler("z", 3.0, degrees=True))
-    assert np.degrees(quat_geodesic(rest[3:], expected)) < 0.01
+    assert np.degrees(rotation_angle(rest[3:], expected)) < 0.01
     # A hand already at the object at frame 0, or the averaging switched off: frame 0 as recorded.
     np.testing.assert_array_equal(rest_pose(poses, SURFACE, [hand[29:30].repeat(t, 0)], 0.025), poses[0])
     np.testing.assert_array_equal(rest_pose(poses, SURFACE, [hand], 0.0), poses[0])

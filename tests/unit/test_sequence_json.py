@@ -15,8 +15,8 @@ def _doc(size: Any) -> dict[str, Any]:
     return {
         "fps": 30,
         "object": {"mass_kg": 1.0, "primitive": {"kind": "box", "size": size}},
-        "object_pose": [[0, 0, 0, 1, 0, 0, 0]],
-        "hands": [{"side": "right", "valid": [True], "keypoints": [[[0.0, 0.0, 0.0]] * 21]}],
+        "object_pose": [[0, 0, 0, 1, 0, 0, 0]] * 2,  # two frames: the shortest sequence (MIN_FRAMES)
+        "hands": [{"side": "right", "valid": [True] * 2, "keypoints": [[[0.0, 0.0, 0.0]] * 21] * 2}],
     }
 
 
@@ -37,7 +37,7 @@ def test_missing_size_is_required() -> None:
 
 def test_valid_document_parses() -> None:
     seq = sequence_from_json_dict(_doc([0.05, 0.05, 0.05]))
-    assert seq.num_frames == 1 and seq.object.primitive == "box"
+    assert seq.num_frames == 2 and seq.object.primitive == "box"
 
 
 def test_huge_world_transform_is_rejected_without_overflow() -> None:

@@ -9,12 +9,13 @@ import re
 import numpy as np
 import pytest
 
+from common.geometry import quat_to_matrix
 from common.sequence import HandTrack, ObjectSpec, Sequence
 from common.sequence_mirror import mirror_object, mirror_sequence, reflection
 from worker.example import short_example_sequence
-from worker.hand_mjcf import hand_worldbody_xml
-from worker.hand_model import HINGE_NAMES, JOINT_LIMITS, MIRROR_SIGNS, default_geometry, quat_to_matrix
-from worker.scene import SimConfig
+from worker.hand.model import HINGE_NAMES, JOINT_LIMITS, MIRROR_SIGNS, default_geometry
+from worker.simulation.config import SimConfig
+from worker.simulation.hand_mjcf import hand_worldbody_xml
 
 M = reflection()
 

@@ -146,10 +146,10 @@ def test_dexycb_dev_file_is_uploaded_self_contained(dexycb_dev_files: list[Path]
 
 def test_dexycb_release_sequences_load_and_pack(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A DexYCB release root (the loader's own test tree): one item per sequence, uploaded self-contained."""
-    from tests.unit.test_dexycb_native import _write_tree  # the tiny release tree its loader is tested on
+    from tests.support.dexycb_tree import write_tree  # the tiny release tree its loader is tested on
 
     monkeypatch.delenv("HOI_REFINE_MANO_DIR", raising=False)
-    dirs = _write_tree(tmp_path / "release")
+    dirs = write_tree(tmp_path / "release")
     labelled, mano_only = discover([tmp_path / "release"], "dexycb")
     assert (labelled.path, mano_only.path) == (dirs["s1"].resolve(), dirs["s2"].resolve())
     seq = load_source(labelled)

@@ -35,6 +35,6 @@ def test_summary_names_states_metrics_and_problems() -> None:
     out = io.StringIO()
     print_summary(Console(file=out, width=120), _entries())
     text = out.getvalue()
-    for expected in ("SUCCEEDED", "RUNNING", "FAILED", "INVALID", "E_t (cm)", "3.00", "2.00", "50%", "100%",
+    for expected in ("SUCCEEDED", "RUNNING", "FAILED", "INVALID", "position error E_t", "3.00", "2.00", "50%", "100%",
                      "worker crashed", "at least one hand is required", "over 2 succeeded"):
         assert expected in text, expected

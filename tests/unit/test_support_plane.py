@@ -1,4 +1,4 @@
-"""The table under the recorded frame-0 object (worker.support_plane)."""
+"""The table under the recorded frame-0 object (worker.simulation.support_plane)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from worker.support_plane import SupportPlane, support_candidates
+from worker.simulation.support_plane import SupportPlane, support_candidates
 
 
 def _box_vertices(half: tuple[float, float, float], rounded: bool = False) -> np.ndarray:
@@ -97,9 +97,9 @@ def test_centre_of_mass_is_the_simulated_body_s() -> None:
     from scipy.spatial import ConvexHull
 
     from common.sequence import ObjectSpec
-    from worker.object_model import centre_of_mass, object_mjcf
-    from worker.scene import SimConfig
-    from worker.support_plane import _hull_centroid
+    from worker.simulation.object_model import centre_of_mass, object_mjcf
+    from worker.simulation.scene import SimConfig
+    from worker.simulation.support_plane import _hull_centroid
 
     ell = _l_prism()
     obj = ObjectSpec(name="ell", mass_kg=0.2, mesh_vertices=np.asarray(ell.vertices), mesh_faces=np.asarray(ell.faces))

@@ -10,11 +10,35 @@ Modules, in pipeline order:
 * ``problem``    ``SimWindowProblem``: controls -> rollouts -> losses for one window;
 * ``windowed``   the sliding-window CMA-ES (``optimise_windows``), progress and cancellation;
 * ``prepare``    references, scene, control spaces and loss targets of a sequence;
-* ``run``        ``refine_sequence`` (the entry point the Ray worker calls) and the from-scratch replay;
-* ``result``     the result arrays/summary and ``verify_result``.
+* ``replay``     the from-scratch replay of keyframes and the window problem it shares with the optimiser;
+* ``run``        ``refine_sequence`` (the entry point the Ray worker calls);
+* ``derive``     ``derive_result``: the result's replays, metrics and arrays from its inputs (the worker and
+                 ``verify`` call the same function);
+* ``result``     the result summary (and the visual tools' rebuild of a result's problem);
+* ``verify``     ``verify_result`` / ``check_result`` (with ``verify_arrays``, ``verify_summary``,
+                 ``verify_report``): recompute and compare everything a result claims.
 """
 
 import warnings
 
 # cma warns at import when matplotlib is absent; only its plotting needs it and we never plot.
 warnings.filterwarnings("ignore", message="Could not import matplotlib", category=UserWarning)
+
+from worker.refine.evaluator import ParallelEvaluator  # noqa: E402  (after the warnings filter: it imports cma)
+from worker.refine.prepare import Prepared  # noqa: E402
+from worker.refine.replay import ReplayRecord  # noqa: E402
+from worker.refine.run import RefineOutcome, refine_sequence  # noqa: E402
+from worker.refine.verify import verify_result  # noqa: E402
+from worker.refine.windowed import RefineProgress  # noqa: E402
+
+# Not re-exported: the functions named like their modules (``prepare``, ``replay``): a package attribute of that
+# name would hide the module (``import worker.refine.prepare as m`` would then bind the function).
+__all__ = [
+    "ParallelEvaluator",
+    "Prepared",
+    "RefineOutcome",
+    "RefineProgress",
+    "ReplayRecord",
+    "refine_sequence",
+    "verify_result",
+]

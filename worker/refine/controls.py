@@ -23,7 +23,7 @@ Left hands (``mirrored``) use the right hand's coordinates reflected through the
 rotation offset is applied as ``MIRROR_ROTATION * domega`` (a rotation vector is a pseudo-vector: reflecting
 a rotation through the plane with normal x keeps its x component and negates y and z) and a free translation
 as ``MIRROR_TRANSLATION * dp``; ``prepare`` gives them the pose basis with abductions and twists negated
-(``hand_model.MIRROR_SIGNS``). Then a sequence and its mirror image through that plane
+(``worker.hand.model.MIRROR_SIGNS``). Then a sequence and its mirror image through that plane
 (``common.sequence_mirror``) are the same optimisation problem, sample for sample: CMA-ES draws the same
 coordinates for both and each drives the mirror image of the other's hand. CMA-ES is isotropic, so for
 any other left hand the choice of plane changes nothing on average.
@@ -34,11 +34,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import numpy.typing as npt
 
-from worker.refine.spline import FloatArray, catmull_rom_weights, num_keyframes
-
-IntArray = npt.NDArray[np.int64]
+from common.geometry import FloatArray, IntArray, quat_exp, quat_mul, quat_rotate, slerp_frames
+from worker.refine.spline import catmull_rom_weights, num_keyframes
 
 N_POSE = 10
 N_ROT = 3
@@ -52,56 +50,12 @@ MIRROR_ROTATION = np.array([1.0, -1.0, -1.0])
 MIRROR_TRANSLATION = np.array([-1.0, 1.0, 1.0])
 
 
-def quat_mul(a: FloatArray, b: FloatArray) -> FloatArray:
-    """Hamilton product of wxyz quaternions, broadcasting over leading dimensions."""
-    aw, ax, ay, az = np.moveaxis(a, -1, 0)
-    bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        axis=-1,
-    )
 
 
-def quat_rotate(q: FloatArray, v: FloatArray) -> FloatArray:
-    """Rotate vectors v (..., 3) by unit wxyz quaternions q (..., 4): v + 2w (u x v) + 2 u x (u x v)."""
-    w, u = q[..., :1], q[..., 1:]
-    t = 2.0 * np.cross(u, v)
-    return np.asarray(v + w * t + np.cross(u, t))
 
 
-def quat_exp(rotvec: FloatArray) -> FloatArray:
-    """wxyz quaternion of a rotation vector (axis * angle), broadcasting over leading dimensions."""
-    angle = np.linalg.norm(rotvec, axis=-1, keepdims=True)
-    half = 0.5 * angle
-    # sin(x/2)/x -> 1/2 as x -> 0; the series keeps small angles exact.
-    small = angle < 1e-8
-    scale = np.where(small, 0.5 - angle**2 / 48.0, np.sin(half) / np.where(small, 1.0, angle))
-    return np.concatenate([np.cos(half), rotvec * scale], axis=-1)
 
 
-def slerp_frames(quats: FloatArray, times: FloatArray) -> FloatArray:
-    """Slerp a (T, 4) per-frame quaternion track at fractional frame ``times``."""
-    t_max = quats.shape[0] - 1
-    times = np.clip(times, 0, t_max)
-    i0 = np.minimum(np.floor(times).astype(np.int64), max(t_max - 1, 0))
-    i1 = np.minimum(i0 + 1, t_max)
-    u = (times - i0)[:, None]
-    q0, q1 = quats[i0], quats[i1]
-    dot = np.sum(q0 * q1, axis=1, keepdims=True)
-    q1 = np.where(dot < 0, -q1, q1)
-    dot = np.abs(dot).clip(max=1.0)
-    theta = np.arccos(dot)
-    sin_t = np.sin(theta)
-    near = sin_t < 1e-6
-    w0 = np.where(near, 1 - u, np.sin((1 - u) * theta) / np.where(near, 1.0, sin_t))
-    w1 = np.where(near, u, np.sin(u * theta) / np.where(near, 1.0, sin_t))
-    out = w0 * q0 + w1 * q1
-    return out / np.linalg.norm(out, axis=1, keepdims=True)
 
 
 def lerp_frames(values: FloatArray, times: FloatArray) -> FloatArray:

@@ -25,7 +25,7 @@ import mujoco
 import mujoco.rollout
 import numpy as np
 
-from worker.refine.spline import FloatArray
+from common.geometry import FloatArray
 
 _S = mujoco.mjtState
 CONTROL_SPEC = int(_S.mjSTATE_CTRL | _S.mjSTATE_MOCAP_POS | _S.mjSTATE_MOCAP_QUAT)

@@ -33,9 +33,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from common.geometry import FloatArray, quat_conj, quat_mul, quat_rotate, rotation_angle
 from common.job_options import LOSS_NAMES
-from worker.refine.controls import quat_mul
-from worker.refine.spline import FloatArray
 
 BoolArray = npt.NDArray[np.bool_]
 
@@ -74,20 +73,10 @@ def resolve_weights(overrides: Mapping[Any, float] | None) -> dict[str, float]:
     return out
 
 
-def quat_geodesic(q1: FloatArray, q2: FloatArray) -> FloatArray:
-    """Rotation angle (rad) between wxyz quaternions, broadcasting."""
-    dot = np.abs(np.sum(q1 * q2, axis=-1)) / (np.linalg.norm(q1, axis=-1) * np.linalg.norm(q2, axis=-1))
-    return 2.0 * np.arccos(np.clip(dot, -1.0, 1.0))
 
 
-def quat_conj(q: FloatArray) -> FloatArray:
-    return q * np.array([1.0, -1.0, -1.0, -1.0])
 
 
-def rotate(q: FloatArray, v: FloatArray) -> FloatArray:
-    """Rotate vectors v (..., 3) by wxyz quaternions q (..., 4)."""
-    qv = np.concatenate([np.zeros((*v.shape[:-1], 1)), v], axis=-1)
-    return quat_mul(quat_mul(q, qv), quat_conj(q))[..., 1:]
 
 
 def finite_difference_velocity(pos: FloatArray, quat: FloatArray, fps: float) -> FloatArray:
@@ -109,7 +98,7 @@ def finite_difference_velocity(pos: FloatArray, quat: FloatArray, fps: float) ->
 
 
 @dataclass
-class HandTargets:
+class HandKeypointTargets:
     """One hand's reference for the losses."""
 
     keypoints: FloatArray  # (T, J, 3) world
@@ -148,7 +137,7 @@ def contact_targets(
 ) -> tuple[BoolArray, FloatArray]:
     """Fingertips within ``threshold`` of the object surface in the reference, and their object-local points."""
     tips = keypoints[:, list(fingertips)]  # (T, n, 3)
-    local = rotate(quat_conj(obj_quat)[:, None], tips - obj_pos[:, None])
+    local = quat_rotate(quat_conj(obj_quat)[:, None], tips - obj_pos[:, None])
     dist = surface_distance(local.reshape(-1, 3)).reshape(local.shape[:2])
     mask = (dist <= threshold) & valid[:, None]
     return mask, local
@@ -182,7 +171,7 @@ class WindowRecord:
 
 def object_terms(rec: WindowRecord, ref: ObjectTargets) -> dict[str, FloatArray]:
     f = rec.frames
-    geo = quat_geodesic(rec.obj_quat, ref.quat[f][None])
+    geo = rotation_angle(rec.obj_quat, ref.quat[f][None])
     dpos = np.linalg.norm(rec.obj_pos - ref.pos[f][None], axis=-1)
     pose = POSE_ETA * geo / ROT_SCALE + (1 - POSE_ETA) * dpos / POS_SCALE
     dv = rec.obj_vel - ref.vel[f][None]
@@ -197,7 +186,7 @@ def object_terms(rec: WindowRecord, ref: ObjectTargets) -> dict[str, FloatArray]
     }
 
 
-def hand_terms(rec: WindowRecord, side: str, ref: HandTargets) -> dict[str, FloatArray]:
+def hand_terms(rec: WindowRecord, side: str, ref: HandKeypointTargets) -> dict[str, FloatArray]:
     f = rec.frames
     kp = rec.keypoints[side]
     valid = ref.valid[f].astype(np.float64)
@@ -206,7 +195,7 @@ def hand_terms(rec: WindowRecord, side: str, ref: HandTargets) -> dict[str, Floa
     mask = ref.contact_mask[f]  # (F, n)
     if mask.any():
         tips = kp[:, :, list(ref.fingertips)]
-        local = rotate(quat_conj(rec.obj_quat)[:, :, None], tips - rec.obj_pos[:, :, None])
+        local = quat_rotate(quat_conj(rec.obj_quat)[:, :, None], tips - rec.obj_pos[:, :, None])
         d = np.linalg.norm(local - ref.contact_local[f][None], axis=-1) / POS_SCALE  # (C, F, n)
         per_frame = (d * mask).sum(axis=2) / np.maximum(mask.sum(axis=1), 1)
         contact = per_frame.sum(axis=1)
@@ -226,7 +215,7 @@ def hand_terms(rec: WindowRecord, side: str, ref: HandTargets) -> dict[str, Floa
 def window_losses(
     rec: WindowRecord,
     obj: ObjectTargets,
-    hands: dict[str, HandTargets],
+    hands: dict[str, HandKeypointTargets],
     weights: dict[str, float],
 ) -> tuple[dict[str, FloatArray], dict[str, FloatArray]]:
     """Per-hand objectives (C,) (shared object terms + that hand's terms) and the weighted terms (C,).

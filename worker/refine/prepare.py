@@ -6,23 +6,33 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
-from typing import Any
+from pathlib import Path
 
 import numpy as np
 
+from common.errors import ConfigurationError
+from common.geometry import FloatArray
 from common.job_options import JobOptions
 from common.sequence import FINGERTIP_INDICES, Sequence
+from worker.hand.mano.pose import mano_pca_basis
+from worker.hand.model import JOINT_LIMITS, MIRROR_SIGNS
+from worker.hand.pose_basis import load_pose_basis
+from worker.hand.reference import HandReference
+from worker.hand.retarget import retarget_sequence
 from worker.refine.controls import HandControlSpace, PoseBasis10
 from worker.refine.evaluator import ParallelEvaluator, SimState
 from worker.refine.losses import (
-    HandTargets,
+    HandKeypointTargets,
     ObjectTargets,
     SurfaceDistance,
     contact_targets,
     finite_difference_velocity,
 )
 from worker.refine.problem import SimLayout
-from worker.refine.spline import FloatArray, default_keyframe_interval
+from worker.refine.spline import default_keyframe_interval
+from worker.simulation.config import SimConfig
+from worker.simulation.scene import Scene, build_scene
+from worker.simulation.stepping import HandTargets, initial_state, lead_track, lead_values
 
 #: Defaults chosen for the speed budget (2 shared cores, <= 60 s for 72 frames at 30 fps); see bench/refine.py.
 #: 10 generations rather than 6: on dev40 E_t 0.58 -> 0.50 cm and E_r 2.78 -> 2.63 deg for a median of 30 s
@@ -48,14 +58,16 @@ class Prepared:
     seq: Sequence
     options: JobOptions
     interval: int
-    references: list[Any]  # worker.retarget.HandReference
-    scene: Any  # worker.scene.Scene
+    references: list[HandReference]
+    scene: Scene
     layout: SimLayout
     spaces: dict[str, HandControlSpace]
     obj_targets: ObjectTargets
-    hand_targets: dict[str, HandTargets]
+    hand_targets: dict[str, HandKeypointTargets]
     basis_provenance: str
     rotation_pivot: str  # what the wrist rotation offset turns the hand about (one of PIVOTS)
+    #: The MANO model folder the references were made with (None: no MANO hand), for the result's MANO arrays.
+    mano_dir: Path | None = None
     mirror_left: bool = True  # a left hand's control coordinates mirror a right hand's (``prepare``)
 
     @property
@@ -67,34 +79,29 @@ class Prepared:
         return np.concatenate([self.obj_targets.pos, self.obj_targets.quat], axis=1)
 
 
-def mano_pose_basis(seq: Sequence, reference: Any, like: PoseBasis10) -> PoseBasis10:
+def mano_pose_basis(seq: Sequence, reference: HandReference, like: PoseBasis10, mano_dir: Path | None) -> PoseBasis10:
     """MANO's own hand PCA (DESIGN §1.3: "MANO's own PCA when MANO is used"), as hinge changes per unit
     coefficient. Each component is scaled so one unit moves the hinges by as much (RMS) as one unit of the
     built-in basis's component of the same rank, which keeps CMA-ES's step size and bounds meaningful."""
-    from worker.mano.pose import mano_pca_basis
-
     hand = seq.hand(reference.side)
     assert hand is not None and hand.mano is not None
-    mano = mano_pca_basis(None, reference.side, betas=hand.mano.betas, n_components=10)
+    mano = mano_pca_basis(mano_dir, reference.side, betas=hand.mano.betas, n_components=10)
     comps = np.asarray(mano.components[:10], dtype=np.float64)
     norms = np.maximum(np.linalg.norm(comps, axis=1), 1e-9)
     builtin_norms = np.linalg.norm(like.components, axis=1) * like.stddev
     return PoseBasis10(comps / norms[:, None], builtin_norms)
 
 
-def pose_basis(references: list[Any], seq: Sequence | None = None, mirror_left: bool = True
-               ) -> tuple[dict[str, PoseBasis10], str]:
-    """The packaged pose basis (``worker.pose_basis``, one PCA over the built-in hand's hinges in the right
-    hand's convention); a left hand gets its mirror image (``hand_model.MIRROR_SIGNS``: abductions and twists
-    negated), since the left hand that mirrors a right hand at ``q`` is at ``MIRROR_SIGNS * q``. Without the
-    packaged file, a PCA of this sequence's own reference hinge angles (a documented fallback named in the
-    provenance). ``mirror_left=False``: the packaged basis unmirrored for both sides (results made before
-    issue #15; the packaged basis came from right hands only, so left hands were steered along couplings of
-    abduction and flexion that are the wrong way round for them)."""
-    from common.errors import ConfigurationError
-    from worker.hand_model import MIRROR_SIGNS
-    from worker.pose_basis import load_pose_basis
-
+def pose_basis(
+    references: list[HandReference], seq: Sequence | None = None, mano_dir: Path | None = None,
+    mirror_left: bool = True,
+) -> tuple[dict[str, PoseBasis10], str]:
+    """The packaged pose basis (``worker.hand.pose_basis``, one PCA over the built-in hand's hinges in the right
+    hand's convention); a left hand gets its mirror image (``MIRROR_SIGNS``: abductions and twists negated),
+    since the left hand that mirrors a right hand at ``q`` is at ``MIRROR_SIGNS * q``. Without the packaged file,
+    a PCA of this sequence's own reference hinge angles (a documented fallback named in the provenance).
+    ``mirror_left=False``: the packaged basis unmirrored for both sides (results made before issue #15; the
+    packaged basis came from right hands only)."""
     try:
         packaged = load_pose_basis()
     except ConfigurationError:
@@ -104,18 +111,20 @@ def pose_basis(references: list[Any], seq: Sequence | None = None, mirror_left: 
                             np.asarray(packaged.stddev[:10], dtype=np.float64))
         source = json.dumps(packaged.provenance, sort_keys=True)[:300]
         left = PoseBasis10(basis.components * MIRROR_SIGNS, basis.stddev) if mirror_left else basis
-        bases = {r.side: left if r.side == "left" else basis for r in references}
-        mano_sides = [r.side for r in references if getattr(r, "from_mano", False) and seq is not None]
+        bases: dict[str, PoseBasis10] = {r.side: left if r.side == "left" else basis for r in references}
+        mano_sides = [r.side for r in references if r.from_mano and seq is not None]
         for r in references:
             if r.side in mano_sides:
                 assert seq is not None
-                bases[r.side] = mano_pose_basis(seq, r, basis)
+                bases[r.side] = mano_pose_basis(seq, r, basis, mano_dir)
         if mano_sides:
             source += f"; MANO PCA basis for {', '.join(mano_sides)}"
-        if mirror_left and any(r.side == "left" for r in references):
+        if mirror_left and any(r.side == "left" and r.side not in mano_sides for r in references):
             source += "; mirrored for the left hand"
+        # A provenance label stored in every result: it keeps the name the basis had when results began to
+        # record it (the module now lives in worker.hand), so a result's bytes do not depend on where code sits.
         return bases, f"worker.pose_basis (packaged): {source}"
-    out = {}
+    out: dict[str, PoseBasis10] = {}
     for r in references:
         q = r.q[r.valid] if r.valid.sum() >= 2 else r.q
         _, sing, vt = np.linalg.svd(q - q.mean(axis=0), full_matrices=False)
@@ -128,38 +137,42 @@ def pose_basis(references: list[Any], seq: Sequence | None = None, mirror_left: 
     return out, "fallback: PCA of this sequence's reference hinge angles (packaged pose basis missing)"
 
 
-def prepare(seq: Sequence, options: JobOptions, config: Any = None, rotation_pivot: str | None = None,
-            mirror_left: bool | None = None) -> Prepared:
+def prepare(
+    seq: Sequence,
+    options: JobOptions,
+    config: SimConfig | None = None,
+    rotation_pivot: str | None = None,
+    *,
+    cache_dir: Path | None = None,
+    mano_dir: Path | None = None,
+    mirror_left: bool | None = None,
+) -> Prepared:
     """``rotation_pivot``: ``ROTATION_PIVOT`` when None (``verify`` passes the one a result was made with).
-    ``mirror_left``: a left hand's control coordinates are the mirror image of a right hand's (pose basis,
-    wrist rotation and translation; ``controls``); ``MIRROR_LEFT_HAND`` when None; False reproduces results
-    made before issue #15, which recorded no ``config.left_hand_controls``."""
+    ``cache_dir``: where convex parts are cached (None: memory only); ``mano_dir``: the MANO model folder
+    (None: hands given by keypoints only, see ``retarget_sequence``). ``mirror_left``: a left hand's control
+    coordinates are the mirror image of a right hand's (pose basis, wrist rotation and translation;
+    ``controls``); ``MIRROR_LEFT_HAND`` when None; False reproduces results made before issue #15, which
+    recorded no ``config.left_hand_controls``."""
     if mirror_left is None:
         mirror_left = MIRROR_LEFT_HAND
-    from worker.retarget import retarget_sequence
-    from worker.scene import SimConfig, build_scene
-    from worker.simulation import lead_track, lead_values
-
     config = config or SimConfig()
-    references = retarget_sequence(seq)
-    scene = build_scene(seq, references, config)
+    references = retarget_sequence(seq, mano_dir=mano_dir)
+    scene = build_scene(seq, references, config, cache_dir=cache_dir)
     layout = SimLayout.from_scene(scene)
     interval = options.keyframe_interval or default_keyframe_interval(seq.fps)
-    bases, provenance = pose_basis(references, seq, mirror_left)
-    from worker.hand_model import JOINT_LIMITS
-
+    bases, provenance = pose_basis(references, seq, mano_dir, mirror_left)
     pivot_kind = rotation_pivot or ROTATION_PIVOT
     if pivot_kind not in PIVOTS:
         raise ValueError(f"rotation_pivot must be one of {', '.join(PIVOTS)}, got {pivot_kind!r}")
     pose = seq.object_pose_world()
     obj = ObjectTargets(pose[:, :3], pose[:, 3:], finite_difference_velocity(pose[:, :3], pose[:, 3:], seq.fps))
     surface = SurfaceDistance(_surface_samples(seq))
-    hands: dict[str, HandTargets] = {}
+    hands: dict[str, HandKeypointTargets] = {}
     for r in references:
         mask, local = contact_targets(r.keypoints, r.valid, pose[:, :3], pose[:, 3:], surface, FINGERTIP_INDICES)
-        hands[r.side] = HandTargets(r.keypoints, r.valid, FINGERTIP_INDICES, mask, local)
+        hands[r.side] = HandKeypointTargets(r.keypoints, r.valid, FINGERTIP_INDICES, mask, local)
     # The mocap and the servo targets run ahead of their tracks by the weld's and the servos' lags
-    # (``SimConfig.wrist_lead_s`` / ``finger_lead_s``), as in the raw replay (``worker.simulation.substep_controls``);
+    # (``SimConfig.wrist_lead_s`` / ``finger_lead_s``), as in the raw replay (``stepping.substep_controls``);
     # the pivot moves with the wrist so the hand turns about its centre.
     lead, finger_lead = config.lead_frames(scene.substeps_per_frame)
     spaces: dict[str, HandControlSpace] = {}
@@ -180,7 +193,7 @@ def prepare(seq: Sequence, options: JobOptions, config: Any = None, rotation_piv
             mirrored=mirror_left and r.side == "left",
         )
     return Prepared(seq, options, interval, references, scene, layout, spaces, obj, hands, provenance, pivot_kind,
-                    mirror_left)
+                    mano_dir, mirror_left)
 
 
 def pivot_track(kind: str, keypoints: FloatArray, joint_weights: FloatArray) -> FloatArray | None:
@@ -201,12 +214,9 @@ def _surface_samples(seq: Sequence) -> FloatArray:
     return np.concatenate([verts, mids, tri.mean(axis=1)])
 
 
-def initial_state(prep: Prepared, evaluator: ParallelEvaluator) -> tuple[SimState, int]:
-    """The settled frame-0 state (``worker.simulation.initial_state``) with its solver warmstart."""
-    from worker.simulation import HandTargets as SimTargets
-    from worker.simulation import initial_state as sim_initial_state
-
+def settled_start(prep: Prepared, evaluator: ParallelEvaluator) -> tuple[SimState, int]:
+    """The settled frame-0 state (``worker.simulation.stepping.initial_state``) with its solver warmstart."""
     data = evaluator.step_data
-    targets = {r.side: SimTargets.from_reference(r) for r in prep.references}
-    physics, steps = sim_initial_state(prep.scene, data, targets)
+    targets = {r.side: HandTargets.from_reference(r) for r in prep.references}
+    physics, steps = initial_state(prep.scene, data, targets)
     return SimState(physics.copy(), data.qacc_warmstart.copy()), steps

@@ -1,7 +1,7 @@
 """The simulation-backed window problem: controls -> rollouts -> recorded frames -> losses.
 
 ``SimLayout`` names what the refinement drives and reads in a compiled model (found by the MJCF naming
-conventions of ``worker.hand_mjcf``: actuators ``{side}_{hinge}``, mocap body ``{side}_mocap``, keypoint
+conventions of ``worker.simulation.hand_mjcf``: actuators ``{side}_{hinge}``, mocap body ``{side}_mocap``, keypoint
 ``framepos`` sensors ``{side}_kp{j}``), so tests can use tiny inline MJCF models with the same names.
 ``SimWindowProblem`` implements ``windowed.WindowProblem`` on a ``ParallelEvaluator``.
 """
@@ -13,18 +13,18 @@ from typing import Any
 
 import mujoco
 import numpy as np
-import numpy.typing as npt
 
-from worker.refine.controls import HandControlSpace, quat_mul
+from common.geometry import FloatArray, IntArray, quat_conj, quat_mul, quat_rotate
+from worker.refine.controls import HandControlSpace
 from worker.refine.evaluator import ParallelEvaluator, SimState
-from worker.refine.losses import HandTargets, ObjectTargets, WindowRecord, quat_conj, rotate, window_losses
-from worker.refine.spline import FloatArray, keyframe_window
-
-IntArray = npt.NDArray[np.int64]
+from worker.refine.losses import HandKeypointTargets, ObjectTargets, WindowRecord, window_losses
+from worker.refine.spline import keyframe_window
 
 
 @dataclass
-class HandHandles:
+class HandLayout:
+    """Where one hand sits in the rollout arrays: actuators, hinge DoFs, mocap, keypoint sensors, bodies."""
+
     side: str
     actuator_ids: IntArray  # (H,) in hinge order
     hinge_dof_adrs: IntArray  # (H,)
@@ -42,7 +42,7 @@ class SimLayout:
     substeps: int
     object_body_id: int
     object_sensor_adr: int
-    hands: dict[str, HandHandles]
+    hands: dict[str, HandLayout]
 
     def object_from_sensors(self, sens: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Object body-frame position (..., 3), quaternion (..., 4) and world velocity (..., 6) from sensordata.
@@ -60,16 +60,16 @@ class SimLayout:
             b = self.object_body_id
             ipos, iquat = m.body_ipos[b], m.body_iquat[b]
             quat = quat_mul(quat, quat_conj(np.broadcast_to(iquat, quat.shape)))  # R_body = R_inertial R_i^T
-            offset = rotate(quat, np.broadcast_to(ipos, pos.shape))  # COM - body origin, world
+            offset = quat_rotate(quat, np.broadcast_to(ipos, pos.shape))  # COM - body origin, world
             pos = pos - offset
             lin = lin - np.cross(ang, offset)  # v_origin = v_com + w x (origin - com)
         return pos, quat, np.concatenate([lin, ang], axis=-1)
 
     @staticmethod
     def from_scene(scene: Any) -> SimLayout:
-        """From a ``worker.scene.Scene``."""
+        """From a ``worker.simulation.scene.Scene``."""
         hands = {
-            side: HandHandles(
+            side: HandLayout(
                 side=side,
                 actuator_ids=np.asarray(h.actuator_ids),
                 hinge_dof_adrs=np.asarray(h.dof_adr),
@@ -102,7 +102,7 @@ class SimLayout:
             root = int(model.jnt_bodyid[joints[0]])
             while model.body_parentid[root] != 0:
                 root = int(model.body_parentid[root])
-            hands[side] = HandHandles(
+            hands[side] = HandLayout(
                 side=side,
                 actuator_ids=np.array([obj_id(mujoco.mjtObj.mjOBJ_ACTUATOR, f"{side}_{h}") for h in hinge_names]),
                 hinge_dof_adrs=np.array([int(model.jnt_dofadr[j]) for j in joints]),
@@ -131,7 +131,7 @@ class SimWindowProblem:
         layout: SimLayout,
         spaces: dict[str, HandControlSpace],
         obj: ObjectTargets,
-        hands: dict[str, HandTargets],
+        hands: dict[str, HandKeypointTargets],
         weights: dict[str, float],
         evaluator: ParallelEvaluator,
         initial: SimState,
@@ -217,7 +217,7 @@ class SimWindowProblem:
         """
         s0, s1 = f0 * self.substeps, f1 * self.substeps + (1 if extra_step else 0)
         n = s1 - s0
-        # Substep k drives towards the sample at its end, (k + 1) / S (as ``worker.simulation`` does), and
+        # Substep k drives towards the sample at its end, (k + 1) / S (as ``worker.simulation.stepping`` does), and
         # substeps past the last frame hold it.
         idx = np.minimum(np.arange(s0, s1) + 1, self.spaces[self.sides[0]].last_sample)
         m = self.layout.model

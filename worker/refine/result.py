@@ -1,96 +1,52 @@
-"""The refinement result file (issue #3 item 5) and ``verify`` (item 6).
+"""The refinement result file (issue #3 item 5); ``verify`` lives in ``worker.refine.verify``.
 
-Arrays (``common.result_format`` keys plus): ``object_pose_ref`` (F,7); per side ``S_keyframes`` (N, 13|16)
-the optimised offsets, ``S_q_target``/``S_wrist_pos``/``S_wrist_quat`` the per-frame controls they give,
+Arrays (``common.result_format`` keys plus; all but the loss history made by ``worker.refine.derive``):
+``object_pose_ref`` (F,7); per side ``S_keyframes`` (N, 13|16) the optimised offsets,
+``S_attempt_keyframes`` (A, N, 13|16) every attempt's when there were restarts,
+``S_q_target``/``S_wrist_pos``/``S_wrist_quat`` the per-frame controls they give,
 ``S_keypoints_sim``/``S_keypoints_ref``/``S_valid``; ``raw_object_pose_sim`` (F,7) the raw replay;
-``metrics_{raw,refined}_*`` per-frame errors; ``window_loss_history`` (W, G) best loss per generation (NaN
-padded); ``sequence_npz`` (uint8) the input sequence in the native NPZ format, so ``verify`` needs nothing
-else. Summary JSON: kind, sequence, fps, frames, metrics.raw / metrics.refined, options, config (simulation
+``object_table_contact`` (F,) bool, the refined object touching the table;
+``metrics_{raw,refined}_*`` per-frame errors, penetration (mm) and hand-only hold (``worker.simulation.metrics``);
+``window_loss_history`` (W, G) best loss per generation (NaN padded); ``sequence_npz`` (uint8) the input
+sequence in the native NPZ format, so ``verify`` needs nothing else. Summary JSON: kind, sequence, fps, frames,
+metrics.raw / metrics.refined (both protocols, plausibility, first-attempt success), options, config (simulation
 settings, keyframe interval, CMA-ES settings, loss weights), seed, versions, table (the plane under the frame-0
-object: point, normal, tilt_deg), attempts (seed, success, E_t, E_r, evaluations of each CMA-ES run; the
-result is the best), windows (count, skipped, escalated, per window loss), timings (the
+object: point, normal, tilt_deg), attempts (seed, success, E_t, E_r on both protocols, evaluations of each
+CMA-ES run; the result is the best), windows (count, skipped, escalated, per window loss), timings (the
 deterministic counters; the wall-clock figures are stored in the ``timings_json`` member, see
-``common.result_format``, and ``read_summary`` merges them back).
+``common.result_format``, and ``read_summary`` merges them back). ``prepare_from_result`` and
+``compare_object_trajectory`` serve the visual tools' replays.
 """
 
 from __future__ import annotations
 
 from dataclasses import asdict
-from typing import TYPE_CHECKING, Any
+from pathlib import Path
+from typing import Any
 
+import cma
 import numpy as np
 
 from common.errors import ResultMismatchError, UnsupportedFormatError
+from common.geometry import FloatArray
 from common.job_options import JobOptions
 from common.result_format import read_arrays, read_summary
 from common.sequence import Sequence
-from common.sequence_io import sequence_from_npz_bytes, sequence_to_npz_bytes
-from worker.refine.spline import FloatArray
+from common.sequence_io import sequence_from_npz_bytes
+from worker.refine.prepare import Prepared, prepare
 from worker.refine.windowed import CmaSettings, WindowLog
-
-if TYPE_CHECKING:
-    from worker.refine.prepare import Prepared
-    from worker.refine.run import ReplayRecord
+from worker.simulation.config import SimConfig
+from worker.simulation.replay import versions as replay_versions
 
 RESULT_KIND = "refine"
-#: verify tolerance on object positions (m): a re-simulation on the same build reproduces bit for bit; the
-#: margin only absorbs libm differences between machines.
+#: The visual tools' tolerance on a re-simulated object trajectory (m): on the same build it reproduces bit for
+#: bit (``verify`` has its own, cross-host tolerances: ``worker.refine.verify_report``).
 VERIFY_TOLERANCE_M = 1e-6
 
 
 def versions() -> dict[str, str]:
     """The raw replay's package versions plus the optimiser's."""
-    import cma
-
-    from worker.replay import versions as replay_versions
-
     return {**replay_versions(), "cma": str(cma.__version__).split()[0]}
-
-
-def build_arrays(
-    prep: Prepared,
-    keyframes: dict[str, FloatArray],
-    final: ReplayRecord,
-    raw: ReplayRecord,
-    m_raw: dict[str, Any],
-    m_ref: dict[str, Any],
-    logs: list[WindowLog] | None = None,
-) -> dict[str, np.ndarray]:
-    arrays: dict[str, np.ndarray] = {
-        "object_pose_sim": final.object_pose,
-        "object_vel_sim": final.object_vel,
-        "object_pose_ref": prep.obj_targets_pose(),
-        "raw_object_pose_sim": raw.object_pose,
-        "sequence_npz": np.frombuffer(sequence_to_npz_bytes(prep.seq), dtype=np.uint8),
-    }
-    for ref in prep.references:
-        s = ref.side
-        q, p, r = prep.spaces[s].frame_controls(keyframes[s])
-        arrays[f"{s}_keyframes"] = keyframes[s]
-        arrays[f"{s}_q_target"] = q
-        arrays[f"{s}_wrist_pos"] = p
-        arrays[f"{s}_wrist_quat"] = r
-        arrays[f"{s}_keypoints_sim"] = final.keypoints[s]
-        arrays[f"{s}_keypoints_ref"] = ref.keypoints
-        arrays[f"{s}_valid"] = ref.valid
-        if getattr(ref, "from_mano", False):
-            # The refined hand as MANO parameters (issue #6): exact because the scene used the MANO geometry.
-            from worker.mano.pose import mano_result_arrays
-
-            hand = prep.seq.hand(s)
-            assert hand is not None
-            arrays.update(mano_result_arrays(prep.seq, hand, p, r, q))
-    for name, m in (("raw", m_raw), ("refined", m_ref)):
-        for key, val in m["per_frame"].items():
-            arrays[f"metrics_{name}_{key}"] = val
-    if logs is not None:
-        width = max([len(w.history) for w in logs] + [1])
-        hist = np.full((len(logs), width), np.nan)
-        for i, w in enumerate(logs):
-            hist[i, : len(w.history)] = w.history
-        arrays["window_loss_history"] = hist
-    arrays.update(final.contacts)
-    return arrays
 
 
 def build_summary(
@@ -146,15 +102,23 @@ def build_summary(
     }
 
 
-def verify_result(blob: bytes, sequence: Sequence | None = None) -> dict[str, Any]:
-    """Re-simulate a result's stored keyframes from frame 0 and compare the object trajectory.
+def sim_config_from_summary(stored: dict[str, Any]) -> SimConfig:
+    """The ``SimConfig`` a result was simulated with, from its summary's JSON form."""
+    sim: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in stored.items()}
+    # Results made before the pivot was recorded turned the hand about the wrist; before the wrist lead was
+    # recorded, the mocap followed the wrist track itself; before the rest pose, the object started from frame 0.
+    sim.setdefault("wrist_lead_s", 0.0)
+    sim.setdefault("rest_approach_m", 0.0)
+    sim.setdefault("finger_lead_s", 0.0)
+    return SimConfig(**sim)
 
-    Raises ``ResultMismatchError`` when the object trajectory (or the stored per-frame controls) differ.
-    """
-    from worker.refine.evaluator import ParallelEvaluator
-    from worker.refine.prepare import initial_state, prepare
-    from worker.refine.run import replay
 
+def prepare_from_result(
+    blob: bytes, sequence: Sequence | None = None, *, cache_dir: Path | None = None, mano_dir: Path | None = None
+) -> tuple[Prepared, dict[str, FloatArray]]:
+    """Rebuild a refinement result's problem (same sequence, options and simulation settings as the run) and its
+    stored keyframes per hand side, checked against the stored per-frame controls (``cache_dir`` and
+    ``mano_dir`` as for ``prepare``). Shared by ``verify_result`` and the visual tools (``worker.visual``)."""
     summary = read_summary(blob)
     if summary.get("kind") != RESULT_KIND:
         raise UnsupportedFormatError(f"not a refinement result (kind {summary.get('kind')!r})")
@@ -164,16 +128,10 @@ def verify_result(blob: bytes, sequence: Sequence | None = None) -> dict[str, An
             raise UnsupportedFormatError("the result embeds no sequence; pass --sequence")
         sequence = sequence_from_npz_bytes(arrays["sequence_npz"].tobytes())
     options = JobOptions.model_validate(summary["options"])
-    from worker.scene import SimConfig
-
-    sim: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in summary["config"]["sim"].items()}
-    # Results made before the pivot was recorded turned the hand about the wrist; before the wrist lead was
-    # recorded, the mocap followed the wrist track itself; before the rest pose, the object started from frame 0.
-    sim.setdefault("wrist_lead_s", 0.0)
-    sim.setdefault("rest_approach_m", 0.0)
-    sim.setdefault("finger_lead_s", 0.0)
-    prep = prepare(sequence, options, SimConfig(**sim), rotation_pivot=summary["config"].get("rotation_pivot", "wrist"),
-                   mirror_left=summary["config"].get("left_hand_controls") == "mirrored")
+    prep = prepare(sequence, options, sim_config_from_summary(summary["config"]["sim"]),
+                   rotation_pivot=summary["config"].get("rotation_pivot", "wrist"), cache_dir=cache_dir,
+                   mano_dir=mano_dir, mirror_left=summary["config"].get("left_hand_controls") == "mirrored",
+                   )  # fmt: skip
     keyframes = {}
     for side, space in prep.spaces.items():
         key = f"{side}_keyframes"
@@ -183,18 +141,31 @@ def verify_result(blob: bytes, sequence: Sequence | None = None) -> dict[str, An
         q, _, _ = space.frame_controls(arrays[key])
         if not np.allclose(q, arrays[f"{side}_q_target"], atol=1e-9):
             raise ResultMismatchError(f"{side}_q_target does not match the stored keyframes")
-    with ParallelEvaluator(prep.scene.model, 1) as ev:
-        start, _ = initial_state(prep, ev)
-        rec = replay(prep, ev, start, keyframes, record_contacts=False)
-    stored = arrays["object_pose_sim"]
-    if stored.shape != rec.object_pose.shape:
-        raise ResultMismatchError(f"object_pose_sim has shape {stored.shape}, re-simulation {rec.object_pose.shape}")
-    diff = np.linalg.norm(stored[:, :3] - rec.object_pose[:, :3], axis=1)
-    qdiff = np.abs(np.abs(np.sum(stored[:, 3:] * rec.object_pose[:, 3:], axis=1)) - 1.0)
+    return prep, keyframes
+
+
+def compare_object_trajectory(stored: FloatArray, simulated: FloatArray) -> float:
+    """The largest position difference (m) between two (F, 7) object trajectories; ``ResultMismatchError``
+    when they differ beyond ``VERIFY_TOLERANCE_M`` (or in rotation beyond rounding)."""
+    if stored.shape != simulated.shape:
+        raise ResultMismatchError(f"object_pose_sim has shape {stored.shape}, re-simulation {simulated.shape}")
+    diff = np.linalg.norm(stored[:, :3] - simulated[:, :3], axis=1)
+    qdiff = np.abs(np.abs(np.sum(stored[:, 3:] * simulated[:, 3:], axis=1)) - 1.0)
     worst = int(np.argmax(diff))
     if diff[worst] > VERIFY_TOLERANCE_M or qdiff.max() > 1e-9:
         raise ResultMismatchError(
             f"object trajectory differs from the re-simulation: {diff[worst] * 1000:.3f} mm at frame {worst} "
             f"({int((diff > VERIFY_TOLERANCE_M).sum())} of {len(diff)} frames beyond {VERIFY_TOLERANCE_M} m)"
         )
-    return {"frames": len(diff), "max_pos_diff_m": float(diff.max())}
+    return float(diff.max())
+
+
+def verify_result(
+    blob: bytes, sequence: Sequence | None = None, *, allow_config: bool = False, cache_dir: Path | None = None,
+    mano_dir: Path | None = None,
+) -> dict[str, Any]:
+    """``worker.refine.verify.verify_result``: recompute everything the result claims (kept here for callers of
+    the earlier API)."""
+    from worker.refine.verify import verify_result as verify
+
+    return verify(blob, sequence, allow_config=allow_config, cache_dir=cache_dir, mano_dir=mano_dir)

@@ -14,9 +14,8 @@ Interpolation is linear in the keyframe values, so it is a fixed weight matrix: 
 from __future__ import annotations
 
 import numpy as np
-import numpy.typing as npt
 
-FloatArray = npt.NDArray[np.float64]
+from common.geometry import FloatArray
 
 
 def default_keyframe_interval(fps: float) -> int:

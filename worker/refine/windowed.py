@@ -31,7 +31,7 @@ import cma
 import numpy as np
 
 from common.errors import JobCancelledError
-from worker.refine.spline import FloatArray
+from common.geometry import FloatArray
 
 
 class WindowProblem(Protocol):

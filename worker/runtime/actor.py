@@ -19,6 +19,8 @@ import sys
 import threading
 from typing import Any
 
+from worker.runtime.priority import lower_priority
+
 log = logging.getLogger(__name__)
 
 
@@ -46,11 +48,13 @@ class WorkerActor:
         from common.database import create_engine_for
         from common.queue import JobQueue
         from common.settings import get_settings
-        from worker.runtime.jobs import make_job_function
+        from worker.runtime.jobs import make_artifact_function, make_job_function
         from worker.runtime.loop import WorkerLoop
 
         get_settings.cache_clear()
         settings = get_settings()
+        self.nice = settings.worker_nice
+        lower_priority(self.nice)  # below the API on a shared machine (worker.runtime.priority)
         self.worker_id = worker_id
         self._run_lock = threading.Lock()
         self.engine = create_engine_for(settings.resolved_database_url())
@@ -62,6 +66,7 @@ class WorkerActor:
             worker_id=worker_id,
             lease_seconds=settings.lease_seconds,
             extra_progress={"threads": threads},
+            artifact_fn=make_artifact_function(job_kind),
         )
         log.info("actor %s ready (pid %d, %d thread(s), job kind %s)", worker_id, os.getpid(), threads, job_kind)
 
@@ -69,6 +74,8 @@ class WorkerActor:
         # One loop per actor, even if Ray delivers a run call that the driver saw fail during a restart
         # (ActorUnavailableError means "may or may not have run"): a second call waits for the first.
         with self._run_lock:
+            # Ray may run this call on a thread that existed before __init__ lowered the others.
+            lower_priority(self.nice)
             return self.loop.run()
 
     def stop(self) -> None:

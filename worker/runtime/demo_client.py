@@ -1,7 +1,8 @@
 """``make demo`` over HTTP: start ``hoi-refine up`` (unless given a running API), submit the built-in example,
 poll with a progress bar, print raw vs refined metrics, save the result and its contacts (issue #5.3).
 
-Everything goes through the public REST API (``/v1/jobs``), as a user's client would.
+Everything goes through the public REST API (``/v1/jobs``) with ``common.api_client.ApiClient``, as a
+user's client would.
 """
 
 from __future__ import annotations
@@ -13,17 +14,16 @@ import signal
 import subprocess
 import sys
 import threading
-import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
-import httpx
-
+from common.api_client import ApiClient
 from common.errors import ConfigurationError, HoiRefineError
 from common.job_options import JobOptions
+from common.job_state import JobState
 
 URL_LINE = re.compile(r"^hoi-refine API: (\S+)")
 KEY_LINE = re.compile(r"^development API key: (\S+)")
@@ -85,56 +85,9 @@ def local_deployment(
                 proc.kill()
                 proc.wait()
         pump.join(5)
+        if not pump.is_alive():  # it reached the end of the pipe: close our end (else a ResourceWarning)
+            proc.stdout.close()
         sink.close()
-
-
-class ApiClient:
-    """The few ``/v1/jobs`` calls the demo (and the acceptance test) needs."""
-
-    def __init__(self, base_url: str, api_key: str, timeout: float = 30.0) -> None:
-        self.http = httpx.Client(base_url=base_url, headers={"Authorization": f"Bearer {api_key}"}, timeout=timeout)
-
-    def close(self) -> None:
-        self.http.close()
-
-    def _ok(self, response: httpx.Response) -> httpx.Response:
-        if response.status_code >= 400:
-            raise HoiRefineError(f"{response.request.method} {response.request.url.path}: "
-                                 f"HTTP {response.status_code} {response.text[:500]}")  # fmt: skip
-        return response
-
-    def submit_npz(self, payload: bytes, options: JobOptions, name: str = "sequence.npz") -> dict[str, Any]:
-        files = {"sequence": (name, payload, "application/octet-stream")}
-        data = {"options": options.model_dump_json()}
-        out: dict[str, Any] = self._ok(self.http.post("/v1/jobs", files=files, data=data)).json()
-        return out
-
-    def job(self, job_id: str) -> dict[str, Any]:
-        out: dict[str, Any] = self._ok(self.http.get(f"/v1/jobs/{job_id}")).json()
-        return out
-
-    def cancel(self, job_id: str) -> dict[str, Any]:
-        out: dict[str, Any] = self._ok(self.http.post(f"/v1/jobs/{job_id}:cancel")).json()
-        return out
-
-    def result_npz(self, job_id: str) -> bytes:
-        return self._ok(self.http.get(f"/v1/jobs/{job_id}/result", params={"format": "npz"})).content
-
-    def contacts(self, job_id: str) -> dict[str, Any]:
-        out: dict[str, Any] = self._ok(self.http.get(f"/v1/jobs/{job_id}/contacts")).json()
-        return out
-
-    def wait(self, job_id: str, timeout_s: float, on_poll: Any = None, interval: float = 0.5) -> dict[str, Any]:
-        deadline = time.monotonic() + timeout_s
-        while True:
-            job = self.job(job_id)
-            if on_poll is not None:
-                on_poll(job)
-            if job["state"] in ("SUCCEEDED", "FAILED", "CANCELLED"):
-                return job
-            if time.monotonic() > deadline:
-                raise HoiRefineError(f"job {job_id} still {job['state']} after {timeout_s:.0f} s")
-            time.sleep(interval)
 
 
 def poll_with_progress_bar(client: ApiClient, job_id: str, timeout_s: float) -> dict[str, Any]:
@@ -182,26 +135,52 @@ def run_demo(
         raise ConfigurationError("an API key is needed with a base URL (HOI_REFINE_API_KEY)")
     from common.result_format import read_summary
     from common.sequence_io import sequence_to_npz_bytes
-    from worker.cli_refine import format_metrics_table
-    from worker.example import example_sequence, short_example_sequence
+    from worker.commands.refine import print_refine_metrics
+    from worker.example.sequences import example_sequence, short_example_sequence
 
     seq = short_example_sequence() if short else example_sequence()
     client = ApiClient(base_url, api_key)
     try:
-        job = client.submit_npz(sequence_to_npz_bytes(seq), options or JobOptions(), f"{seq.name}.npz")
+        job = client.submit(sequence_to_npz_bytes(seq), f"{seq.name}.npz", options or JobOptions())
         print(f"submitted {seq.name!r} ({seq.num_frames} frames) as job {job['id']} to {base_url}", flush=True)
         job = poll_with_progress_bar(client, job["id"], timeout_s)
-        if job["state"] != "SUCCEEDED":
+        if job["state"] != JobState.SUCCEEDED:
             errors = "; ".join(e["error"] for e in job.get("errors", [])) or "no error recorded"
             print(f"job {job['id']} ended {job['state']}: {errors}", file=sys.stderr)
             return 1
-        blob = client.result_npz(job["id"])
+        blob = client.result(job["id"])
         contacts = client.contacts(job["id"])
+        result_path, contacts_path = out / f"{seq.name}.result.npz", out / f"{seq.name}.contacts.json"
+        result_path.write_bytes(blob)
+        contacts_path.write_text(json.dumps(contacts, indent=1))
+        print_refine_metrics(read_summary(blob))
+        print(f"result: {result_path}\ncontacts ({contacts['count']}): {contacts_path}")
+        save_visuals(client, job["id"], blob, out, seq.name)
     finally:
         client.close()
-    result_path, contacts_path = out / f"{seq.name}.result.npz", out / f"{seq.name}.contacts.json"
-    result_path.write_bytes(blob)
-    contacts_path.write_text(json.dumps(contacts, indent=1))
-    print(format_metrics_table(read_summary(blob)))
-    print(f"result: {result_path}\ncontacts ({contacts['count']}): {contacts_path}")
     return 0
+
+
+def save_visuals(client: ApiClient, job_id: str, blob: bytes, out: Path, name: str) -> tuple[Path, list[Path]]:
+    """Save the preview video and plots the worker stored with the job (``GET /v1/jobs/{id}/video``, ``/plots``);
+    when the job has none (``preview_video`` off, or no OpenGL on the worker) make them here from the result."""
+    video, plot_dir = out / f"{name}.mp4", out / f"{name}_plots"
+    plot_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        video.write_bytes(client.file(job_id, "video"))
+        plots = []
+        for plot in client.plots(job_id):
+            path = plot_dir / plot["name"]
+            path.write_bytes(client.file(job_id, f"plots/{plot['name']}"))
+            plots.append(path)
+        source = "rendered by the worker"
+    except HoiRefineError as exc:
+        print(f"no stored preview ({exc}); rendering it here", file=sys.stderr)
+        from common.settings import get_settings
+        from worker.visual import render_video, resimulate, write_plots
+
+        render_video(resimulate(blob, cache_dir=get_settings().resolved_cache_dir()), str(video))
+        plots = write_plots(blob, plot_dir)
+        source = "rendered locally"
+    print(f"video ({source}): {video}\nplots: {', '.join(str(p) for p in plots)}")
+    return video, plots

@@ -15,13 +15,15 @@ import hashlib
 import io
 import os
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from common.errors import ConfigurationError, JobCancelledError
 from common.job_options import JobOptions
-from worker.runtime.loop import JobFunction, ProgressFn, StopFn
+from common.queue_types import Artifact
+from worker.runtime.loop import ArtifactFn, JobFunction, ProgressFn, StopFn
 
 #: Seconds per self-test "generation" (environment, so tests can set it for Ray actors too).
 SELFTEST_GENERATION_ENV = "HOI_REFINE_SELFTEST_GENERATION_SECONDS"
@@ -67,7 +69,9 @@ class RefineJob:
         import mujoco
 
         from common.sequence_io import sequence_from_npz_bytes
-        from worker.refine.run import ParallelEvaluator, refine_sequence
+        from common.settings import get_settings
+        from worker.refine.evaluator import ParallelEvaluator
+        from worker.refine.run import refine_sequence
 
         seq = sequence_from_npz_bytes(payload)
         if self._evaluator is None:
@@ -80,8 +84,34 @@ class RefineJob:
             progress=lambda p: progress(_progress_dict(p)),
             should_stop=should_stop,
             evaluator=self._evaluator,
+            cache_dir=get_settings().resolved_cache_dir(),
+            mano_dir=get_settings().mano_dir,
         )
-        return outcome.to_npz_bytes(), dict(outcome.summary)
+        blob = outcome.to_npz_bytes()
+        summary = dict(outcome.summary)
+        proof = verification(blob, cache_dir=get_settings().resolved_cache_dir(), mano_dir=get_settings().mano_dir)
+        summary["metrics"] = {**summary["metrics"], "verification": proof}
+        return blob, summary
+
+
+def verification(blob: bytes, cache_dir: Path | None = None, mano_dir: Path | None = None) -> dict[str, Any]:
+    """``verify`` on the finished result from a fresh replay, before it is stored (issue #15 item 2): the job's
+    metrics then say whether it reproduced, and carry the digests a downloaded copy can be checked against
+    (``hoi-refine verify`` prints both). A result that does not verify is still stored, flagged and explained.
+    """
+    from common.result_format import content_digest
+    from worker.refine.verify import check_result
+
+    report = check_result(blob, cache_dir=cache_dir, mano_dir=mano_dir)
+    return {
+        "verified": not report.failures,
+        "exact": report.exact,
+        "max_object_deviation_m": report.max_pos_diff_m,
+        "checked_fields": len(report.checked),
+        "checked_sha256": report.digest,
+        "content_sha256": content_digest(blob),
+        "failures": report.failures[:20],
+    }
 
 
 class SelfTestJob:
@@ -107,6 +137,23 @@ class SelfTestJob:
         np.savez(buf, values=values)
         summary = {"kind": "selftest", "generations": generations, "wall_s": time.monotonic() - t0}
         return buf.getvalue(), summary
+
+
+def refine_preview(result: bytes, options: JobOptions) -> list[Artifact]:
+    """The preview stored with a refinement's result (``worker.visual.preview``), unless ``preview_video`` is off."""
+    if not options.preview_video:
+        return []
+    from common.settings import get_settings
+    from worker.visual.preview import preview_artifacts
+
+    settings = get_settings()
+    made = preview_artifacts(result, cache_dir=settings.resolved_cache_dir(), mano_dir=settings.mano_dir)
+    return [Artifact(a.name, a.content_type, a.data, len(a.data)) for a in made]
+
+
+def make_artifact_function(kind: str) -> ArtifactFn | None:
+    """What a worker of ``kind`` stores beside a result: the refinement's preview; nothing for the self-test."""
+    return refine_preview if kind == "refine" else None
 
 
 def make_job_function(kind: str, threads: int) -> JobFunction:

@@ -21,6 +21,7 @@ from typing import Any, Protocol
 
 from common.errors import HoiRefineError, JobCancelledError, LeaseLostError
 from common.job_options import JobOptions
+from common.queue_types import ClaimedJob
 from worker.runtime.backoff import Backoff, WorkerStopping, call_with_backoff, is_unreachable
 from worker.runtime.heartbeat import Heartbeat
 
@@ -30,21 +31,14 @@ ProgressFn = Callable[[dict[str, Any]], None]
 StopFn = Callable[[], bool]
 
 
-class ClaimedJobLike(Protocol):
-    job_id: str
-    lease_token: str
-    attempt: int
-    payload: bytes
-    options: JobOptions
-    name: str
-
-
 class QueueLike(Protocol):
     """The subset of ``common.queue.JobQueue`` a worker uses."""
 
-    def claim(self, worker_id: str, lease_seconds: float | None = None) -> Any: ...
+    def claim(self, worker_id: str, lease_seconds: float | None = None) -> ClaimedJob | None: ...
     def heartbeat(self, job_id: str, lease_token: str, progress: dict[str, Any] | None = None) -> bool: ...
-    def complete(self, job_id: str, lease_token: str, result: bytes, summary: dict[str, Any]) -> Any: ...
+    def complete(
+        self, job_id: str, lease_token: str, result: bytes, summary: dict[str, Any], artifacts: Any = ()
+    ) -> Any: ...
     def fail(self, job_id: str, lease_token: str, error: str, retryable: bool = False) -> Any: ...
     def acknowledge_cancel(self, job_id: str, lease_token: str) -> Any: ...
     def release(self, job_id: str, lease_token: str) -> Any: ...
@@ -58,6 +52,11 @@ class JobFunction(Protocol):
     def __call__(
         self, payload: bytes, options: JobOptions, progress: ProgressFn, should_stop: StopFn
     ) -> tuple[bytes, dict[str, Any]]: ...
+
+
+#: Makes the files stored beside a successful job's result (``worker.runtime.jobs.refine_preview``): takes the
+#: result bytes and the job's options, returns ``common.queue_types.Artifact`` items (none when the options say so).
+ArtifactFn = Callable[[bytes, JobOptions], list[Any]]
 
 
 @dataclass
@@ -81,6 +80,7 @@ class WorkerLoop:
         backoff: Backoff | None = None,
         heartbeat_interval: float | None = None,
         extra_progress: dict[str, Any] | None = None,
+        artifact_fn: ArtifactFn | None = None,
     ) -> None:
         if not lease_seconds > 0:
             raise ValueError(f"lease_seconds must be > 0, got {lease_seconds}")
@@ -93,6 +93,7 @@ class WorkerLoop:
         self.idle_poll_seconds = idle_poll_seconds
         self.backoff = backoff or Backoff()
         self.extra_progress = dict(extra_progress or {})
+        self.artifact_fn = artifact_fn
         self.stop_event = threading.Event()
         self.jobs_done: dict[str, int] = {}
         self._lock = threading.Lock()
@@ -166,7 +167,7 @@ class WorkerLoop:
         self.jobs_done[outcome] = self.jobs_done.get(outcome, 0) + 1
         return outcome
 
-    def _run_claimed(self, job: ClaimedJobLike) -> str:
+    def _run_claimed(self, job: ClaimedJob) -> str:
         log.info("claimed job %s (attempt %d) %r", job.job_id, job.attempt, job.name)
         base = {**self.extra_progress, "worker_id": self.worker_id, "pid": os.getpid(), "attempt": job.attempt}
         hb = Heartbeat(
@@ -191,7 +192,7 @@ class WorkerLoop:
                 self._current = None
                 self._heartbeat = None
 
-    def _execute(self, job: ClaimedJobLike, hb: Heartbeat) -> str:
+    def _execute(self, job: ClaimedJob, hb: Heartbeat) -> str:
         t0 = time.monotonic()
         try:
             if hb.should_stop():
@@ -210,11 +211,33 @@ class WorkerLoop:
             error = _error_text(exc)
             return self._write(job, "failed", lambda: self.queue.fail(job.job_id, job.lease_token, error, retryable))
         log.info("job %s computed in %.1f s", job.job_id, time.monotonic() - t0)
+        artifacts = self._artifacts(job, result, summary, hb)
+        if artifacts:
+            return self._write(job, "succeeded", lambda: self.queue.complete(
+                job.job_id, job.lease_token, result, summary, artifacts=artifacts))  # fmt: skip
         return self._write(
             job, "succeeded", lambda: self.queue.complete(job.job_id, job.lease_token, result, summary)
         )
 
-    def _after_stop(self, job: ClaimedJobLike, hb: Heartbeat) -> str:
+    def _artifacts(self, job: ClaimedJob, result: bytes, summary: dict[str, Any], hb: Heartbeat) -> list[Any]:
+        """The preview files of a successful job, still under its lease (the heartbeat runs). A preview that
+        fails does not fail the job: the error goes into the summary's ``preview`` entry."""
+        if self.artifact_fn is None or not job.options.preview_video:
+            return []
+        hb.update({"stage": "preview"})  # shown while the video renders
+        t0 = time.monotonic()
+        try:
+            items = self.artifact_fn(result, job.options)
+        except Exception as exc:
+            log.exception("job %s: preview failed; the result is stored without it", job.job_id)
+            summary["preview"] = {"error": _error_text(exc)}
+            return []
+        if items:
+            summary["preview"] = {"files": [a.name for a in items], "seconds": round(time.monotonic() - t0, 3)}
+            log.info("job %s: preview (%d files) in %.1f s", job.job_id, len(items), time.monotonic() - t0)
+        return items
+
+    def _after_stop(self, job: ClaimedJob, hb: Heartbeat) -> str:
         if hb.lease_lost:
             log.warning("job %s stopped: lease lost, nothing written", job.job_id)
             return "lost"
@@ -224,7 +247,7 @@ class WorkerLoop:
         log.info("job %s released (worker stopping)", job.job_id)
         return self._write(job, "released", lambda: self.queue.release(job.job_id, job.lease_token))
 
-    def _write(self, job: ClaimedJobLike, outcome: str, fn: Callable[[], Any]) -> str:
+    def _write(self, job: ClaimedJob, outcome: str, fn: Callable[[], Any]) -> str:
         """A token-checked write; a lost lease means another attempt owns the job now."""
         next_delay = self.backoff.delays()
         while True:

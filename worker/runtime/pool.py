@@ -20,13 +20,15 @@ import uuid
 from dataclasses import dataclass, field
 from typing import Any
 
-from common.errors import DatabaseUnavailableError, LeaseLostError
+from common.errors import ConfigurationError, DatabaseUnavailableError, LeaseLostError
 from common.settings import get_settings
-from worker.runtime.backoff import Backoff, call_with_backoff, is_unreachable
+from worker.runtime.backoff import Backoff, WorkerStopping, call_with_backoff, is_unreachable
 
 log = logging.getLogger(__name__)
 
 ENV_PREFIX = "HOI_REFINE_"
+#: Wait before the n-th retry of ``ray start`` for this machine's node: n times this.
+NODE_START_RETRY_SECONDS = 5.0
 
 
 @dataclass
@@ -43,6 +45,11 @@ class PoolConfig:
     join_as_node: bool = False
     #: Touched after every healthy poll (container health checks read its age).
     health_file: str | None = None
+    #: Extra ``ray start`` options for the node of ``join_as_node`` (e.g. its IP and ports, when several nodes
+    #: share one network namespace).
+    node_start_args: tuple[str, ...] = ()
+    #: ``ray start`` attempts for that node before giving up.
+    node_start_attempts: int = 3
 
     def __post_init__(self) -> None:
         if self.workers < 1:
@@ -51,6 +58,10 @@ class PoolConfig:
             raise ValueError(f"threads_per_worker must be >= 1, got {self.threads_per_worker}")
         if self.join_as_node and not self.ray_address:
             raise ValueError("join_as_node needs ray_address (the head to join)")
+        if self.node_start_attempts < 1:
+            raise ValueError(f"node_start_attempts must be >= 1, got {self.node_start_attempts}")
+        if self.node_start_args and not self.join_as_node:
+            raise ValueError("node_start_args (--ray-start-args) apply only to the node of join_as_node (--ray-node)")
 
 
 @dataclass
@@ -121,7 +132,7 @@ class WorkerPool:
         call_with_backoff(lambda: _require_schema(engine), "schema check", Backoff(1.0, 10.0), stop=stop, logger=log)
         cfg = self.config
         if cfg.join_as_node:
-            self._start_node()
+            self._start_node(stop)
         if not ray.is_initialized():
             if cfg.ray_address:
                 ray.init(address=cfg.ray_address, log_to_driver=cfg.log_to_driver)
@@ -155,15 +166,34 @@ class WorkerPool:
             f" at {cfg.ray_address}" if cfg.ray_address else " (local)",
         )
 
-    def _start_node(self) -> None:
+    def _start_node(self, stop: threading.Event | None = None) -> None:
+        """``ray start --address HEAD``: this machine (container) joins the cluster as a node, retried.
+
+        ``ray start`` gives a new node a fixed 30 s to register with the GCS; on a loaded machine it can miss that
+        ("The current node timed out during startup"), so a failed start is cleaned up and tried again.
+        """
         import subprocess
 
         cfg = self.config
         cpus = cfg.workers * cfg.threads_per_worker
         cmd = [ray_executable(), "start", "--address", str(cfg.ray_address), "--num-cpus", str(cpus)]
-        log.info("joining Ray cluster %s as a node with %d CPU(s)", cfg.ray_address, cpus)
-        subprocess.run([*cmd, "--disable-usage-stats"], check=True)
-        self._node_started = True
+        cmd += ["--disable-usage-stats", *cfg.node_start_args]
+        for attempt in range(1, cfg.node_start_attempts + 1):
+            log.info("joining Ray cluster %s as a node with %d CPU(s) (attempt %d)", cfg.ray_address, cpus, attempt)
+            if subprocess.run(cmd, check=False).returncode == 0:
+                self._node_started = True
+                return
+            # This machine's node only (what the failed start left behind): in a container it runs nothing else.
+            subprocess.run([ray_executable(), "stop", "--force"], check=False)
+            if attempt < cfg.node_start_attempts:
+                delay = NODE_START_RETRY_SECONDS * attempt
+                log.warning("could not join Ray cluster %s; retrying in %.0f s", cfg.ray_address, delay)
+                if (stop or threading.Event()).wait(delay):
+                    raise WorkerStopping("stopped while joining the Ray cluster")
+        raise ConfigurationError(
+            f"could not join the Ray cluster at {cfg.ray_address} as a node after {cfg.node_start_attempts} "
+            "attempts (the `ray start` output above says why)"
+        )
 
     def actor_pids(self, timeout: float = 30.0) -> dict[str, int]:
         import ray

@@ -1,0 +1,74 @@
+"""The README's pictures of a real DexYCB refinement: one frame of its rendered video and its error plot.
+
+Refines one DexYCB development sequence (or takes a result file), renders the video as `hoi-refine render`
+does, and writes ``docs/dexycb_frame.png`` (the first frame where the simulated object has risen 60% of its lift) and
+``docs/dexycb_errors.png`` (the ``errors.png`` plot). The dashboard screenshot comes from the browser test
+(``HOI_REFINE_UPDATE_DOCS=1``, tests/acceptance/test_dashboard_browser.py).
+
+    .venv/bin/python bench/docs_pictures.py [--sequence PATH | --result PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+DEFAULT_SEQUENCE = "20200709-subject-01__20200709_141754.npz"
+
+
+def main() -> int:
+    from worker.visual.gl import prefer_offscreen_backend
+
+    prefer_offscreen_backend()
+    from common.dexycb import shared_data_dir
+    from common.job_options import JobOptions
+
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sequence", type=Path, default=None, help="DexYCB development NPZ to refine")
+    parser.add_argument("--result", type=Path, default=None, help="an existing refinement result instead")
+    parser.add_argument("--out", type=Path, default=ROOT / "docs", help="folder for the pictures (default docs/)")
+    args = parser.parse_args()
+    if args.result is not None:
+        blob = args.result.read_bytes()
+    else:
+        path = args.sequence
+        if path is None:
+            data = shared_data_dir()
+            if data is None:
+                print("no ../shared/data: pass --sequence or --result", file=sys.stderr)
+                return 2
+            path = data / "dexycb" / "dev" / DEFAULT_SEQUENCE
+        from common.sequence_io import load_sequence
+        from worker.refine.run import refine_sequence
+
+        blob = refine_sequence(load_sequence(path), JobOptions(), threads=2).to_npz_bytes()
+    import numpy as np
+    from PIL import Image
+
+    from worker.visual import read_mp4, render_video, resimulate, write_plots
+
+    pb = resimulate(blob)
+    args.out.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        video = Path(tmp) / "dexycb.mp4"
+        render_video(pb, str(video), ("raw", "refined"), 480, 360)
+        frames, _ = read_mp4(video)
+        z = pb.trajectories["refined"].object_pose[:, 2]
+        best = int(np.argmax(z >= z[0] + 0.6 * (z.max() - z[0])))  # well into the lift
+        Image.fromarray(frames[best]).save(args.out / "dexycb_frame.png")
+        plots = write_plots(blob, Path(tmp) / "plots")
+        shutil.copy(next(p for p in plots if p.name == "errors.png"), args.out / "dexycb_errors.png")
+    print(f"wrote {args.out / 'dexycb_frame.png'} (frame {best + 1} of {pb.num_frames}) and "
+          f"{args.out / 'dexycb_errors.png'} ({pb.summary.get('sequence')})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

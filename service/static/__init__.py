@@ -1,0 +1,1 @@
+"""Static files the API serves (the dashboard page, ``service.routes.dashboard``)."""

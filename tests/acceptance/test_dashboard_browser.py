@@ -1,0 +1,206 @@
+"""Issue #18 "Must show": the dashboard in headless Chromium (Debian's ``chromium``, driven by Playwright with
+``executable_path``; Playwright's own browser download cannot work here).
+
+A real API server (uvicorn, SQLite file) and a real worker loop (the refinement and preview code the Ray actor
+runs, in a thread) serve the page. With key A entered, the page lists a job submitted over HTTP as QUEUED, then
+(the worker started) SUCCEEDED; its page shows the metrics of the result and plays the preview video, with
+the plots. With key B entered, the job is neither listed nor readable. ``HOI_REFINE_UPDATE_DOCS=1`` also saves
+the job page as docs/dashboard.png.
+
+Chromium is installed by this test's own setup (``apt-get install -y chromium`` when running as root and it is
+missing); where it cannot be installed the test skips.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import subprocess
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from common.database import create_engine_for, upgrade_to_head
+from common.job_options import JobOptions
+from common.queue import JobQueue
+from common.sequence_io import sequence_to_npz_bytes
+from common.settings import Settings
+from tests.support.visual import DOCS, update_docs
+
+pytestmark = pytest.mark.slow
+
+CHROMIUM = "/usr/bin/chromium"
+#: The default CMA-ES budget without restarts: about 10 s here, and the refined hand lifts the box.
+OPTIONS = JobOptions(restarts=0)
+
+
+def _apt_install(package: str) -> None:
+    env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
+    cmd = ["apt-get", "install", "-y", "-q", "--no-install-recommends", package]
+    if subprocess.run(cmd, env=env, capture_output=True, timeout=900).returncode != 0:
+        subprocess.run(["apt-get", "update", "-q"], env=env, capture_output=True, timeout=600)
+        subprocess.run(cmd, env=env, capture_output=True, timeout=900)
+
+
+@pytest.fixture(scope="session")
+def chromium() -> str:
+    """Debian's chromium, installed with apt when missing and possible; otherwise the test skips."""
+    pytest.importorskip("playwright.sync_api", reason="the playwright package is not installed")
+    path = shutil.which("chromium") or CHROMIUM
+    if not Path(path).exists() and hasattr(os, "geteuid") and os.geteuid() == 0 and shutil.which("apt-get"):
+        try:
+            _apt_install("chromium")
+        except (OSError, subprocess.TimeoutExpired) as exc:
+            pytest.skip(f"could not install chromium with apt: {exc}")
+        path = shutil.which("chromium") or CHROMIUM
+    if not Path(path).exists():
+        pytest.skip("Debian's chromium is not installed and cannot be installed here (not root or no apt)")
+    return path
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class Deployment:
+    """The API (uvicorn in a thread) and, once ``start_worker`` is called, one worker loop in another thread."""
+
+    def __init__(self, tmp: Path) -> None:
+        import uvicorn
+
+        from service.app import create_app
+
+        url = f"sqlite:///{tmp / 'dashboard.sqlite3'}"
+        upgrade_to_head(url)
+        self.settings = Settings(lease_seconds=30.0, max_active_jobs_per_key=20)
+        self.engine = create_engine_for(url)
+        self.queue = JobQueue(self.engine, self.settings)
+        self.port = _free_port()
+        self.base_url = f"http://127.0.0.1:{self.port}"
+        config = uvicorn.Config(create_app(self.settings, self.engine), host="127.0.0.1", port=self.port,
+                                log_level="warning")  # fmt: skip
+        self.server = uvicorn.Server(config)
+        self.threads = [threading.Thread(target=self.server.run, daemon=True)]
+        self.threads[0].start()
+        deadline = time.monotonic() + 30
+        while not self.server.started:
+            assert time.monotonic() < deadline, "the API server did not start"
+            time.sleep(0.05)
+        self.loop: Any = None
+
+    def start_worker(self) -> None:
+        from worker.runtime.jobs import RefineJob, refine_preview
+        from worker.runtime.loop import WorkerLoop
+
+        self.loop = WorkerLoop(JobQueue(self.engine, self.settings), RefineJob(1), "browser-test-worker",
+                               lease_seconds=30.0, idle_poll_seconds=0.1, artifact_fn=refine_preview)  # fmt: skip
+        self.threads.append(threading.Thread(target=self.loop.run, daemon=True))
+        self.threads[-1].start()
+
+    def close(self) -> None:
+        if self.loop is not None:
+            self.loop.stop()
+        self.server.should_exit = True
+        for t in self.threads:
+            t.join(60)
+        self.engine.dispose()
+
+
+@pytest.fixture
+def deployment(tmp_path: Path) -> Iterator[Deployment]:
+    dep = Deployment(tmp_path)
+    try:
+        yield dep
+    finally:
+        dep.close()
+
+
+def _use_key(page: Any, key: str) -> None:
+    page.fill("#key", key)
+    page.click("#use-key")
+
+
+@pytest.mark.usefixtures("offscreen_gl")  # the worker renders the preview video
+def test_dashboard_shows_a_job_to_its_key_only(chromium: str, deployment: Deployment) -> None:
+    from playwright.sync_api import expect, sync_playwright
+
+    from common.api_client import ApiClient
+    from common.api_key_store import ApiKeyStore
+    from worker.example import short_example_sequence
+
+    keys = ApiKeyStore(deployment.queue.engine)
+    _, key_a = keys.create("browser A")
+    _, key_b = keys.create("browser B")
+    with sync_playwright() as pw:
+        # Root in a container: no sandbox. No network here: nothing in the background may try to reach one.
+        args = ["--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
+                "--disable-component-update", "--disable-sync", "--autoplay-policy=no-user-gesture-required"]
+        browser = pw.chromium.launch(executable_path=chromium, args=args)
+        try:
+            page = browser.new_page(viewport={"width": 1100, "height": 900})
+            page.goto(deployment.base_url + "/ui")
+            _use_key(page, key_a)
+            client = ApiClient(deployment.base_url, key_a)
+            seq = short_example_sequence()
+            job_id = client.submit(sequence_to_npz_bytes(seq), f"{seq.name}.npz", OPTIONS)["id"]
+            state = page.locator(f'tr[data-job-id="{job_id}"] td.state')
+            expect(state).to_have_text("QUEUED", timeout=20_000)  # the page refreshes itself
+            deployment.start_worker()
+            expect(state).to_have_text("SUCCEEDED", timeout=300_000)
+
+            page.select_option("#state-filter", "FAILED")  # the filter asks the API for that state only
+            expect(page.locator(f'tr[data-job-id="{job_id}"]')).to_have_count(0, timeout=10_000)
+            page.select_option("#state-filter", "SUCCEEDED")
+            expect(state).to_have_text("SUCCEEDED", timeout=10_000)
+
+            page.click(f'tr[data-job-id="{job_id}"] a')
+            expect(page.locator("#job-state")).to_have_text("SUCCEEDED")
+            metrics = client.http.get(f"/v1/jobs/{job_id}/metrics").json()["metrics"]
+            client.close()
+            for name in ("E_t", "E_r"):
+                row = page.locator(f'#metrics tr[data-metric="{name}"] td')
+                expect(row.nth(1)).to_have_text(f"{metrics['raw'][name]:.2f}")
+                expect(row.nth(2)).to_have_text(f"{metrics['refined'][name]:.2f}")
+            video = page.locator("#video")
+            expect(video).to_have_attribute("src", _starts_with_blob(), timeout=60_000)
+            played = page.evaluate(
+                """async () => {
+                    const v = document.getElementById('video');
+                    if (v.readyState < 2) await new Promise((ok) => v.addEventListener('loadeddata', ok, {once: true}));
+                    await v.play();
+                    await new Promise((ok) => setTimeout(ok, 1000));
+                    return {time: v.currentTime, width: v.videoWidth, height: v.videoHeight,
+                            error: v.error && v.error.code};
+                }"""
+            )
+            assert played["error"] is None and played["time"] > 0, played
+            assert (played["width"], played["height"]) == (640, 240)
+            expect(page.locator("#plots img")).to_have_count(3, timeout=30_000)
+            assert page.evaluate("[...document.querySelectorAll('#plots img')].every(i => i.naturalWidth > 100)")
+            if update_docs():
+                page.evaluate("document.getElementById('video').pause()")
+                page.screenshot(path=str(DOCS / "dashboard.png"), full_page=True)
+
+            # Another key: the job is not listed, and its page cannot be read.
+            _use_key(page, key_b)
+            page.evaluate("location.hash = '#/'")
+            expect(page.locator("#empty")).to_be_visible(timeout=10_000)
+            expect(page.locator(f'tr[data-job-id="{job_id}"]')).to_have_count(0)
+            page.evaluate(f"location.hash = '#/jobs/{job_id}'")
+            expect(page.locator("#message")).to_contain_text("404", timeout=10_000)
+            expect(page.locator("#metrics-section")).to_be_hidden()
+        finally:
+            browser.close()
+
+
+def _starts_with_blob() -> Any:
+    import re
+
+    return re.compile(r"^blob:")

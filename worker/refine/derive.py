@@ -1,0 +1,156 @@
+"""Everything a refinement result holds that follows from its inputs: one function for the worker and ``verify``.
+
+``derive_result(sequence_bytes, options, config, pivot, keyframes)`` loads the sequence from the very bytes the
+result embeds, prepares it (retargeting, scene, control spaces) in a fresh model, settles frame 0 in a fresh
+``MjData``, and replays from frame 0 the raw reference (zero offsets) and the given keyframes (and each restart's
+keyframes), recording contacts; then it computes the metrics of both replays and every derived result array.
+``refine_sequence`` stores exactly what this returns for its best keyframes, and ``verify`` calls it again on what
+the file holds, so an honest result reproduces bit for bit on the same build (issue #15 item 1: the stored
+replay used to run on the refinement's own sequence object while ``verify`` read the embedded copy, which had
+been normalised once more on load; 1e-16 there grew to 0.066 mm in the contact-rich replay).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from common.geometry import FloatArray
+from common.job_options import JobOptions
+from common.sequence_io import sequence_from_npz_bytes
+from worker.hand.mano.pose import mano_result_arrays
+from worker.refine.evaluator import ParallelEvaluator
+from worker.refine.prepare import Prepared, prepare, settled_start
+from worker.refine.replay import ReplayRecord, replay
+from worker.simulation.config import SimConfig
+from worker.simulation.metrics import compute_metrics, scalar_metrics
+
+
+@dataclass
+class Derived:
+    """What ``derive_result`` recomputed. ``metrics`` (raw / refined) are ``worker.simulation.metrics.compute_metrics``
+    outputs (with per-frame arrays); ``attempt_metrics`` one per restart's keyframes (scalars only)."""
+
+    prep: Prepared
+    raw: ReplayRecord
+    final: ReplayRecord
+    metrics: dict[str, dict[str, Any]]
+    attempt_metrics: list[dict[str, Any]]
+    arrays: dict[str, np.ndarray]
+    steps: int  # settle + replay physics steps
+
+
+def derive_result(
+    sequence_bytes: bytes,
+    options: JobOptions,
+    config: SimConfig,
+    rotation_pivot: str,
+    keyframes: dict[str, FloatArray],
+    attempt_keyframes: list[dict[str, FloatArray]] | None = None,
+    *,
+    cache_dir: Path | None = None,
+    mano_dir: Path | None = None,
+    mirror_left: bool | None = None,
+) -> Derived:
+    """See the module docstring. ``attempt_keyframes`` the keyframes of every attempt (restarts) in order, stored
+    so ``verify`` can check the first attempt's success too; ``cache_dir``, ``mano_dir`` and ``mirror_left`` (the
+    left hand's control convention, ``config.left_hand_controls``) as for ``prepare``."""
+    seq = sequence_from_npz_bytes(sequence_bytes)
+    prep = prepare(seq, options, config, rotation_pivot=rotation_pivot, cache_dir=cache_dir, mano_dir=mano_dir,
+                   mirror_left=mirror_left)
+    for side, space in prep.spaces.items():
+        k = keyframes.get(side)
+        if k is None or k.shape != (space.n_keyframes, space.dim):
+            got = None if k is None else k.shape
+            raise ValueError(f"{side}_keyframes must have shape ({space.n_keyframes}, {space.dim}), got {got}")
+    attempts = attempt_keyframes or []
+    # A fresh MjData (single-threaded, Python-stepped): nothing simulated before can leak into the result.
+    with ParallelEvaluator(prep.scene.model, 1) as ev:
+        start, settle = settled_start(prep, ev)
+        zero = {side: sp.zero_keyframes() for side, sp in prep.spaces.items()}
+        raw = replay(prep, ev, start, zero)
+        final = replay(prep, ev, start, keyframes)
+        attempt_metrics = [
+            scalar_metrics(replay_metrics(prep, replay(prep, ev, start, k, record_contacts=False))) for k in attempts
+        ]
+        steps = settle + ev.stats.steps
+    metrics = {"raw": replay_metrics(prep, raw), "refined": replay_metrics(prep, final)}
+    arrays = build_arrays(prep, sequence_bytes, keyframes, final, raw, metrics["raw"], metrics["refined"])
+    for side in prep.spaces:
+        if attempts:
+            arrays[f"{side}_attempt_keyframes"] = np.stack([k[side] for k in attempts])
+    return Derived(prep, raw, final, metrics, attempt_metrics, arrays, steps)
+
+
+def replay_metrics(prep: Prepared, rec: ReplayRecord) -> dict[str, Any]:
+    """``compute_metrics`` of a replay against the prepared references (with plausibility when it has contacts)."""
+    return compute_metrics(
+        rec.object_pose,
+        prep.obj_targets_pose(),
+        rec.keypoints,
+        {r.side: r.keypoints for r in prep.references},
+        {r.side: r.valid for r in prep.references},
+        rec.contact_frames,
+    )
+
+
+def build_arrays(
+    prep: Prepared,
+    sequence_bytes: bytes,
+    keyframes: dict[str, FloatArray],
+    final: ReplayRecord,
+    raw: ReplayRecord,
+    m_raw: dict[str, Any],
+    m_ref: dict[str, Any],
+) -> dict[str, np.ndarray]:
+    """The result arrays that follow from the inputs (``worker.refine.result`` lists them); the sequence is
+    embedded as the very bytes it was loaded from."""
+    arrays: dict[str, np.ndarray] = {
+        "object_pose_sim": final.object_pose,
+        "object_vel_sim": final.object_vel,
+        "object_pose_ref": prep.obj_targets_pose(),
+        "raw_object_pose_sim": raw.object_pose,
+        "sequence_npz": np.frombuffer(sequence_bytes, dtype=np.uint8).copy(),
+    }
+    if final.contact_frames is not None:
+        arrays["object_table_contact"] = final.contact_frames.table
+    for ref in prep.references:
+        s = ref.side
+        q, p, r = prep.spaces[s].frame_controls(keyframes[s])
+        arrays[f"{s}_keyframes"] = keyframes[s]
+        arrays[f"{s}_q_target"] = q
+        arrays[f"{s}_wrist_pos"] = p
+        arrays[f"{s}_wrist_quat"] = r
+        arrays[f"{s}_keypoints_sim"] = final.keypoints[s]
+        arrays[f"{s}_keypoints_ref"] = ref.keypoints
+        arrays[f"{s}_valid"] = ref.valid
+        if getattr(ref, "from_mano", False):
+            # The refined hand as MANO parameters (issue #6): exact because the scene used the MANO geometry.
+            hand = prep.seq.hand(s)
+            assert hand is not None
+            arrays.update(mano_result_arrays(prep.seq, hand, p, r, q, prep.mano_dir))
+    for name, m in (("raw", m_raw), ("refined", m_ref)):
+        for key, val in m["per_frame"].items():
+            arrays[f"metrics_{name}_{key}"] = val
+    arrays.update(final.contacts)
+    return arrays
+
+
+def attempt_figures(m: dict[str, Any]) -> dict[str, Any]:
+    """An attempt's entry in the summary: success and object errors on both protocols."""
+    paper = m["paper"]
+    return {"success": bool(m["success"]), "E_t": m["E_t"], "E_r": m["E_r"],
+            "paper": {"success": bool(paper["success"]), "E_t": paper["E_t"], "E_r": paper["E_r"]}}
+
+
+def add_attempt_metrics(m_ref: dict[str, Any], attempts: list[dict[str, Any]]) -> None:
+    """The first attempt's success beside the final one (issue #15 item 3; the paper runs one attempt)."""
+    if not attempts:
+        return
+    m_ref["attempts"] = len(attempts)
+    m_ref["success_first_attempt"] = bool(attempts[0]["success"])
+    if "paper" in m_ref and "paper" in attempts[0]:
+        m_ref["paper"]["success_first_attempt"] = bool(attempts[0]["paper"]["success"])

@@ -1,0 +1,78 @@
+"""The from-scratch replay of a sequence's keyframes (frame 0 to the end, every frame recorded, contacts too)
+and the window problem it and the optimiser share.
+
+Below both ``run`` (which replays the raw and the refined controls) and ``result`` (whose ``verify_result``
+repeats that replay), so neither imports the other.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from common.geometry import FloatArray
+from worker.refine.evaluator import ParallelEvaluator, SimState, StepHook
+from worker.refine.losses import resolve_weights
+from worker.refine.prepare import Prepared
+from worker.refine.problem import SimWindowProblem
+from worker.simulation.contacts import ContactRecorder, empty_contact_columns
+from worker.simulation.metrics import ContactFrames
+
+#: Keyframe intervals simulated past the optimised keyframe: 1 is the (k1..k4) window of DESIGN §1.6; 2 lets
+#: the optimiser see whether a grasp holds one interval longer (on DexYCB dev it turned a dropped lift into a
+#: success and lowered E_t elsewhere, for 28% more simulated steps; see bench/results/refine_dev.md).
+LOOKAHEAD = 2
+
+@dataclass
+class ReplayRecord:
+    """A from-scratch replay: per-frame arrays (F frames) and contact columns."""
+
+    object_pose: FloatArray  # (F, 7)
+    object_vel: FloatArray  # (F, 6) world linear, angular
+    keypoints: dict[str, FloatArray]  # side -> (F, 21, 3)
+    contacts: dict[str, np.ndarray]
+    steps: int
+    #: Per-frame penetration / hand / table contact flags (``worker.simulation.metrics``); None without contacts.
+    contact_frames: ContactFrames | None = None
+
+
+def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyframes: dict[str, FloatArray],
+           record_contacts: bool = True, on_step: StepHook | None = None) -> ReplayRecord:
+    """Simulate frame 0 -> F-1 with the given keyframes, recording every frame (and contacts).
+
+    ``on_step(i, data)`` also runs after physics step i (the visual tools record the full state per frame)."""
+    layout = prep.layout
+    s = layout.substeps
+    problem = window_problem(prep, evaluator, start, {})
+    control, _ = problem.build_control(keyframes, 0, prep.num_frames - 1)
+    n_frames = prep.num_frames
+    sensors = np.empty((n_frames, layout.model.nsensordata))
+    recorder = ContactRecorder(prep.scene) if record_contacts else None
+
+    def hook(i: int, d: mujoco.MjData) -> None:
+        if i % s == 0:  # contacts and sensors of this step were computed at the frame's state
+            sensors[i // s] = d.sensordata
+            if recorder is not None:
+                recorder.add(d, i // s)
+        if on_step is not None:
+            on_step(i, d)
+
+    evaluator.step_python(start, control[0], hook)
+    pos, quat, vel = layout.object_from_sensors(sensors)
+    return ReplayRecord(
+        object_pose=np.concatenate([pos, quat], axis=1),
+        object_vel=vel,
+        keypoints={side: sensors[:, h.keypoint_sensor_adrs] for side, h in layout.hands.items()},
+        contacts=recorder.columns() if recorder is not None else empty_contact_columns(),
+        steps=control.shape[1],
+        contact_frames=recorder.frames(n_frames) if recorder is not None else None,
+    )
+
+
+def window_problem(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, weights: dict[str, float]
+                   ) -> SimWindowProblem:
+    """The window problem of a prepared sequence (``weights`` empty: the job's own)."""
+    return SimWindowProblem(prep.layout, prep.spaces, prep.obj_targets, prep.hand_targets,
+                            weights or resolve_weights(prep.options.loss_weights), evaluator, start, LOOKAHEAD)

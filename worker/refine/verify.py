@@ -1,0 +1,183 @@
+"""``verify``: recompute everything a refinement result claims and compare (issue #15 item 1).
+
+From the embedded sequence (or ``--sequence``) and the stored keyframes, ``worker.refine.derive.derive_result``
+runs again — the same function that made the result — in a fresh model: the raw and the refined replay (and each
+restart), contacts, every derived array and both protocols' metrics. Then:
+
+1. **Config.** The stored physics config (``config.sim``, the rotation pivot) against the product's defaults for
+   the result's version: a setting the result does not record reads as the default of the versions before it
+   existed (``OLDER_DEFAULTS``); any other difference is reported by name, default and stored value, and fails
+   unless ``allow_config`` (the re-simulation always uses the stored config).
+2. **Consistency** (tight, whatever the host): the summary metrics recomputed from the stored trajectories and
+   contacts, the stored per-frame metric arrays, the contacts' object-frame points against their world points
+   and the stored object pose, the first attempt's success.
+3. **Re-simulation.** Every stored array and summary figure against the fresh derivation. On the build that made
+   the result the replay is bit-identical (``exact``), and then everything must be equal. On another host it is
+   not: NumPy and OpenBLAS pick CPU-specific kernels (AVX-512 or AVX2) whose last bits differ, and contact-rich
+   dynamics grow a 1e-16 difference into millimetres (measured: ``CROSS_HOST``). Then each field is compared
+   within a physical tolerance instead (``Tolerances``).
+
+Any difference fails naming the field and its largest difference. The report carries a SHA-256 over everything
+that was checked (stored arrays and summary parts), so two parties can tell they checked the same content.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from common.errors import ResultMismatchError, UnsupportedFormatError
+from common.job_options import JobOptions
+from common.result_format import read_arrays, read_summary
+from common.sequence import Sequence
+from common.sequence_io import sequence_to_npz_bytes
+from worker.refine.derive import derive_result
+from worker.refine.prepare import MIRROR_LEFT_HAND, ROTATION_PIVOT
+from worker.refine.verify_arrays import ArrayChecker, check_stored_metrics
+from worker.refine.verify_report import CROSS_HOST, Tolerances, VerifyReport
+from worker.refine.verify_summary import check_summary
+from worker.simulation.config import SimConfig
+
+__all__ = ["CROSS_HOST", "Tolerances", "VerifyReport", "check_result", "verify_result"]
+
+#: Settings a result does not record were, before they existed, these (the mocap and servos followed their
+#: tracks, the object started from frame 0, the hand turned about the wrist).
+OLDER_DEFAULTS: dict[str, Any] = {"wrist_lead_s": 0.0, "finger_lead_s": 0.0, "rest_approach_m": 0.0}
+OLDER_PIVOT = "wrist"
+
+
+
+def verify_result(
+    blob: bytes, sequence: Sequence | None = None, *, allow_config: bool = False, cache_dir: Path | None = None,
+    mano_dir: Path | None = None,
+) -> dict[str, Any]:
+    """``check_result``, raising ``ResultMismatchError`` naming every failing field; returns the report as a dict
+    (``VerifyReport.to_dict``)."""
+    report = check_result(blob, sequence, allow_config=allow_config, cache_dir=cache_dir, mano_dir=mano_dir)
+    if report.failures:
+        raise ResultMismatchError("result does not verify:\n  " + "\n  ".join(report.failures))
+    return report.to_dict()
+
+
+def check_result(
+    blob: bytes, sequence: Sequence | None = None, *, allow_config: bool = False, cache_dir: Path | None = None,
+    mano_dir: Path | None = None,
+) -> VerifyReport:
+    """See the module docstring; failures are listed in the report, not raised. ``cache_dir`` and ``mano_dir``
+    as for ``worker.refine.prepare.prepare`` (the command passes the configured folders)."""
+    summary = read_summary(blob)
+    if summary.get("kind") != "refine":
+        raise UnsupportedFormatError(f"not a refinement result (kind {summary.get('kind')!r})")
+    arrays = read_arrays(blob)
+    if sequence is not None:
+        seq_bytes = sequence_to_npz_bytes(sequence)
+    elif "sequence_npz" in arrays:
+        seq_bytes = arrays["sequence_npz"].tobytes()
+    else:
+        raise UnsupportedFormatError("the result embeds no sequence; pass --sequence")
+    report = VerifyReport()
+    config = summary.get("config", {})
+    sim, pivot, mirror_left = _config(config, report, allow_config)
+    options = JobOptions.model_validate(summary["options"])
+    sides = list(summary.get("sides") or [k[: -len("_keyframes")] for k in arrays if k.endswith("_keyframes")
+                                          and not k.endswith("_attempt_keyframes")])
+    keyframes = {s: arrays.get(f"{s}_keyframes") for s in sides}
+    attempt_kf = _attempt_keyframes(arrays, sides)
+    try:
+        derived = derive_result(seq_bytes, options, SimConfig(**sim), pivot, keyframes,  # type: ignore[arg-type]
+                                attempt_kf, cache_dir=cache_dir, mano_dir=mano_dir, mirror_left=mirror_left)
+    except ValueError as exc:
+        raise ResultMismatchError(f"the stored controls do not fit the sequence: {exc}") from exc
+    c = ArrayChecker(report, arrays, derived.arrays)
+    c.compare_trajectory()
+    tol = None if report.exact else CROSS_HOST
+    c.inputs(sides, tol)
+    c.simulated(sides, tol)
+    c.contacts(derived, tol)
+    c.consistency(derived, sides)
+    check_summary(report, summary, derived, attempt_kf, tol)
+    check_stored_metrics(report, arrays, summary, sides)
+    report.frames = int(derived.prep.num_frames)
+    # The digest covers every stored array the derivation makes (the same set on any host, whichever comparison
+    # each got) and the summary parts compared; the rest (the optimisation's loss history) is named, unchecked.
+    derived_keys = sorted(set(derived.arrays) & set(arrays))
+    unchecked = sorted(set(arrays) - set(derived.arrays))
+    if unchecked:
+        report.config_notes.append(f"not re-computable, not checked: {', '.join(unchecked)}")
+    report.digest = _digest(arrays, summary, derived_keys)
+    return report
+
+
+# ---------------------------------------------------------------------------------------------- config
+
+
+def _config(config: dict[str, Any], report: VerifyReport, allow_config: bool) -> tuple[dict[str, Any], str, bool]:
+    """The stored sim settings (older defaults filled in), pivot and left-hand control convention (True: mirrored);
+    config differences into the report."""
+    defaults = SimConfig().to_dict()
+    stored: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in config.get("sim", {}).items()}
+    unknown = sorted(set(stored) - set(defaults))
+    if unknown:
+        raise UnsupportedFormatError(f"config.sim has settings this version does not know: {', '.join(unknown)}")
+    for name, default in defaults.items():
+        if name not in stored:  # the result predates the setting: the behaviour of its time
+            stored[name] = OLDER_DEFAULTS.get(name, default)
+            report.config_notes.append(f"{name} not recorded (older result): read as {stored[name]}")
+        elif _differs(stored[name], default):
+            report.config_changes.append((f"sim.{name}", _plain(default), _plain(stored[name])))
+    pivot = config.get("rotation_pivot")
+    if pivot is None:
+        pivot = OLDER_PIVOT
+        report.config_notes.append(f"rotation_pivot not recorded (older result): read as {OLDER_PIVOT!r}")
+    elif pivot != ROTATION_PIVOT:
+        report.config_changes.append(("rotation_pivot", ROTATION_PIVOT, pivot))
+    # Results made before issue #15 drove a left hand with the right hand's coordinates (no key recorded).
+    left = config.get("left_hand_controls")
+    current = "mirrored" if MIRROR_LEFT_HAND else "as right"
+    if left is None:
+        left = "as right"
+        report.config_notes.append("left_hand_controls not recorded (older result): read as 'as right'")
+    elif left != current:
+        report.config_changes.append(("left_hand_controls", current, left))
+    if report.config_changes and not allow_config:
+        for name, default, value in report.config_changes:
+            report.failures.append(f"config {name}: {value!r} differs from the default {default!r} "
+                                   "(--allow-config accepts a non-default physics config)")
+    return stored, str(pivot), left == "mirrored"
+
+
+def _differs(a: Any, b: Any) -> bool:
+    if isinstance(a, tuple | list) or isinstance(b, tuple | list):
+        return list(a) != list(b) if isinstance(a, tuple | list) and isinstance(b, tuple | list) else True
+    return bool(a != b)
+
+
+def _plain(v: Any) -> Any:
+    return list(v) if isinstance(v, tuple) else v
+
+
+def _attempt_keyframes(arrays: dict[str, np.ndarray], sides: list[str]) -> list[dict[str, np.ndarray]] | None:
+    stacks = {s: arrays.get(f"{s}_attempt_keyframes") for s in sides}
+    if any(v is None for v in stacks.values()):
+        return None
+    n = {int(v.shape[0]) for v in stacks.values() if v is not None}
+    if len(n) != 1:
+        raise ResultMismatchError("attempt keyframes: the hands list different numbers of attempts")
+    return [{s: np.asarray(v[i]) for s, v in stacks.items() if v is not None} for i in range(n.pop())]
+
+
+def _digest(arrays: dict[str, np.ndarray], summary: dict[str, Any], keys: list[str]) -> str:
+    """SHA-256 over the stored arrays ``keys`` (name, dtype, shape, bytes) and the checked summary parts."""
+    h = hashlib.sha256()
+    for key in keys:
+        a = np.ascontiguousarray(arrays[key])
+        h.update(f"{key}:{a.dtype.str}:{a.shape}:".encode())
+        h.update(a.tobytes())
+    parts = {k: summary.get(k) for k in ("metrics", "attempts", "config", "options", "seed", "sides", "frames",
+                                         "fps", "sequence", "table", "num_contacts")}
+    h.update(json.dumps(parts, sort_keys=True).encode())
+    return h.hexdigest()

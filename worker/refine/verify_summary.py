@@ -1,0 +1,111 @@
+"""``verify``'s summary checks: metrics (both protocols, plausibility), attempts and sequence facts against the
+fresh derivation, exactly on the build that made the result and within ``Tolerances`` elsewhere."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from worker.refine.derive import add_attempt_metrics, attempt_figures
+from worker.refine.verify_report import Tolerances, VerifyReport
+from worker.simulation.metrics import scalar_metrics
+
+
+def check_summary(
+    report: VerifyReport, summary: dict[str, Any], derived: Any, attempt_kf: list[Any] | None,
+    tol: Tolerances | None,
+) -> None:
+    """The summary's metrics (raw, refined, both protocols), attempts, success and sequence facts against the
+    derivation (``verify_arrays.check_stored_metrics`` checks them against the stored trajectories)."""
+    stored = summary.get("metrics", {})
+    attempts = summary.get("attempts") or []
+    fresh = {k: scalar_metrics(v) for k, v in derived.metrics.items()}
+    if attempt_kf is not None:
+        fresh_attempts = [attempt_figures(m) for m in derived.attempt_metrics]
+    elif len(attempts) <= 1:
+        fresh_attempts = [attempt_figures(derived.metrics["refined"])]
+    else:
+        fresh_attempts = []
+        report.config_notes.append("restarts' keyframes not stored (older result): attempts not re-simulated")
+    add_attempt_metrics(fresh["refined"], fresh_attempts if len(attempts) == len(fresh_attempts) else [])
+    for name in ("raw", "refined"):
+        if name not in stored:
+            report.failures.append(f"metrics.{name}: missing")
+            continue
+        for key in ("E_t", "E_r", "E_j", "E_ft", "success"):
+            if key not in stored[name]:
+                report.failures.append(f"metrics.{name}.{key}: missing")
+        _compare_dict(report, f"metrics.{name}", stored[name], fresh[name], tol)
+    if attempts and fresh_attempts:
+        if len(attempts) != len(fresh_attempts):
+            report.failures.append(f"attempts: {len(attempts)} listed, {len(fresh_attempts)} re-simulated")
+        for i, (a, b) in enumerate(zip(attempts, fresh_attempts, strict=False)):
+            _compare_dict(report, f"attempts[{i}]", {k: v for k, v in a.items() if k in b}, b, tol)
+    # What the preparation decided (the table under the object) and the simple facts about the sequence.
+    prep = derived.prep
+    facts = {"sequence": prep.seq.name, "fps": float(prep.seq.fps), "frames": int(prep.num_frames),
+             "table": prep.scene.table.to_dict()}
+    if tol is None:
+        facts["num_contacts"] = len(derived.final.contacts["contact_frame"])
+    for key, value in facts.items():
+        if key in summary:
+            _compare_dict(report, key, summary[key], value, tol)
+    report.checked.extend(["summary.metrics", "summary.attempts", "summary.config", "summary.table"])
+
+
+def _compare_dict(report: VerifyReport, path: str, stored: Any, fresh: Any, tol: Tolerances | None) -> None:
+    if isinstance(fresh, dict):
+        if not isinstance(stored, dict):
+            report.failures.append(f"{path}: not a mapping")
+            return
+        for key, value in stored.items():
+            if key not in fresh:
+                if path.endswith("paper") or key in ("attempts", "success_first_attempt"):
+                    report.failures.append(f"{path}.{key}: stored but not re-computed")
+                continue  # e.g. figures of a newer version
+            _compare_dict(report, f"{path}.{key}", value, fresh[key], tol)
+        return
+    name = path.rsplit(".", 1)[-1]
+    if isinstance(fresh, str) or isinstance(stored, str):
+        if stored != fresh:
+            report.failures.append(f"{path}: stored {stored!r}, re-computed {fresh!r}")
+        return
+    if isinstance(fresh, list | tuple):
+        if not isinstance(stored, list | tuple) or len(stored) != len(fresh):
+            report.failures.append(f"{path}: stored {stored!r}, re-computed {list(fresh)!r}")
+            return
+        for i, (a, b) in enumerate(zip(stored, fresh, strict=True)):
+            _compare_dict(report, f"{path}[{i}]", a, b, tol)
+        return
+    if isinstance(fresh, bool) or isinstance(stored, bool):
+        if bool(stored) != bool(fresh) or type(stored) is not type(fresh):
+            if tol is not None and name == "success" and _near_threshold(path, report):
+                return
+            report.failures.append(f"{path}: stored {stored!r}, re-computed {fresh!r}")
+        return
+    if fresh is None or stored is None:
+        if fresh is not None or stored is not None:
+            report.failures.append(f"{path}: stored {stored!r}, re-computed {fresh!r}")
+        return
+    if not isinstance(stored, int | float):
+        report.failures.append(f"{path}: stored {stored!r} is not a number")
+        return
+    a, b = float(stored), float(fresh)
+    if np.isnan(a) and np.isnan(b):
+        return
+    limit = None if tol is None or np.isnan(b) else tol.summary_limit(name, abs(b))
+    if tol is not None and limit is None and name not in ("frames", "lifted_frames", "first_frame", "attempts"):
+        limit = 1e-9
+    diff = abs(a - b) if not (np.isnan(a) or np.isnan(b)) else float("inf")
+    if (limit is None and a != b) or (limit is not None and diff > limit):
+        report.failures.append(f"{path}: stored {a:.6g}, re-computed {b:.6g} (difference {diff:.3g}"
+                               f"{'' if limit is None else f', tolerance {limit:g}'})")
+
+
+def _near_threshold(path: str, report: VerifyReport) -> bool:
+    """On another host a success may flip where the re-simulated trajectory crosses a threshold within the
+    tolerance: noted, not failed. The stored success is still checked exactly against the stored trajectory
+    (``check_stored_metrics``), and that trajectory against the re-simulation within the tolerance."""
+    report.config_notes.append(f"{path} differs on re-simulation (within the trajectory's cross-host tolerance)")
+    return True

@@ -1,0 +1,85 @@
+"""Simulation settings (DESIGN §1.4, the paper's values as defaults); re-exported by ``worker.simulation.scene``."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+#: contype / conaffinity bits: the hand collides with the object only, the object with hand and table.
+HAND_BIT, OBJECT_BIT, TABLE_BIT = 1, 2, 4
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Every physics setting of a scene. Defaults are DESIGN §1.4; the rest are documented choices."""
+
+    timestep: float = 1.0 / 240.0
+    integrator: str = "implicitfast"
+    solver: str = "Newton"
+    iterations: int = 10
+    noslip_iterations: int = 10
+    #: Elliptic cones hold DexYCB grasps far better than pyramidal ones (static holds: 7-8/10 vs 4/10).
+    cone: str = "elliptic"
+    contact_solimp: tuple[float, float, float] = (0.9, 0.99, 0.001)
+    contact_solref: tuple[float, float] = (0.003, 1.0)
+    weld_solimp: tuple[float, float, float] = (0.8, 0.95, 0.01)
+    weld_solref: tuple[float, float] = (0.01, 1.0)
+    #: Seconds the wrist's mocap target runs ahead of the wrist track it is driven along. The weld pulls the palm
+    #: towards a mocap body whose velocity MuJoCo takes as zero, so the palm trails a moving target by a fixed
+    #: time: twice the weld time constant (a critically damped spring's ramp lag, 20 ms) less the one timestep
+    #: by which each substep's target already leads (``worker.simulation.stepping``). Without the lead a hand swept at a
+    #: DexYCB lift's 0.9 m/s trails by 14 mm (9.5 mm at 290 deg/s), which the grasp carries into the object;
+    #: with 16 ms, 0.4 mm (0.35 mm) (tests/integration/test_scene_physics.py). 0 drives the mocap along the track.
+    wrist_lead_s: float = 0.016
+    #: Finger position servos (N·m/rad, N·m·s/rad). With implicitfast the kv term is integrated implicitly, so
+    #: the light finger segments stay stable; the servo behaves like a first-order lag of kv/kp = 60 ms.
+    finger_kp: float = 50.0
+    finger_kv: float = 3.0
+    #: Seconds the hinge servo targets run ahead of the reference hinge track: the servos trail a moving target
+    #: by kv/kp = 60 ms (less the timestep by which each substep's target leads), so without it a closing grasp
+    #: reaches the object late. 0 drives the servos along the reference itself.
+    finger_lead_s: float = 0.056
+    #: Hinge armature (kg·m²) and passive damping. The armature matters: with light segments alone (1e-4) the
+    #: contact solver resolves penetration by throwing the fingers back instead of building grip force, and raw
+    #: replay of DexYCB lifts nothing (0/16); 3e-3 lifts 4/16 with the same hand tracking and steps faster.
+    hinge_armature: float = 3e-3
+    hinge_damping: float = 0.0
+    #: Hand tissue density (kg/m³) -> segment masses from the capsule volumes.
+    hand_density: float = 1100.0
+    #: Cancel gravity on the hand (the wrist is kinematic; finger weight would only bias the servos).
+    hand_gravcomp: bool = True
+    #: Sliding, torsional, rolling friction of hand-object contacts (condim 6: soft-finger + rolling).
+    hand_friction: tuple[float, float, float] = (1.0, 0.02, 0.001)
+    hand_condim: int = 6
+    #: Object friction when the sequence gives none; table friction.
+    object_friction: float = 1.0
+    table_friction: float = 0.8
+    object_condim: int = 6
+    #: Seconds the hand holds its frame-0 pose (fingers settle, object comes to rest) before frame 0 is recorded.
+    settle_seconds: float = 0.1
+    #: A frame-0 object whose lowest point is within this distance of the table is placed exactly on it.
+    snap_to_table_m: float = 0.015
+    #: The table is laid under the frame-0 object as recorded (``support_plane``) when the face it rests
+    #: on is within this many degrees of level; 0 keeps a level table at z = 0 (and the snap above). 25, not the
+    #: few degrees of annotation error: objects in DexYCB scenes also lean on others that are not simulated (a
+    #: marker recorded 19 degrees up on one end falls flat on a level table before the hand arrives); the table
+    #: friction holds the object up to atan(0.8) = 39 degrees.
+    table_max_tilt_deg: float = 25.0
+    #: The object starts from the mean of its recorded poses over the frames before any hand keypoint comes
+    #: within this distance of its surface and before the recorded object moves (``worker.simulation.rest_pose``: the
+    #: recording jitters and drifts while the object rests); 0 starts it from the recorded frame 0.
+    rest_approach_m: float = 0.02
+
+    def lead_frames(self, substeps_per_frame: int) -> tuple[float, float]:
+        """(``wrist_lead_s``, ``finger_lead_s``) in video frames of ``substeps_per_frame`` physics steps."""
+        frame_s = substeps_per_frame * self.timestep
+        return self.wrist_lead_s / frame_s, self.finger_lead_s / frame_s
+
+    def substeps_per_frame(self, fps: float) -> int:
+        """Physics steps per video frame (8 at 30 fps with the 1/240 s timestep)."""
+        if fps <= 0:
+            raise ValueError(f"fps must be positive, got {fps}")
+        return max(1, round(1.0 / (fps * self.timestep)))
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)

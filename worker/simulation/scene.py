@@ -1,0 +1,208 @@
+"""The MuJoCo scene: hand(s) + object + table with the paper's settings (DESIGN §1.4).
+
+``build_scene(seq, references, config)`` compiles one ``MjModel`` and returns a ``Scene`` with index handles,
+so callers never look names up in loops:
+
+* per hand (``scene.hands[side]``): ``actuator_ids`` (45,) and ``qpos_adr`` / ``dof_adr`` (45,) in HINGE_NAMES
+  order, ``mocap_id``, ``root_qpos_adr`` (palm free joint), ``keypoint_site_ids`` (21,), ``keypoint_sensor_adr``
+  (21,) into ``sensordata`` (framepos, world), ``body_ids`` / ``body_names`` (palm + 15 segments);
+* object: ``object_body_id``, ``object_qpos_adr`` (7 values from there: pos, quat wxyz), ``object_dof_adr``
+  (6: linear world, angular *body* frame — MuJoCo's free-joint convention), ``object_geom_ids``,
+  ``object_sensor_adr`` (13 values from there: framepos 3, framequat 4, framelinvel 3, frameangvel 3, world);
+* ``substeps_per_frame``; ``object_init_pose`` (7,) the frame-0 pose used (the recorded frame 0 or the rest
+  pose, ``worker.simulation.rest_pose``) and ``table`` the plane under it (``worker.simulation.table_fit``).
+
+Collisions: hand geoms collide with object geoms only, object geoms with hand and table (contype/conaffinity
+bits in ``sim_config``). Sensors make ``mujoco.rollout`` recordings self-sufficient.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from common.geometry import FloatArray, IntArray
+from common.sequence import Sequence
+from worker.hand.model import HINGE_NAMES
+from worker.hand.reference import HandReference
+from worker.simulation.config import SimConfig
+from worker.simulation.hand_mjcf import (
+    hand_actuator_xml,
+    hand_asset_xml,
+    hand_body_names,
+    hand_equality_xml,
+    hand_sensor_xml,
+    hand_worldbody_xml,
+)
+from worker.simulation.object_model import OBJECT_BODY, OBJECT_JOINT, object_mjcf
+from worker.simulation.rest_pose import rest_pose
+from worker.simulation.support_plane import SupportPlane
+from worker.simulation.table_fit import fit_table, option_xml, table_geom_xml
+
+__all__ = ["HandHandles", "Scene", "SimConfig", "build_scene"]
+
+
+@dataclass(frozen=True)
+class HandHandles:
+    """Indices of one hand inside the compiled model (see the module docstring)."""
+
+    side: str
+    actuator_ids: IntArray
+    qpos_adr: IntArray
+    dof_adr: IntArray
+    mocap_id: int
+    palm_body_id: int
+    root_qpos_adr: int
+    root_dof_adr: int
+    keypoint_site_ids: IntArray
+    keypoint_sensor_adr: IntArray
+    body_ids: IntArray
+    body_names: tuple[str, ...]
+
+
+@dataclass
+class Scene:
+    """A compiled scene and its index handles. ``xml`` is the MJCF it was compiled from."""
+
+    model: mujoco.MjModel
+    config: SimConfig
+    fps: float
+    substeps_per_frame: int
+    hands: dict[str, HandHandles]
+    object_body_id: int
+    object_qpos_adr: int
+    object_dof_adr: int
+    object_geom_ids: IntArray
+    object_sensor_adr: int
+    table_geom_id: int
+    object_init_pose: FloatArray
+    table: SupportPlane
+    object_collision: str
+    xml: str
+    body_side: dict[int, str] = field(default_factory=dict)
+
+    @property
+    def sides(self) -> tuple[str, ...]:
+        return tuple(self.hands)
+
+    def make_data(self) -> mujoco.MjData:
+        return mujoco.MjData(self.model)
+
+
+def _ids(model: mujoco.MjModel, kind: mujoco.mjtObj, names: list[str]) -> IntArray:
+    out = np.array([mujoco.mj_name2id(model, kind, n) for n in names], dtype=np.int64)
+    missing = [n for n, i in zip(names, out, strict=True) if i < 0]
+    if missing:
+        raise RuntimeError(f"scene is missing {missing[:3]}")
+    return out
+
+
+def scene_xml(
+    seq: Sequence,
+    references: list[HandReference],
+    config: SimConfig,
+    start: tuple[FloatArray, SupportPlane],
+    *,
+    cache_dir: Path | None = None,
+) -> tuple[str, str, int]:
+    """The scene's MJCF, the object's collision method and its number of geoms. ``start``: the object's
+    frame-0 pose and the table under it (``fit_table``'s); ``cache_dir``: where convex parts are cached."""
+    pose0, table = start
+    obj = object_mjcf(seq.object, config, pose0[:3], pose0[3:], cache_dir=cache_dir)
+    hands_body = "\n".join(hand_worldbody_xml(r.geometry, config, r.wrist_pos[0], r.wrist_quat[0]) for r in references)
+    sensors = [
+        f'<framepos name="object_pos" objtype="body" objname="{OBJECT_BODY}"/>',
+        f'<framequat name="object_quat" objtype="body" objname="{OBJECT_BODY}"/>',
+        f'<framelinvel name="object_linvel" objtype="body" objname="{OBJECT_BODY}"/>',
+        f'<frameangvel name="object_angvel" objtype="body" objname="{OBJECT_BODY}"/>',
+    ] + [hand_sensor_xml(r.side) for r in references]
+    xml = f"""<mujoco model="hoi-refine-scene">
+  <compiler angle="radian" autolimits="true"/>
+  {option_xml(config)}
+  <size memory="8M"/>
+  <asset>
+{obj.assets}
+{chr(10).join(hand_asset_xml(r.geometry) for r in references)}
+  </asset>
+  <worldbody>
+    {table_geom_xml(config, table)}
+{hands_body}
+{obj.body}
+  </worldbody>
+  <equality>
+{chr(10).join(hand_equality_xml(r.side, config) for r in references)}
+  </equality>
+  <actuator>
+{chr(10).join(hand_actuator_xml(r.side, config) for r in references)}
+  </actuator>
+  <sensor>
+{chr(10).join(sensors)}
+  </sensor>
+</mujoco>
+"""
+    return xml, obj.collision, obj.num_geoms
+
+
+def build_scene(
+    seq: Sequence, references: list[HandReference], config: SimConfig | None = None, *, cache_dir: Path | None = None
+) -> Scene:
+    """Compile the scene for a sequence and its retargeted hands (one ``HandReference`` per hand). ``cache_dir``:
+    where a mesh object's convex parts are cached on disk (None: memory only)."""
+    config = config or SimConfig()
+    if not references:
+        raise ValueError("references must hold at least one HandReference")
+    keypoints = [r.keypoints for r in references]
+    start = rest_pose(seq.object_pose_world(), seq.object.surface_vertices(), keypoints, config.rest_approach_m)
+    pose0, table = fit_table(seq, config, start, cache_dir=cache_dir)
+    xml, collision, ngeom = scene_xml(seq, references, config, (pose0, table), cache_dir=cache_dir)
+    model = mujoco.MjModel.from_xml_string(xml)
+    hands: dict[str, HandHandles] = {}
+    body_side: dict[int, str] = {}
+    for r in references:
+        s = r.side
+        names = [f"{s}_{h}" for h in HINGE_NAMES]
+        joint_ids = _ids(model, mujoco.mjtObj.mjOBJ_JOINT, names)
+        bodies = hand_body_names(s)
+        body_ids = _ids(model, mujoco.mjtObj.mjOBJ_BODY, bodies)
+        palm = int(body_ids[0])
+        mocap_body = int(_ids(model, mujoco.mjtObj.mjOBJ_BODY, [f"{s}_mocap"])[0])
+        root = int(_ids(model, mujoco.mjtObj.mjOBJ_JOINT, [f"{s}_root"])[0])
+        sensors = _ids(model, mujoco.mjtObj.mjOBJ_SENSOR, [f"{s}_kp{j}" for j in range(21)])
+        hands[s] = HandHandles(
+            side=s,
+            actuator_ids=_ids(model, mujoco.mjtObj.mjOBJ_ACTUATOR, names),
+            qpos_adr=model.jnt_qposadr[joint_ids].astype(np.int64),
+            dof_adr=model.jnt_dofadr[joint_ids].astype(np.int64),
+            mocap_id=int(model.body_mocapid[mocap_body]),
+            palm_body_id=palm,
+            root_qpos_adr=int(model.jnt_qposadr[root]),
+            root_dof_adr=int(model.jnt_dofadr[root]),
+            keypoint_site_ids=_ids(model, mujoco.mjtObj.mjOBJ_SITE, [f"{s}_kp{j}" for j in range(21)]),
+            keypoint_sensor_adr=model.sensor_adr[sensors].astype(np.int64),
+            body_ids=body_ids,
+            body_names=tuple(bodies),
+        )
+        body_side.update({int(b): s for b in body_ids})
+    obj_joint = int(_ids(model, mujoco.mjtObj.mjOBJ_JOINT, [OBJECT_JOINT])[0])
+    obj_sensor = int(_ids(model, mujoco.mjtObj.mjOBJ_SENSOR, ["object_pos"])[0])
+    return Scene(
+        model=model,
+        config=config,
+        fps=float(seq.fps),
+        substeps_per_frame=config.substeps_per_frame(seq.fps),
+        hands=hands,
+        object_body_id=int(_ids(model, mujoco.mjtObj.mjOBJ_BODY, [OBJECT_BODY])[0]),
+        object_qpos_adr=int(model.jnt_qposadr[obj_joint]),
+        object_dof_adr=int(model.jnt_dofadr[obj_joint]),
+        object_geom_ids=_ids(model, mujoco.mjtObj.mjOBJ_GEOM, [f"object_{i}" for i in range(ngeom)]),
+        object_sensor_adr=int(model.sensor_adr[obj_sensor]),
+        table_geom_id=int(_ids(model, mujoco.mjtObj.mjOBJ_GEOM, ["table"])[0]),
+        object_init_pose=pose0,
+        table=table,
+        object_collision=collision,
+        xml=xml,
+        body_side=body_side,
+    )

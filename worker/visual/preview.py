@@ -1,0 +1,73 @@
+"""What the service keeps beside a finished job's result (issue #18 item 4): a cheap preview.
+
+One re-simulation (raw replay and refined, with the refined controls recorded) feeds the video (320x240 per
+panel, every frame), the Rerun recording and the plain-MuJoCo export (zipped); the plots come from the file
+alone. The worker stores them with the result (``worker.runtime``); the API serves them by name.
+"""
+
+from __future__ import annotations
+
+import io
+import tempfile
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+VIDEO = "video.mp4"
+RECORDING = "recording.rrd"
+EXPORT = "export.zip"
+PLOTS_PREFIX = "plots/"
+PREVIEW_SIZE = (320, 240)
+
+
+@dataclass(frozen=True)
+class PreviewArtifact:
+    name: str  # VIDEO, RECORDING, EXPORT or PLOTS_PREFIX + file name
+    content_type: str
+    data: bytes
+
+
+def preview_artifacts(
+    blob: bytes,
+    size: tuple[int, int] = PREVIEW_SIZE,
+    recording: bool = True,
+    export: bool = True,
+    *,
+    cache_dir: Path | None = None,
+    mano_dir: Path | None = None,
+) -> list[PreviewArtifact]:
+    """The preview of a refinement result: video, plots and (optionally) recording and export. ``cache_dir``,
+    ``mano_dir``: as for ``resimulate``."""
+    from worker.visual.gl import prefer_offscreen_backend
+
+    prefer_offscreen_backend()
+    from worker.visual.export import export_playback
+    from worker.visual.playback import resimulate
+    from worker.visual.plots import write_plots
+    from worker.visual.render import render_video
+    from worker.visual.rerun_log import write_recording
+
+    out: list[PreviewArtifact] = []
+    pb = resimulate(blob, record_controls=export, cache_dir=cache_dir, mano_dir=mano_dir)
+    with tempfile.TemporaryDirectory(prefix="hoi-refine-preview-") as tmp:
+        root = Path(tmp)
+        render_video(pb, str(root / VIDEO), ("raw", "refined"), size[0], size[1])
+        out.append(PreviewArtifact(VIDEO, "video/mp4", (root / VIDEO).read_bytes()))
+        for path in write_plots(blob, root / "plots"):
+            out.append(PreviewArtifact(PLOTS_PREFIX + path.name, "image/png", path.read_bytes()))
+        if recording:
+            write_recording(pb, root / RECORDING)
+            out.append(PreviewArtifact(RECORDING, "application/octet-stream", (root / RECORDING).read_bytes()))
+        if export:
+            folder = export_playback(pb, root / "export")
+            out.append(PreviewArtifact(EXPORT, "application/zip", _zip(folder, "export")))
+    return out
+
+
+def _zip(folder: Path, top: str) -> bytes:
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for path in sorted(folder.rglob("*")):
+            if path.is_file():
+                zf.write(path, f"{top}/{path.relative_to(folder)}")
+    return buf.getvalue()
