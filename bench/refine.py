@@ -1,16 +1,18 @@
 """Refinement benchmark on real DexYCB sequences: raw replay vs refined (issue #3, "must show").
 
     .venv/bin/python bench/refine.py --sample dev40 [--limit N] [--threads 2] [--popsize P] [--max-generations G]
+    .venv/bin/python bench/refine.py --sample dev120     # the reporting sample (bench/samples/draw.py)
 
 Reads the sample list ``bench/samples/<sample>.txt`` (file names under ../shared/data/dexycb/dev), refines each
 sequence with ``worker.refine.run.refine_sequence`` (sequentially; ``--threads`` simulation threads each) and
-writes ``bench/results/refine_dev.md``: per-sequence rows and the aggregate (success rate, first-attempt
-success, mean E_t, E_r, E_j, E_ft on both protocols — all frames, and the paper's: frames 10 onward —,
-penetration and the hand-held share of lifted frames, median wall seconds per sequence, share of wall time
-inside simulation, windows skipped) against the
-issue's targets. Per-sequence summaries are cached in ``var/bench/refine/`` so an interrupted run resumes
-(``--fresh`` ignores the cache); the cache key holds a hash of the ``common``/``worker`` sources, so a run never
-mixes results of different code.
+writes ``bench/results/refine_dev.md`` (``refine_<sample>.md`` for other samples): per-sequence rows and the
+aggregate (success rate, first-attempt success, mean E_t, E_r, E_j, E_ft on both protocols — all frames, and the
+paper's: frames 10 onward —, penetration and the hand-held share of lifted frames, median wall seconds per
+sequence, share of wall time inside simulation, windows skipped) against the issue's targets, split by hand side
+and by the awkward classes tagged in the sample list (``# awkward: ...``, see bench/samples/draw.py).
+Per-sequence summaries are cached in ``var/bench/refine/`` so an interrupted run resumes (``--fresh`` ignores the
+cache); the cache key holds a hash of the ``common``/``worker`` sources, so a run never mixes results of
+different code.
 """
 
 from __future__ import annotations
@@ -39,12 +41,17 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--popsize", type=int, default=None, help="CMA-ES population (default: the product's)")
     p.add_argument("--max-generations", type=int, default=None, help="CMA-ES generations per window")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "refine_dev.md")
+    p.add_argument("--out", type=Path, default=None,
+                   help="report file (default bench/results/refine_dev.md for dev40, refine_<sample>.md otherwise)")
     p.add_argument("--fresh", action="store_true", help="ignore cached per-sequence results")
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    if args.out is None:
+        name = "refine_dev.md" if args.sample == "dev40" else f"refine_{args.sample}.md"
+        args.out = ROOT / "bench" / "results" / name
+    return args
 
 
-def run_one(path: Path, args: argparse.Namespace, cache: Path) -> dict[str, Any]:
+def run_one(path: Path, args: argparse.Namespace, cache: Path, awkward: list[str] | None = None) -> dict[str, Any]:
     from common.dexycb import load_dexycb_npz
     from common.job_options import JobOptions
     from common.settings import get_settings
@@ -54,6 +61,7 @@ def run_one(path: Path, args: argparse.Namespace, cache: Path) -> dict[str, Any]
     hit = cache / key
     if hit.is_file() and not args.fresh:
         out: dict[str, Any] = json.loads(hit.read_text())
+        out["awkward"] = awkward or []
         if "table" not in out:  # cached before results recorded their table: the same fit, recomputed
             from worker.simulation.scene import SimConfig
             from worker.simulation.table_fit import fit_table
@@ -70,6 +78,7 @@ def run_one(path: Path, args: argparse.Namespace, cache: Path) -> dict[str, Any]
     summary["side"] = seq.hands[0].side
     cache.mkdir(parents=True, exist_ok=True)
     hit.write_text(json.dumps(summary))
+    summary["awkward"] = awkward or []
     return summary
 
 
@@ -158,6 +167,8 @@ def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) 
         *metrics_table(rows),
         *by_side(rows),
         "",
+        *group_table(rows),
+        "",
         "| targets / paper | SR % | E_t cm | E_r deg | E_j cm | E_ft cm |",
         "|---|---|---|---|---|---|",
         f"| target | >= {TARGETS['SR']:.0f} | <= {TARGETS['E_t']} | <= {TARGETS['E_r']} | <= {TARGETS['E_j']} | "
@@ -185,8 +196,9 @@ def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) 
         "## Per sequence",
         "",
         "| sequence | object | side | frames | raw ok | raw E_t | refined ok (1st) | E_t | E_r | E_j | E_ft | "
-        "E_t 10+ | E_r 10+ | pen mm | pen max | held % | wall s | sim % | skipped | escalated | table tilt deg |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "E_t 10+ | E_r 10+ | pen mm | pen max | held % | wall s | sim % | skipped | escalated | table tilt deg | "
+        "awkward |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         a, b, t = r["metrics"]["raw"], r["metrics"]["refined"], r["timings"]
@@ -200,9 +212,39 @@ def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) 
             f"{_f(None if b.get('hand_only_fraction') is None else 100 * b['hand_only_fraction'], 0)} | "
             f"{t['wall_s']:.1f} | {100 * t['sim_share']:.0f} | "
             f"{r['windows']['skipped']}/{r['windows']['count']} | {r['windows'].get('escalated', 0)} | "
-            f"{r.get('table', {}).get('tilt_deg', float('nan')):.1f} |"
+            f"{r.get('table', {}).get('tilt_deg', float('nan')):.1f} | {','.join(r.get('awkward', []))} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def groups(rows: list[dict[str, Any]]) -> list[tuple[str, list[dict[str, Any]]]]:
+    """The report's splits: by hand side, each awkward class (``bench/samples/draw.py``), and the rest."""
+    from bench.samples.draw import AWKWARD
+
+    out = [("all", rows), *((f"{s} hands", [r for r in rows if r["side"] == s]) for s in ("right", "left"))]
+    out += [(f"awkward: {c}", [r for r in rows if c in r.get("awkward", [])]) for c in AWKWARD]
+    out.append(("not awkward", [r for r in rows if not r.get("awkward")]))
+    return [(label, members) for label, members in out if members]
+
+
+def group_table(rows: list[dict[str, Any]]) -> list[str]:
+    """One line per ``groups`` split: raw and refined success (final and first attempt), object errors on both
+    protocols, hand errors and median wall time, so the awkward sequences are reported separately."""
+    lines = [
+        "| group | n | raw SR % | SR % | SR 1st % | E_t cm | E_r deg | E_t 10+ | E_r 10+ | E_j cm | E_ft cm | "
+        "median wall s |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for label, members in groups(rows):
+        raw, ref = aggregate(members, "raw"), aggregate(members, "refined")
+        paper = aggregate(members, "refined", "paper")
+        wall = statistics.median(r["timings"]["wall_s"] for r in members)
+        lines.append(
+            f"| {label} | {len(members)} | {raw['SR']:.1f} | {ref['SR']:.1f} | {ref['SR_first']:.1f} | "
+            f"{ref['E_t']:.2f} | {ref['E_r']:.2f} | {paper['E_t']:.2f} | {paper['E_r']:.2f} | {ref['E_j']:.2f} | "
+            f"{ref['E_ft']:.2f} | {wall:.1f} |"
+        )
+    return lines
 
 
 def by_side(rows: list[dict[str, Any]]) -> list[str]:
@@ -221,6 +263,7 @@ def _f(v: Any, digits: int = 2) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from bench.samples.draw import read_sample
     from common.dexycb import shared_data_dir
 
     args = parse_args(argv)
@@ -228,13 +271,13 @@ def main(argv: list[str] | None = None) -> int:
     if data is None:
         print("bench/refine.py: ../shared/data is not present", file=sys.stderr)
         return 2
-    names = [ln.strip() for ln in (ROOT / "bench" / "samples" / f"{args.sample}.txt").read_text().splitlines()
-             if ln.strip() and not ln.startswith("#")]
-    todo = names[: args.limit] if args.limit else names
+    sample = read_sample(ROOT / "bench" / "samples" / f"{args.sample}.txt")
+    names = [name for name, _ in sample]
+    todo = sample[: args.limit] if args.limit else sample
     cache = ROOT / "var" / "bench" / "refine"
     rows = []
-    for i, name in enumerate(todo, 1):
-        row = run_one(data / "dexycb" / "dev" / name, args, cache)
+    for i, (name, awkward) in enumerate(todo, 1):
+        row = run_one(data / "dexycb" / "dev" / name, args, cache, awkward)
         rows.append(row)
         m, t = row["metrics"], row["timings"]
         print(f"[{i}/{len(todo)}] {name}: raw {'ok' if m['raw']['success'] else 'FAIL'} E_t {m['raw']['E_t']:.2f} "

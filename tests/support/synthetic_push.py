@@ -1,7 +1,10 @@
 """Helpers (no tests here): a synthetic push whose object motion is, by construction, what a known hand
-motion does in simulation (for the refinement's parameter-recovery, determinism and verify tests)."""
+motion does in simulation (for the refinement's parameter-recovery, determinism and verify tests), and a
+grasp-and-lift known answer in the default parameterisation (tests/integration/test_refine_known_answer.py)."""
 
 from __future__ import annotations
+
+from typing import Any
 
 import numpy as np
 
@@ -56,3 +59,74 @@ def recovery_case(frames: int = 30, yaw_deg: float = 0.0, offset_x: float = -0.0
         start, _ = settled_start(prep, ev)
         rec = replay(prep, ev, start, {s: sp.zero_keyframes() for s, sp in prep.spaces.items()}, False)
     return push_sequence(frames, yaw_deg=yaw_deg, offset_x=offset_x, object_pose=rec.object_pose), rec.object_pose
+
+
+# ---------------------------------------------------------------------------------------------- known answer
+# A known hand motion in the default parameterisation (10 pose coefficients + wrist rotation, no translation):
+# the built-in example's grasp, closed further along the pose basis and turned about the grasp centre, which
+# lifts the box 20 cm in simulation (the example's own reference does not hold it).
+KNOWN_GRIP = np.array([0.2, -1.9, 2.1, -1.1, 0.8, -2.3, 0.3, -0.4, -0.5, -1.4])
+KNOWN_TURN = np.array([1.1, 0.1, -0.7])
+#: The perturbation of the starting controls: pose coefficients and wrist rotation (the known answer).
+KNOWN_POSE_OFFSET = np.array([0.8, -0.6, 0.4, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+KNOWN_ROTATION_OFFSET = np.array([0.6, -0.4, 0.8])
+
+
+def _rotate_about(points: np.ndarray, pivot: np.ndarray, quat: np.ndarray) -> np.ndarray:
+    """Rotate (T, ..., 3) points about per-frame pivots (T, 3) by per-frame quaternions (T, 4)."""
+    from common.geometry import quat_rotate
+
+    shape = points.shape
+    p = points.reshape(shape[0], -1, 3) - pivot[:, None]
+    q = np.broadcast_to(quat[:, None], (shape[0], p.shape[1], 4))
+    return np.asarray(quat_rotate(q, p) + pivot[:, None]).reshape(shape)
+
+
+def known_answer_case(options: JobOptions) -> tuple[Sequence, Any, np.ndarray]:
+    """(sequence, prepared problem, truth keyframes) of the known-answer test.
+
+    The truth: the grasp-and-lift hand above, whose reference the refinement gets as the recorded keypoints;
+    the recorded object is what that hand does in simulation (zero offsets). The start: the control space's
+    reference is moved by ``-KNOWN_POSE_OFFSET`` along the pose basis and turned by ``-KNOWN_ROTATION_OFFSET``
+    about its pivot, while the loss keeps the recorded targets. Every keyframe equal to
+    ``[KNOWN_POSE_OFFSET, KNOWN_ROTATION_OFFSET]`` then gives back the truth's controls (up to the spline's end
+    weights and the joint-limit clip), so that is the answer.
+    """
+    from dataclasses import replace
+
+    from common.geometry import quat_exp, quat_mul
+    from worker.example import Timeline, synthetic_grasp_and_lift
+    from worker.hand.model import JOINT_LOWER, JOINT_UPPER, forward_keypoints
+    from worker.refine.controls import OMEGA_SCALE
+    from worker.refine.evaluator import ParallelEvaluator
+    from worker.refine.prepare import prepare, settled_start
+    from worker.refine.replay import replay
+
+    clean = synthetic_grasp_and_lift(Timeline(approach=8, close=8, settle=3, lift=14, hold=6), errors=False)
+    frames = clean.num_frames
+    example = prepare(clean, options)
+    ref, space = example.references[0], example.spaces["right"]
+    ramp = np.clip((np.arange(frames) - 5) / 5.0, 0.0, 1.0)[:, None]  # closing in over frames 5-10
+    q = np.clip(ref.q + ramp * (space.basis.stddev * KNOWN_GRIP) @ space.basis.components, JOINT_LOWER, JOINT_UPPER)
+    kp = forward_keypoints(ref.geometry, ref.wrist_pos, ref.wrist_quat, q)
+    centre = np.einsum("tjk,j->tk", kp, example.hand_targets["right"].joint_weights)
+    kp = _rotate_about(kp, centre, quat_exp(OMEGA_SCALE * ramp * KNOWN_TURN))
+    hand = HandTrack("right", np.ones(frames, dtype=bool), kp)
+    truth = replace(clean, name="known-answer", hands=[hand]).validate()
+    prep = prepare(truth, options)
+    with ParallelEvaluator(prep.scene.model, 1) as ev:
+        start, _ = settled_start(prep, ev)
+        rec = replay(prep, ev, start, {"right": prep.spaces["right"].zero_keyframes()}, False)
+    seq = replace(truth, object_pose=rec.object_pose.copy()).validate()
+    prep = prepare(seq, options)
+    s0 = prep.spaces["right"]
+    turn = np.broadcast_to(quat_exp(-OMEGA_SCALE * KNOWN_ROTATION_OFFSET), s0.wrist_quat.shape)
+    assert s0.pivot is not None
+    prep.spaces["right"] = replace(
+        s0,
+        q_ref=s0.q_ref - (s0.basis.stddev * KNOWN_POSE_OFFSET) @ s0.basis.components,
+        wrist_quat=quat_mul(turn, s0.wrist_quat),
+        wrist_pos=_rotate_about(s0.wrist_pos, s0.pivot, turn),
+    )
+    truth_keyframes = np.tile(np.r_[KNOWN_POSE_OFFSET, KNOWN_ROTATION_OFFSET], (s0.n_keyframes, 1))
+    return seq, prep, truth_keyframes

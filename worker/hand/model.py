@@ -35,6 +35,12 @@ BODY_PARTS: tuple[str, ...] = ("palm", *(f"{f}{j}" for f in FINGERS for j in (1,
 FINGER_BASE_KEYPOINT: tuple[int, ...] = (1, 5, 9, 13, 17)
 #: Palm keypoints (rigid in the wrist frame): wrist and the 5 finger bases.
 PALM_KEYPOINTS: tuple[int, ...] = (0, 1, 5, 9, 13, 17)
+#: Per hinge (HINGE_NAMES order), the sign that maps a hand's hinge angles to its mirror image's: a reflection
+#: through the wrist frame's xz plane keeps every flexion and negates every abduction and twist (rotations about
+#: local z and x reverse, rotations about local y do not), so the left hand that mirrors a right hand at ``q`` is
+#: at ``MIRROR_SIGNS * q``. Joint limits of abduction and twist are symmetric, so the map stays within them.
+MIRROR_SIGNS: FloatArray = np.array([-1.0 if a in ("abd", "twist") else 1.0 for _f in FINGERS for _j in (1, 2, 3)
+                                     for a in HINGE_AXES])
 #: Hinge axes in the segment frame, in HINGE_AXES order.
 AXIS_VECTORS: FloatArray = np.array([[0.0, 0.0, 1.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0]])
 #: Hand length (wrist to middle fingertip) of the template hand, metres; widths scale with it.

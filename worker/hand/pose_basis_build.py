@@ -1,8 +1,13 @@
 """Build ``worker/hand/data/pose_basis.npz`` from the DexYCB development data (``make pose-basis``).
 
 Runs the retargeting IK over the dev sequences in ``../shared/data/dexycb/dev`` (or ``--data``), takes every
-``--stride``-th valid frame, mirrors nothing (left and right hands share the hinge convention, see
-``hand_model``), fits a PCA and stores it with its provenance (data used, frame count, date, git commit).
+``--stride``-th valid frame, maps left hands into the right hand's convention (``worker.hand.model.MIRROR_SIGNS``:
+a left hand mirroring a right hand at ``q`` is at ``MIRROR_SIGNS * q``, so abductions and twists are negated),
+fits a PCA and stores it with its provenance (data used, sides, frame count, date, git commit). The basis is
+the right hand's; ``worker.refine.prepare.pose_basis`` mirrors it for left hands.
+
+The packaged file was built with ``--sequence-stride 5``, which on the dev split's file order picks 100 right
+hands and no left hand (issue #15): a right-hand basis, which is what the refinement assumes.
 """
 
 from __future__ import annotations
@@ -19,15 +24,18 @@ import numpy as np
 from worker.hand.pose_basis import POSE_BASIS_FILE, fit_pose_basis, save_pose_basis
 
 
-def _hinges(args: tuple[str, int]) -> np.ndarray:
+def _hinges(args: tuple[str, int]) -> tuple[np.ndarray, str]:
+    """Hinge angles of every ``stride``-th valid frame, in the right hand's convention, and the hand side."""
     from common.dexycb import load_dexycb_npz
     from worker.hand.retarget import retarget_hand
 
     path, stride = args
     seq = load_dexycb_npz(path)
+    from worker.hand.model import MIRROR_SIGNS
+
     ref = retarget_hand(seq, seq.hands[0])
     idx = np.flatnonzero(ref.valid)[::stride]
-    return ref.q[idx]
+    return ref.q[idx] * (MIRROR_SIGNS if ref.side == "left" else 1.0), ref.side
 
 
 def _git_commit() -> str:
@@ -66,11 +74,14 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
         chunks = list(pool.map(_hinges, [(str(f), args.stride) for f in files], chunksize=4))
-    q = np.concatenate(chunks)
+    q = np.concatenate([c for c, _ in chunks])
+    sides = [side for _, side in chunks]
     provenance = {
         "data": f"DexYCB development split ({data.name}/): {len(files)} sequences (every {args.sequence_stride})",
         "sequences": len(files),
         "subjects": sorted({f.name.split("__")[0] for f in files}),
+        "sides": {side: sides.count(side) for side in sorted(set(sides))},
+        "convention": "right hand (left hands' abductions and twists negated)",
         "frames": int(q.shape[0]),
         "frame_stride": args.stride,
         "method": "worker.hand.retarget IK (built-in hand), PCA of the 45 hinge angles",

@@ -18,6 +18,15 @@ passes the centroid of the reference keypoints (``prepare.ROTATION_PIVOT``), nea
 held object then turns about itself when the optimiser turns the hand, instead of swinging on an ~8 cm lever
 around the wrist, so correcting the object's rotation no longer moves it, and the keypoints move least. The
 wrist leaves its recorded path by at most |domega| * |p_ref - c| (0.3 rad * ~8 cm at the bound).
+
+Left hands (``mirrored``) use the right hand's coordinates reflected through the world yz plane: the
+rotation offset is applied as ``MIRROR_ROTATION * domega`` (a rotation vector is a pseudo-vector: reflecting
+a rotation through the plane with normal x keeps its x component and negates y and z) and a free translation
+as ``MIRROR_TRANSLATION * dp``; ``prepare`` gives them the pose basis with abductions and twists negated
+(``worker.hand.model.MIRROR_SIGNS``). Then a sequence and its mirror image through that plane
+(``common.sequence_mirror``) are the same optimisation problem, sample for sample: CMA-ES draws the same
+coordinates for both and each drives the mirror image of the other's hand. CMA-ES is isotropic, so for
+any other left hand the choice of plane changes nothing on average.
 """
 
 from __future__ import annotations
@@ -36,6 +45,9 @@ N_TRANS = 3
 OMEGA_SCALE = 0.1
 #: Metres of wrist translation per unit of the optimised translation coordinates (option).
 TRANSLATION_SCALE = 0.02
+#: How a mirrored (left) hand's rotation and translation coordinates map to world offsets (module docstring).
+MIRROR_ROTATION = np.array([1.0, -1.0, -1.0])
+MIRROR_TRANSLATION = np.array([-1.0, 1.0, 1.0])
 
 
 
@@ -85,6 +97,8 @@ class HandControlSpace:
     free_translation: bool = False
     #: (T, 3) world point the rotation offset turns the hand about (None: the wrist, see the module docstring).
     pivot: FloatArray | None = None
+    #: Rotation/translation coordinates reflected through the world yz plane (left hands; module docstring).
+    mirrored: bool = False
 
     def __post_init__(self) -> None:
         if self.q_ref.ndim != 2:
@@ -148,7 +162,8 @@ class HandControlSpace:
         samples ``idx`` (n,) for offsets (C, n, dim) from ``offsets``."""
         q = self._q_sub[idx][None] + offsets[..., :N_POSE] @ self._pose_map.T
         q = np.clip(q, self.q_limits[:, 0], self.q_limits[:, 1])
-        rot = quat_exp(OMEGA_SCALE * offsets[..., N_POSE : N_POSE + N_ROT])
+        omega = offsets[..., N_POSE : N_POSE + N_ROT]
+        rot = quat_exp(OMEGA_SCALE * (omega * MIRROR_ROTATION if self.mirrored else omega))
         quat = quat_mul(rot, np.broadcast_to(self._r_sub[idx][None], rot.shape))
         pos = np.broadcast_to(self._p_sub[idx][None], (offsets.shape[0], len(idx), 3)).copy()
         if self._c_sub is not None:
@@ -156,7 +171,8 @@ class HandControlSpace:
             arm = pos - self._c_sub[idx][None]
             pos += quat_rotate(rot, arm) - arm
         if self.free_translation:
-            pos += TRANSLATION_SCALE * offsets[..., N_POSE + N_ROT :]
+            dp = offsets[..., N_POSE + N_ROT :]
+            pos += TRANSLATION_SCALE * (dp * MIRROR_TRANSLATION if self.mirrored else dp)
         return q, pos, quat
 
     def frame_controls(self, keyframes: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:

@@ -53,11 +53,14 @@ def derive_result(
     *,
     cache_dir: Path | None = None,
     mano_dir: Path | None = None,
+    mirror_left: bool | None = None,
 ) -> Derived:
     """See the module docstring. ``attempt_keyframes`` the keyframes of every attempt (restarts) in order, stored
-    so ``verify`` can check the first attempt's success too; ``cache_dir`` and ``mano_dir`` as for ``prepare``."""
+    so ``verify`` can check the first attempt's success too; ``cache_dir``, ``mano_dir`` and ``mirror_left`` (the
+    left hand's control convention, ``config.left_hand_controls``) as for ``prepare``."""
     seq = sequence_from_npz_bytes(sequence_bytes)
-    prep = prepare(seq, options, config, rotation_pivot=rotation_pivot, cache_dir=cache_dir, mano_dir=mano_dir)
+    prep = prepare(seq, options, config, rotation_pivot=rotation_pivot, cache_dir=cache_dir, mano_dir=mano_dir,
+                   mirror_left=mirror_left)
     for side, space in prep.spaces.items():
         k = keyframes.get(side)
         if k is None or k.shape != (space.n_keyframes, space.dim):

@@ -15,7 +15,7 @@ from common.geometry import FloatArray
 from common.job_options import JobOptions
 from common.sequence import FINGERTIP_INDICES, Sequence
 from worker.hand.mano.pose import mano_pca_basis
-from worker.hand.model import JOINT_LIMITS
+from worker.hand.model import JOINT_LIMITS, MIRROR_SIGNS
 from worker.hand.pose_basis import load_pose_basis
 from worker.hand.reference import HandReference
 from worker.hand.retarget import retarget_sequence
@@ -45,6 +45,12 @@ DEFAULT_MAX_GENERATIONS = 10
 #: object then swings on the ~8 cm lever from the wrist; results made before the pivot was recorded).
 PIVOTS = ("hand", "wrist")
 ROTATION_PIVOT = "hand"
+#: A left hand's control coordinates are the mirror image of a right hand's (``prepare(mirror_left=...)``): the
+#: pose basis with abductions and twists negated, the wrist rotation reflected. Then a sequence and its mirror
+#: image are the same problem. Measured on small samples (bench/results/left_hands_thin.md) it did not improve
+#: left hands at a small budget (7 of 8 refined a little worse, one more failure); kept because it makes the two
+#: sides one method (tests/integration/test_refine_mirror.py). False restores the old treatment of left hands.
+MIRROR_LEFT_HAND = True
 
 
 @dataclass
@@ -62,6 +68,7 @@ class Prepared:
     rotation_pivot: str  # what the wrist rotation offset turns the hand about (one of PIVOTS)
     #: The MANO model folder the references were made with (None: no MANO hand), for the result's MANO arrays.
     mano_dir: Path | None = None
+    mirror_left: bool = True  # a left hand's control coordinates mirror a right hand's (``prepare``)
 
     @property
     def num_frames(self) -> int:
@@ -86,11 +93,15 @@ def mano_pose_basis(seq: Sequence, reference: HandReference, like: PoseBasis10, 
 
 
 def pose_basis(
-    references: list[HandReference], seq: Sequence | None = None, mano_dir: Path | None = None
+    references: list[HandReference], seq: Sequence | None = None, mano_dir: Path | None = None,
+    mirror_left: bool = True,
 ) -> tuple[dict[str, PoseBasis10], str]:
-    """The packaged pose basis (``worker.hand.pose_basis``, one PCA over the built-in hand's hinges, used for both
-    sides since the left hand mirrors the right with the same hinge conventions); without the packaged file,
-    a PCA of this sequence's own reference hinge angles (a documented fallback named in the provenance)."""
+    """The packaged pose basis (``worker.hand.pose_basis``, one PCA over the built-in hand's hinges in the right
+    hand's convention); a left hand gets its mirror image (``MIRROR_SIGNS``: abductions and twists negated),
+    since the left hand that mirrors a right hand at ``q`` is at ``MIRROR_SIGNS * q``. Without the packaged file,
+    a PCA of this sequence's own reference hinge angles (a documented fallback named in the provenance).
+    ``mirror_left=False``: the packaged basis unmirrored for both sides (results made before issue #15; the
+    packaged basis came from right hands only)."""
     try:
         packaged = load_pose_basis()
     except ConfigurationError:
@@ -99,7 +110,8 @@ def pose_basis(
         basis = PoseBasis10(np.asarray(packaged.components[:10], dtype=np.float64),
                             np.asarray(packaged.stddev[:10], dtype=np.float64))
         source = json.dumps(packaged.provenance, sort_keys=True)[:300]
-        bases: dict[str, PoseBasis10] = {r.side: basis for r in references}
+        left = PoseBasis10(basis.components * MIRROR_SIGNS, basis.stddev) if mirror_left else basis
+        bases: dict[str, PoseBasis10] = {r.side: left if r.side == "left" else basis for r in references}
         mano_sides = [r.side for r in references if r.from_mano and seq is not None]
         for r in references:
             if r.side in mano_sides:
@@ -107,6 +119,8 @@ def pose_basis(
                 bases[r.side] = mano_pose_basis(seq, r, basis, mano_dir)
         if mano_sides:
             source += f"; MANO PCA basis for {', '.join(mano_sides)}"
+        if mirror_left and any(r.side == "left" and r.side not in mano_sides for r in references):
+            source += "; mirrored for the left hand"
         # A provenance label stored in every result: it keeps the name the basis had when results began to
         # record it (the module now lives in worker.hand), so a result's bytes do not depend on where code sits.
         return bases, f"worker.pose_basis (packaged): {source}"
@@ -131,16 +145,22 @@ def prepare(
     *,
     cache_dir: Path | None = None,
     mano_dir: Path | None = None,
+    mirror_left: bool | None = None,
 ) -> Prepared:
     """``rotation_pivot``: ``ROTATION_PIVOT`` when None (``verify`` passes the one a result was made with).
     ``cache_dir``: where convex parts are cached (None: memory only); ``mano_dir``: the MANO model folder
-    (None: hands given by keypoints only, see ``retarget_sequence``)."""
+    (None: hands given by keypoints only, see ``retarget_sequence``). ``mirror_left``: a left hand's control
+    coordinates are the mirror image of a right hand's (pose basis, wrist rotation and translation;
+    ``controls``); ``MIRROR_LEFT_HAND`` when None; False reproduces results made before issue #15, which
+    recorded no ``config.left_hand_controls``."""
+    if mirror_left is None:
+        mirror_left = MIRROR_LEFT_HAND
     config = config or SimConfig()
     references = retarget_sequence(seq, mano_dir=mano_dir)
     scene = build_scene(seq, references, config, cache_dir=cache_dir)
     layout = SimLayout.from_scene(scene)
     interval = options.keyframe_interval or default_keyframe_interval(seq.fps)
-    bases, provenance = pose_basis(references, seq, mano_dir)
+    bases, provenance = pose_basis(references, seq, mano_dir, mirror_left)
     pivot_kind = rotation_pivot or ROTATION_PIVOT
     if pivot_kind not in PIVOTS:
         raise ValueError(f"rotation_pivot must be one of {', '.join(PIVOTS)}, got {pivot_kind!r}")
@@ -170,9 +190,10 @@ def prepare(
             substeps=scene.substeps_per_frame,
             free_translation=options.free_wrist_translation,
             pivot=None if pivot is None else lead_values(pivot, lead),
+            mirrored=mirror_left and r.side == "left",
         )
     return Prepared(seq, options, interval, references, scene, layout, spaces, obj, hands, provenance, pivot_kind,
-                    mano_dir)
+                    mano_dir, mirror_left)
 
 
 def pivot_track(kind: str, keypoints: FloatArray, joint_weights: FloatArray) -> FloatArray | None:

@@ -78,6 +78,9 @@ def build_summary(
             "loss_weights": weights,
             "free_wrist_translation": bool(prep.options.free_wrist_translation),
             "rotation_pivot": prep.rotation_pivot,
+            # "mirrored": a left hand's coordinates mirror a right hand's (``prepare.prepare(mirror_left=...)``);
+            # results without this key were made with the right hand's coordinates for both sides.
+            "left_hand_controls": "mirrored" if prep.mirror_left else "as right",
             "pose_basis": prep.basis_provenance,
         },
         "versions": versions(),
@@ -127,7 +130,8 @@ def prepare_from_result(
     options = JobOptions.model_validate(summary["options"])
     prep = prepare(sequence, options, sim_config_from_summary(summary["config"]["sim"]),
                    rotation_pivot=summary["config"].get("rotation_pivot", "wrist"), cache_dir=cache_dir,
-                   mano_dir=mano_dir)  # fmt: skip
+                   mano_dir=mano_dir, mirror_left=summary["config"].get("left_hand_controls") == "mirrored",
+                   )  # fmt: skip
     keyframes = {}
     for side, space in prep.spaces.items():
         key = f"{side}_keyframes"

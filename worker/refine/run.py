@@ -130,7 +130,8 @@ def refine_sequence(
     # The result: the derivation ``verify`` repeats, from the embedded bytes in a fresh model and MjData.
     t_derive = time.perf_counter()
     derived = derive_result(seq_bytes, options, prep.scene.config, prep.rotation_pivot, keyframes,
-                            tried if len(tried) > 1 else None, cache_dir=cache_dir, mano_dir=mano_dir)
+                            tried if len(tried) > 1 else None, cache_dir=cache_dir, mano_dir=mano_dir,
+                            mirror_left=prep.mirror_left)
     derive_s = time.perf_counter() - t_derive
     wall = time.perf_counter() - t0
     final = derived.final

@@ -36,7 +36,7 @@ from common.result_format import read_arrays, read_summary
 from common.sequence import Sequence
 from common.sequence_io import sequence_to_npz_bytes
 from worker.refine.derive import derive_result
-from worker.refine.prepare import ROTATION_PIVOT
+from worker.refine.prepare import MIRROR_LEFT_HAND, ROTATION_PIVOT
 from worker.refine.verify_arrays import ArrayChecker, check_stored_metrics
 from worker.refine.verify_report import CROSS_HOST, Tolerances, VerifyReport
 from worker.refine.verify_summary import check_summary
@@ -81,7 +81,7 @@ def check_result(
         raise UnsupportedFormatError("the result embeds no sequence; pass --sequence")
     report = VerifyReport()
     config = summary.get("config", {})
-    sim, pivot = _config(config, report, allow_config)
+    sim, pivot, mirror_left = _config(config, report, allow_config)
     options = JobOptions.model_validate(summary["options"])
     sides = list(summary.get("sides") or [k[: -len("_keyframes")] for k in arrays if k.endswith("_keyframes")
                                           and not k.endswith("_attempt_keyframes")])
@@ -89,7 +89,7 @@ def check_result(
     attempt_kf = _attempt_keyframes(arrays, sides)
     try:
         derived = derive_result(seq_bytes, options, SimConfig(**sim), pivot, keyframes,  # type: ignore[arg-type]
-                                attempt_kf, cache_dir=cache_dir, mano_dir=mano_dir)
+                                attempt_kf, cache_dir=cache_dir, mano_dir=mano_dir, mirror_left=mirror_left)
     except ValueError as exc:
         raise ResultMismatchError(f"the stored controls do not fit the sequence: {exc}") from exc
     c = ArrayChecker(report, arrays, derived.arrays)
@@ -115,8 +115,9 @@ def check_result(
 # ---------------------------------------------------------------------------------------------- config
 
 
-def _config(config: dict[str, Any], report: VerifyReport, allow_config: bool) -> tuple[dict[str, Any], str]:
-    """The stored sim settings (older defaults filled in) and pivot; config differences into the report."""
+def _config(config: dict[str, Any], report: VerifyReport, allow_config: bool) -> tuple[dict[str, Any], str, bool]:
+    """The stored sim settings (older defaults filled in), pivot and left-hand control convention (True: mirrored);
+    config differences into the report."""
     defaults = SimConfig().to_dict()
     stored: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in config.get("sim", {}).items()}
     unknown = sorted(set(stored) - set(defaults))
@@ -134,11 +135,19 @@ def _config(config: dict[str, Any], report: VerifyReport, allow_config: bool) ->
         report.config_notes.append(f"rotation_pivot not recorded (older result): read as {OLDER_PIVOT!r}")
     elif pivot != ROTATION_PIVOT:
         report.config_changes.append(("rotation_pivot", ROTATION_PIVOT, pivot))
+    # Results made before issue #15 drove a left hand with the right hand's coordinates (no key recorded).
+    left = config.get("left_hand_controls")
+    current = "mirrored" if MIRROR_LEFT_HAND else "as right"
+    if left is None:
+        left = "as right"
+        report.config_notes.append("left_hand_controls not recorded (older result): read as 'as right'")
+    elif left != current:
+        report.config_changes.append(("left_hand_controls", current, left))
     if report.config_changes and not allow_config:
         for name, default, value in report.config_changes:
             report.failures.append(f"config {name}: {value!r} differs from the default {default!r} "
                                    "(--allow-config accepts a non-default physics config)")
-    return stored, str(pivot)
+    return stored, str(pivot), left == "mirrored"
 
 
 def _differs(a: Any, b: Any) -> bool:

@@ -80,8 +80,11 @@ def hand_worldbody_xml(geometry: HandGeometry, config: SimConfig, wrist_pos: Flo
     # Palm: a box spanning wrist -> knuckles and index -> pinky (metacarpals), palm thickness from anthropometry.
     knuckles = geometry.bases[1:]
     x0, x1 = 0.1 * float(np.linalg.norm(knuckles[2])), float(knuckles[:, 0].mean())
-    y0 = float(knuckles[:, 1].min()) - float(geometry.radii[1, 0])
-    y1 = float(knuckles[:, 1].max()) + float(geometry.radii[4, 0])
+    # Each side of the box reaches past the outermost knuckle by that finger's own radius (index on one side,
+    # pinky on the other; which is which depends on the hand side, so a left palm mirrors the right one).
+    lo, hi = int(np.argmin(knuckles[:, 1])), int(np.argmax(knuckles[:, 1]))
+    y0 = float(knuckles[lo, 1]) - float(geometry.radii[1 + lo, 0])
+    y1 = float(knuckles[hi, 1]) + float(geometry.radii[1 + hi, 0])
     half = [(x1 - x0) / 2, (y1 - y0) / 2, geometry.palm_half_thickness]
     centre = [(x0 + x1) / 2, (y0 + y1) / 2, 0.0]
     box = f'<geom name="{side}_palm" type="box" size="{fmt(half)}" pos="{fmt(centre)}" {geom_common}/>'
