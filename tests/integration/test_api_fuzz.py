@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from common.npz_writer import deterministic_npz_bytes
 from common.sequence_io import sequence_to_json_dict
-from tests.support.fuzz_strategies import JSON_VALUES, VALID, json_paths, mutated_members
+from tests.support.fuzz_strategies import VALID, mutate_json, mutated_members
 from tests.support.queue_fixtures import BACKENDS, ApiHarness, tiny_sequence
 
 API_FUZZ = settings(max_examples=40, deadline=None, suppress_health_check=list(HealthCheck))
@@ -58,15 +58,7 @@ def test_mutated_json_bodies_never_5xx(api: ApiHarness) -> None:
     def run(data: st.DataObject, options: dict[str, Any]) -> None:
         doc: Any = sequence_to_json_dict(tiny_sequence(data.draw(st.integers(0, 3))).validate())
         doc["options"] = options
-        for _ in range(data.draw(st.integers(0, 2))):
-            path = data.draw(st.sampled_from(json_paths(doc)))
-            if not path:
-                doc = data.draw(JSON_VALUES)
-                break
-            parent = doc
-            for part in path[:-1]:
-                parent = parent[part]
-            parent[path[-1]] = data.draw(JSON_VALUES)
+        doc = mutate_json(data, doc, data.draw(st.integers(0, 2)))
         body = json.dumps(doc, allow_nan=True).encode()
         headers = {**api.headers, "Content-Type": "application/json"}
         _assert_answer(api.client.post("/v1/jobs", content=body, headers=headers))

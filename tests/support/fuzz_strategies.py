@@ -104,3 +104,18 @@ ACTIONS = st.sampled_from(["flip", "cut", "insert", "zero"])
 EDITS = st.tuples(st.floats(0, 1), ACTIONS, st.binary(min_size=1, max_size=8))
 
 
+def mutate_json(data: st.DataObject, doc: Any, times: int, drop: bool = False) -> Any:
+    """``doc`` with ``times`` values replaced by arbitrary JSON (``drop``: or keys removed); a mutation of the
+    root replaces the whole document."""
+    for _ in range(times):
+        path = data.draw(st.sampled_from(json_paths(doc)))
+        if not path:
+            return data.draw(JSON_VALUES)
+        parent = doc
+        for part in path[:-1]:
+            parent = parent[part]
+        if drop and data.draw(st.booleans()) and isinstance(parent, dict):
+            parent.pop(path[-1], None)
+        else:
+            parent[path[-1]] = data.draw(JSON_VALUES)
+    return doc

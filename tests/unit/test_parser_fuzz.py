@@ -32,11 +32,10 @@ from tests.support.dexycb_tree import write_tree
 from tests.support.fuzz_strategies import (
     DEXYCB,
     EDITS,
-    JSON_VALUES,
     VALID,
-    json_paths,
     mano_sequence,
     mesh_sequence,
+    mutate_json,
     mutated_members,
 )
 from tests.support.queue_fixtures import tiny_sequence
@@ -101,18 +100,7 @@ def _zip(arrays: dict[str, np.ndarray], stored: bool) -> bytes:
 def test_native_json_with_mutated_values(data: st.DataObject, which: int) -> None:
     seqs = [tiny_sequence(0).validate(), mesh_sequence(), mano_sequence()]
     doc = sequence_to_json_dict(seqs[which])
-    for _ in range(data.draw(st.integers(1, 3))):
-        path = data.draw(st.sampled_from(json_paths(doc)))
-        if not path:
-            doc = data.draw(JSON_VALUES)
-            break
-        parent = doc
-        for part in path[:-1]:
-            parent = parent[part]
-        if data.draw(st.booleans()) and isinstance(parent, dict):
-            parent.pop(path[-1], None)
-        else:
-            parent[path[-1]] = data.draw(JSON_VALUES)
+    doc = mutate_json(data, doc, data.draw(st.integers(1, 3)), drop=True)
     text = json.dumps(doc).encode()
     if data.draw(st.booleans()):  # and sometimes broken text: cut, or deep nesting, or a NaN literal
         text = data.draw(st.sampled_from([text[: len(text) // 2], b"[" * 100_000, text.replace(b"0.0", b"NaN", 1)]))
