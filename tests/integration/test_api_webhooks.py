@@ -6,19 +6,14 @@ from __future__ import annotations
 
 import socket
 import time
-from collections.abc import Iterator
 from datetime import datetime
 from typing import Any
 
 import pytest
-from fastapi.testclient import TestClient
 from standardwebhooks.webhooks import Webhook, WebhookVerificationError
 
-from common.api_key_store import ApiKeyStore
-from common.database import create_engine_for
 from common.queue import JobQueue
 from common.settings import Settings
-from service.app import create_app
 from tests.support.api import json_body
 from tests.support.live_server import webhook_receiver
 from tests.support.queue_fixtures import BACKENDS, ApiHarness, fake_result
@@ -27,18 +22,11 @@ pytestmark = pytest.mark.parametrize("empty_db_url", BACKENDS, indirect=True)
 
 
 @pytest.fixture
-def hooks_api(db_url: str) -> Iterator[ApiHarness]:
-    """The app with a fast dispatcher (TestClient runs its lifespan, so the dispatcher task runs)."""
-    settings = Settings(webhook_poll_seconds=0.05, webhook_backoff_seconds=0.05, webhook_timeout_seconds=30,
-                        max_active_jobs_per_key=50)  # fmt: skip
-    engine = create_engine_for(db_url)
-    app = create_app(settings, engine)
-    queue: JobQueue = app.state.queue
-    keys: ApiKeyStore = app.state.api_keys
-    key_id, plaintext = keys.create("hooks")
-    with TestClient(app) as client:
-        yield ApiHarness(client, queue, keys, key_id, {"Authorization": f"Bearer {plaintext}"})
-    engine.dispose()
+def api_settings() -> Settings:
+    """The ``api`` harness (tests/support/queue_fixtures.py) with a fast webhook dispatcher: TestClient runs the
+    app's lifespan, so the dispatcher task runs."""
+    return Settings(webhook_poll_seconds=0.05, webhook_backoff_seconds=0.05, webhook_timeout_seconds=30,
+                    max_active_jobs_per_key=50)  # fmt: skip
 
 
 def run_job(queue: JobQueue, job_id: str) -> None:
@@ -56,8 +44,7 @@ def wait_until(condition: Any, what: str, timeout: float = 60.0) -> Any:
     raise AssertionError(f"timed out waiting for {what}")
 
 
-def test_signed_deliveries_verify_and_a_500_is_retried(hooks_api: ApiHarness) -> None:
-    api = hooks_api
+def test_signed_deliveries_verify_and_a_500_is_retried(api: ApiHarness) -> None:
     with webhook_receiver(statuses=[500]) as rec:
         made = api.client.post("/v1/webhooks", json={"url": rec.url}, headers=api.headers)
         assert made.status_code == 201, made.text
@@ -108,8 +95,7 @@ def test_signed_deliveries_verify_and_a_500_is_retried(hooks_api: ApiHarness) ->
         assert api.client.get(log_url, headers=api.headers).status_code == 404
 
 
-def test_a_hanging_receiver_blocks_neither_the_queue_nor_other_webhooks(hooks_api: ApiHarness) -> None:
-    api = hooks_api
+def test_a_hanging_receiver_blocks_neither_the_queue_nor_other_webhooks(api: ApiHarness) -> None:
     with webhook_receiver(hang=True) as stuck, webhook_receiver() as healthy:
         for url, types in ((stuck.url, []), (healthy.url, ["job.succeeded"])):
             resp = api.client.post("/v1/webhooks", json={"url": url, "event_types": types}, headers=api.headers)
@@ -137,16 +123,14 @@ def test_a_hanging_receiver_blocks_neither_the_queue_nor_other_webhooks(hooks_ap
         )  # fmt: skip
 
 
-def test_webhook_input_is_validated(hooks_api: ApiHarness) -> None:
-    api = hooks_api
+def test_webhook_input_is_validated(api: ApiHarness) -> None:
     bad = api.client.post("/v1/webhooks", json={"url": "ftp://x", "event_types": ["job.exploded"]},
                           headers=api.headers)  # fmt: skip
     assert bad.status_code == 422
     assert {e["field"] for e in bad.json()["errors"]} == {"url", "event_types[0]"}
 
 
-def test_a_dead_receiver_is_retried_with_backoff_then_given_up(hooks_api: ApiHarness) -> None:
-    api = hooks_api
+def test_a_dead_receiver_is_retried_with_backoff_then_given_up(api: ApiHarness) -> None:
     store = api.client.app.state.webhooks
     store.settings = store.settings.model_copy(update={"webhook_max_attempts": 3})
     with socket.socket() as s:  # a port nothing listens on: every attempt is refused
