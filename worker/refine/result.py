@@ -110,6 +110,7 @@ def sim_config_from_summary(stored: dict[str, Any]) -> SimConfig:
     sim.setdefault("wrist_lead_s", 0.0)
     sim.setdefault("rest_approach_m", 0.0)
     sim.setdefault("finger_lead_s", 0.0)
+    sim.setdefault("impratio", 1.0)  # before issue #19 MuJoCo's default
     return SimConfig(**sim)
 
 

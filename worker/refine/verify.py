@@ -46,7 +46,7 @@ __all__ = ["CROSS_HOST", "Tolerances", "VerifyReport", "check_result", "verify_r
 
 #: Settings a result does not record were, before they existed, these (the mocap and servos followed their
 #: tracks, the object started from frame 0, the hand turned about the wrist).
-OLDER_DEFAULTS: dict[str, Any] = {"wrist_lead_s": 0.0, "finger_lead_s": 0.0, "rest_approach_m": 0.0}
+OLDER_DEFAULTS: dict[str, Any] = {"wrist_lead_s": 0.0, "finger_lead_s": 0.0, "rest_approach_m": 0.0, "impratio": 1.0}
 OLDER_PIVOT = "wrist"
 
 

@@ -18,6 +18,9 @@ class SimConfig:
     solver: str = "Newton"
     iterations: int = 10
     noslip_iterations: int = 10
+    #: Ratio of frictional to normal constraint impedance (MuJoCo ``impratio``, elliptic cones only). Above 1 the
+    #: friction constraints are stiffer than the normal ones, so a pinched grasp creeps less without the noslip pass.
+    impratio: float = 1.0
     #: Elliptic cones hold DexYCB grasps far better than pyramidal ones (static holds: 7-8/10 vs 4/10).
     cone: str = "elliptic"
     contact_solimp: tuple[float, float, float] = (0.9, 0.99, 0.001)

@@ -35,7 +35,7 @@ def option_xml(config: SimConfig) -> str:
     return (
         f'<option timestep="{config.timestep:.12g}" integrator="{config.integrator}" solver="{config.solver}"\n'
         f'          iterations="{config.iterations}" noslip_iterations="{config.noslip_iterations}" '
-        f'cone="{config.cone}"/>'
+        f'cone="{config.cone}" impratio="{config.impratio:g}"/>'
     )
 
 
