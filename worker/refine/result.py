@@ -12,7 +12,7 @@ sequence in the native NPZ format, so ``verify`` needs nothing else. Summary JSO
 metrics.raw / metrics.refined (both protocols, plausibility, first-attempt success), options, config (simulation
 settings, keyframe interval, CMA-ES settings, loss weights), seed, versions, table (the plane under the frame-0
 object: point, normal, tilt_deg), attempts (seed, success, E_t, E_r on both protocols, evaluations of each
-CMA-ES run; the result is the best), windows (count, skipped, escalated, per window loss), timings (the
+CMA-ES run; the result is the best), windows (count, skipped, escalated, stopped early, per window loss), timings (the
 deterministic counters; the wall-clock figures are stored in the ``timings_json`` member, see
 ``common.result_format``, and ``read_summary`` merges them back). ``prepare_from_result`` and
 ``compare_object_trajectory`` serve the visual tools' replays.
@@ -89,9 +89,11 @@ def build_summary(
             "skipped": int(sum(w.skipped for w in logs)),
             "optimised": int(sum(not w.skipped for w in logs)),
             "escalated": int(sum(w.escalated for w in logs)),
+            "stopped_early": int(sum(w.stopped_early for w in logs)),
             "per_window": [
                 {"keyframe": w.index, "skipped": w.skipped, "touched": w.touched, "escalated": w.escalated,
-                 "initial_loss": w.initial_loss, "best_loss": w.best_loss, "evaluations": w.evaluations}
+                 "stopped_early": w.stopped_early, "initial_loss": w.initial_loss, "best_loss": w.best_loss,
+                 "evaluations": w.evaluations}
                 for w in logs
             ],
         },

@@ -68,6 +68,13 @@ class CmaSettings:
     #: A second, larger CMA-ES run for windows whose best loss stays above this (inf: never).
     escalate_loss: float = float("inf")
     escalate_factor: int = 2
+    #: Stop a window's CMA-ES early when its best loss improved by less than ``stall_tolerance`` (relative) over
+    #: the last ``stall_generations`` generations (0: always run ``max_generations``), but only once that loss is
+    #: below ``stall_below`` (None: ``skip_loss``, the level at which an untouched window needs no work): a window
+    #: still far off keeps searching, since the greedy window cannot undo what it commits.
+    stall_generations: int = 0
+    stall_tolerance: float = 0.01
+    stall_below: float | None = float("inf")
 
 
 @dataclass
@@ -80,6 +87,8 @@ class WindowLog:
     evaluations: int
     history: list[float] = field(default_factory=list)  # best loss per generation
     escalated: bool = False
+    #: The CMA-ES run ended before ``max_generations`` because the best loss stopped improving.
+    stopped_early: bool = False
 
 
 @dataclass
@@ -195,12 +204,26 @@ def _optimise_one(
         total = float(sum(b[0] for b in best.values()))
         log.history.append(total)
         report(j, total)
+        if _stalled(log.history, settings):
+            log.stopped_early = True
+            break
     # Hands were scored on paired rollouts; take each hand's best and confirm the pair jointly via commit.
     for side in problem.sides:
         kf[side][j:] = best[side][1]
     log.best_loss = float(sum(b[0] for b in best.values()))
     log.evaluations += evals
     return {s: b[0] for s, b in best.items()}
+
+
+def _stalled(history: list[float], settings: CmaSettings) -> bool:
+    """True when the best loss is below the stall level and improved by no more than ``stall_tolerance``
+    (relative) over the last ``stall_generations`` generations: more generations would polish, not fix."""
+    k = settings.stall_generations
+    below = settings.skip_loss if settings.stall_below is None else settings.stall_below
+    if k <= 0 or len(history) <= k or history[-1] >= below:
+        return False
+    before, now = history[-k - 1], history[-1]
+    return before - now <= settings.stall_tolerance * abs(before)
 
 
 def _escalated(settings: CmaSettings) -> CmaSettings:
