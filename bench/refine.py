@@ -44,11 +44,59 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--out", type=Path, default=None,
                    help="report file (default bench/results/refine_dev.md for dev40, refine_<sample>.md otherwise)")
     p.add_argument("--fresh", action="store_true", help="ignore cached per-sequence results")
+    p.add_argument("--sim", action="append", default=[], metavar="NAME=VALUE",
+                   help="a physics setting (worker.simulation.config.SimConfig) other than the product's default, "
+                   "for speed/fidelity experiments; repeatable, e.g. --sim noslip_iterations=0 --sim impratio=30")
+    p.add_argument("--cma", action="append", default=[], metavar="NAME=VALUE",
+                   help="a CMA-ES setting (worker.refine.windowed.CmaSettings) other than the product's, e.g. "
+                   "--cma stall_generations=3; repeatable")
     args = p.parse_args(argv)
+    args.sim_overrides = parse_overrides(args.sim, p, "--sim", sim_defaults())
+    args.cma_overrides = parse_overrides(args.cma, p, "--cma", cma_defaults())
     if args.out is None:
         name = "refine_dev.md" if args.sample == "dev40" else f"refine_{args.sample}.md"
         args.out = ROOT / "bench" / "results" / name
     return args
+
+
+def sim_defaults() -> dict[str, Any]:
+    from worker.simulation.config import SimConfig
+
+    return SimConfig().to_dict()
+
+
+def cma_defaults() -> dict[str, Any]:
+    import dataclasses
+
+    from worker.refine.windowed import CmaSettings
+
+    return {k: v for k, v in dataclasses.asdict(CmaSettings()).items() if k != "seed"}
+
+
+def parse_overrides(pairs: list[str], parser: argparse.ArgumentParser, flag: str, defaults: dict[str, Any]
+                    ) -> dict[str, Any]:
+    """``NAME=VALUE`` pairs -> field overrides, each value parsed as the field's default's type."""
+    out: dict[str, Any] = {}
+    for pair in pairs:
+        name, sep, text = pair.partition("=")
+        if not sep or name not in defaults:
+            parser.error(f"{flag} {pair!r}: expected NAME=VALUE with NAME one of {', '.join(sorted(defaults))}")
+        default = defaults[name]
+        try:
+            if isinstance(default, tuple):
+                out[name] = tuple(float(v) for v in text.split(","))
+            elif isinstance(default, bool):
+                out[name] = text.lower() in ("1", "true", "yes")
+            else:
+                out[name] = type(default)(text)
+        except ValueError:
+            parser.error(f"{flag} {pair!r}: {text!r} is not a {type(default).__name__}")
+    return out
+
+
+def sim_tag(overrides: dict[str, Any]) -> str:
+    """The overrides as a short file-name-safe tag ("" for the product's defaults)."""
+    return "".join(f"_{k}={','.join(map(str, v)) if isinstance(v, tuple) else v}" for k, v in sorted(overrides.items()))
 
 
 def run_one(path: Path, args: argparse.Namespace, cache: Path, awkward: list[str] | None = None) -> dict[str, Any]:
@@ -56,8 +104,10 @@ def run_one(path: Path, args: argparse.Namespace, cache: Path, awkward: list[str
     from common.job_options import JobOptions
     from common.settings import get_settings
     from worker.refine.run import refine_sequence
+    from worker.simulation.config import SimConfig
 
-    key = f"{path.stem}__p{args.popsize}_g{args.max_generations}_s{args.seed}_t{args.threads}_c{code_digest()}.json"
+    key = (f"{path.stem}__p{args.popsize}_g{args.max_generations}_s{args.seed}_t{args.threads}"
+           f"{sim_tag(args.sim_overrides)}{sim_tag(args.cma_overrides)}_c{code_digest()}.json")
     hit = cache / key
     if hit.is_file() and not args.fresh:
         out: dict[str, Any] = json.loads(hit.read_text())
@@ -71,7 +121,9 @@ def run_one(path: Path, args: argparse.Namespace, cache: Path, awkward: list[str
     seq = load_dexycb_npz(path)
     options = JobOptions(seed=args.seed, popsize=args.popsize, max_generations=args.max_generations)
     t0 = time.perf_counter()
-    outcome = refine_sequence(seq, options, threads=args.threads, cache_dir=get_settings().resolved_cache_dir())
+    config = SimConfig(**args.sim_overrides)
+    outcome = refine_sequence(seq, options, threads=args.threads, cache_dir=get_settings().resolved_cache_dir(),
+                              config=config, cma_overrides=args.cma_overrides)
     summary = dict(outcome.summary)
     summary["bench_wall_s"] = time.perf_counter() - t0
     summary["object"] = seq.object.name
@@ -154,6 +206,7 @@ def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) 
     windows = sum(r["windows"]["count"] for r in rows)
     skipped = sum(r["windows"]["skipped"] for r in rows)
     escalated = sum(r["windows"].get("escalated", 0) for r in rows)
+    stopped = sum(r["windows"].get("stopped_early", 0) for r in rows)
     tilted = [r for r in rows if r.get("table", {}).get("tilt_deg", 0.0) > 0]
     cma = rows[0]["config"]["cma"]
     lines = [
@@ -162,7 +215,11 @@ def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) 
         f"Sample `{args.sample}`: {len(rows)} of {n_sample} sequences (bench/samples/{args.sample}.txt), "
         f"{args.threads} simulation threads, popsize {cma['popsize']}, {cma['max_generations']} generations per "
         f"window, seed {args.seed}. Machine: {os.cpu_count()} cores shared with other work "
-        f"({platform.processor() or platform.machine()}), MuJoCo {rows[0]['versions']['mujoco']}.",
+        f"({platform.processor() or platform.machine()}), MuJoCo {rows[0]['versions']['mujoco']}. Physics: "
+        + (", ".join(f"`{k}={v}`" for k, v in sorted(args.sim_overrides.items())) or "the product's defaults")
+        + "; CMA-ES: "
+        + (", ".join(f"`{k}={v}`" for k, v in sorted(args.cma_overrides.items())) or "the product's defaults")
+        + ".",
         "",
         *metrics_table(rows),
         *by_side(rows),
@@ -181,7 +238,7 @@ def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) 
         f"{steps_s:.0f} physics steps per second of simulation time with {args.threads} threads",
         f"* windows skipped (no hand-object contact and loss already low): {skipped} of {windows}; windows given a "
         f"second, larger CMA-ES run (best loss still above {cma.get('escalate_loss', float('inf')):.0f}): "
-        f"{escalated} of {windows}",
+        f"{escalated} of {windows}; CMA-ES runs stopped early (best loss stalled): {stopped}",
         f"* table laid under the start pose (worker/simulation: table_fit, rest_pose): tilted in {len(tilted)} of "
         f"{len(rows)} sequences (median {statistics.median([r['table']['tilt_deg'] for r in tilted] or [0]):.1f} deg),"
         " level in the rest",

@@ -12,7 +12,7 @@ The result file keeps those in a separate member, so ``to_npz_bytes(wall_clock=F
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -31,6 +31,7 @@ from worker.refine.prepare import DEFAULT_MAX_GENERATIONS, DEFAULT_POPSIZE, prep
 from worker.refine.replay import ReplayRecord, replay, window_problem
 from worker.refine.result import build_summary
 from worker.refine.windowed import CmaSettings, RefineProgress, WindowLog, optimise_windows
+from worker.simulation.config import SimConfig
 from worker.simulation.metrics import scalar_metrics
 
 #: Skip a window when no hand touches the object and its loss per frame is below this (see windowed).
@@ -76,10 +77,15 @@ def refine_sequence(
     *,
     cache_dir: Path | None = None,
     mano_dir: Path | None = None,
+    config: SimConfig | None = None,
+    cma_overrides: Mapping[str, Any] | None = None,
 ) -> RefineOutcome:
     """Refine one sequence; see the module docstring. ``should_stop`` is polled once per CMA-ES generation
     (``JobCancelledError`` when it answers True). ``evaluator`` lets a long-lived worker reuse its pool.
     ``cache_dir`` and ``mano_dir``: as for ``prepare`` (the entry points pass the configured folders).
+    ``config``: the physics settings (the product's ``SimConfig()`` when None; benchmarks compare others, and a
+    result made with them verifies only with ``--allow-config``). ``cma_overrides``: ``CmaSettings`` fields other
+    than the product's (benchmarks only; the result records the settings used).
 
     When the refined replay fails the success criterion and ``options.restarts`` allows, the whole window loop
     runs again from zero offsets with another seed (``attempt_seed``): the greedy sliding window cannot undo a
@@ -90,7 +96,7 @@ def refine_sequence(
     # The result embeds the sequence as these bytes and is derived from them (``derive``); the optimisation runs
     # on the same sequence read back from them, so its replays are the result's replays too.
     seq_bytes = sequence_to_npz_bytes(seq)
-    prep = prepare(sequence_from_npz_bytes(seq_bytes), options, cache_dir=cache_dir, mano_dir=mano_dir)
+    prep = prepare(sequence_from_npz_bytes(seq_bytes), options, config, cache_dir=cache_dir, mano_dir=mano_dir)
     t_prep = time.perf_counter()
     own = evaluator is None
     ev = evaluator or ParallelEvaluator(prep.scene.model, threads)
@@ -109,7 +115,8 @@ def refine_sequence(
         problem = window_problem(prep, ev, start, weights)
         best: _Attempt | None = None
         for attempt in range(options.restarts + 1):
-            settings = replace(cma_settings(options, prep.interval), seed=attempt_seed(options.seed, attempt))
+            settings = replace(cma_settings(options, prep.interval), **(cma_overrides or {}),
+                               seed=attempt_seed(options.seed, attempt))
             report = None if progress is None else _with_attempt(progress, attempt + 1)
             keyframes, logs = optimise_windows(problem, settings, progress=report, should_stop=should_stop)
             this = _Attempt(keyframes, logs, replay(prep, ev, start, keyframes, record_contacts=False), settings)
