@@ -205,10 +205,11 @@ def test_collision_bits_pair_hand_object_and_object_table_only() -> None:
 
 def test_settings_follow_the_config() -> None:
     seq = _box_sequence()
-    cfg = SimConfig(finger_kp=20.0, finger_kv=1.0, iterations=7)
+    cfg = SimConfig(finger_kp=20.0, finger_kv=1.0, iterations=7, noslip_iterations=3, impratio=30.0)
     scene = build_scene(seq, retarget_sequence(seq), cfg)
     m = scene.model
-    assert m.opt.timestep == pytest.approx(1 / 240) and m.opt.iterations == 7 and m.opt.noslip_iterations == 10
+    assert m.opt.timestep == pytest.approx(1 / 240) and m.opt.iterations == 7 and m.opt.noslip_iterations == 3
+    assert m.opt.impratio == pytest.approx(30.0) and m.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC
     assert m.opt.integrator == mujoco.mjtIntegrator.mjINT_IMPLICITFAST and m.opt.solver == mujoco.mjtSolver.mjSOL_NEWTON
     ids = scene.hands["right"].actuator_ids
     np.testing.assert_allclose(m.actuator_gainprm[ids, 0], 20.0)

@@ -48,6 +48,11 @@ __all__ = ["CROSS_HOST", "Tolerances", "VerifyReport", "check_result", "verify_r
 #: tracks, the object started from frame 0, the hand turned about the wrist).
 OLDER_DEFAULTS: dict[str, Any] = {"wrist_lead_s": 0.0, "finger_lead_s": 0.0, "rest_approach_m": 0.0, "impratio": 1.0}
 OLDER_PIVOT = "wrist"
+#: Complete sets of physics defaults the product had before: a result made with one of them whole is checked
+#: against that set (a note, not a failure); a mix of old and new values is a non-default config.
+EARLIER_DEFAULTS: dict[str, dict[str, Any]] = {
+    "before issue #19": {"noslip_iterations": 10, "impratio": 1.0, "contact_solimp": (0.9, 0.99, 0.001)},
+}
 
 
 
@@ -127,7 +132,14 @@ def _config(config: dict[str, Any], report: VerifyReport, allow_config: bool) ->
         if name not in stored:  # the result predates the setting: the behaviour of its time
             stored[name] = OLDER_DEFAULTS.get(name, default)
             report.config_notes.append(f"{name} not recorded (older result): read as {stored[name]}")
-        elif _differs(stored[name], default):
+    for era, earlier in EARLIER_DEFAULTS.items():
+        if all(not _differs(stored[name], value) for name, value in earlier.items()):
+            defaults = {**defaults, **earlier}
+            report.config_notes.append(f"made with the product's physics defaults {era}: "
+                                       + ", ".join(f"{k}={_plain(v)}" for k, v in earlier.items()))
+            break
+    for name, default in defaults.items():
+        if _differs(stored[name], default):
             report.config_changes.append((f"sim.{name}", _plain(default), _plain(stored[name])))
     pivot = config.get("rotation_pivot")
     if pivot is None:

@@ -17,13 +17,20 @@ class SimConfig:
     integrator: str = "implicitfast"
     solver: str = "Newton"
     iterations: int = 10
-    noslip_iterations: int = 10
+    #: No noslip pass (issue #19): it was half of every physics step, and ``impratio`` holds the grasps instead.
+    #: Until then: 10 iterations with impratio 1 (bench/results/speed_experiments.md).
+    noslip_iterations: int = 0
     #: Ratio of frictional to normal constraint impedance (MuJoCo ``impratio``, elliptic cones only). Above 1 the
-    #: friction constraints are stiffer than the normal ones, so a pinched grasp creeps less without the noslip pass.
-    impratio: float = 1.0
+    #: friction constraints are stiffer than the normal ones, so a pinched grasp creeps less without the noslip
+    #: pass: with impratio 1 and no noslip, grasps slipped (dev40: SR 87.5%, larger E_r); 10 kept them; 30 and
+    #: 100 made the Newton solver slower without holding better.
+    impratio: float = 10.0
     #: Elliptic cones hold DexYCB grasps far better than pyramidal ones (static holds: 7-8/10 vs 4/10).
     cone: str = "elliptic"
-    contact_solimp: tuple[float, float, float] = (0.9, 0.99, 0.001)
+    #: Contact impedance 0.99 from the surface on (0.995 at 1 mm): the timestep floors the time constant at 8.3 ms
+    #: (``refsafe``), so the steady penetration under a load scales with (1 - d) / d and d is the lever left.
+    #: (0.9, 0.99, 0.001) until issue #19 held contacts ~2x deeper (mean per-frame maximum 1.0 vs 0.5 mm).
+    contact_solimp: tuple[float, float, float] = (0.99, 0.995, 0.001)
     contact_solref: tuple[float, float] = (0.003, 1.0)
     weld_solimp: tuple[float, float, float] = (0.8, 0.95, 0.01)
     weld_solref: tuple[float, float] = (0.01, 1.0)
