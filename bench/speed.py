@@ -1,0 +1,223 @@
+"""Speed at the same fidelity: physics and CMA-ES variants side by side on one sample (issue #19, "must show").
+
+    .venv/bin/python bench/speed.py --sample dev40 --variants before-19,default
+    .venv/bin/python bench/speed.py --sample dev40 --limit 10 --variants default,noslip0-imp1,noslip0-imp30 \\
+        --out bench/results/speed_experiments.md
+    .venv/bin/python bench/speed.py --list            # the variants and what each changes
+
+Each variant is a set of ``SimConfig`` / ``CmaSettings`` overrides (``VARIANTS``); ``default`` is the product as
+it is. Every sequence of the sample is refined once per variant, the variants interleaved sequence by sequence
+so that a change in the machine's load falls on all of them alike, with ``bench/refine.py``'s ``run_one`` (same
+per-sequence cache in ``var/bench/refine/``, keyed by the overrides and a hash of the sources). One row per
+variant: median and p90 wall seconds per sequence, physics steps per second inside simulation, physics steps
+per sequence, success (final and first attempt), E_t / E_r / E_j / E_ft on the paper's protocol (frames 10
+onward), penetration; then each variant's change against the first one. Writes ``bench/results/speed.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import sys
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from bench.refine import aggregate, run_one  # noqa: E402
+
+#: The configuration of main before issue #19 (noslip pass, MuJoCo's impratio, every CMA-ES generation run).
+BEFORE_19_SIM: dict[str, Any] = {"noslip_iterations": 10, "impratio": 1.0, "contact_solimp": (0.9, 0.99, 0.001)}
+BEFORE_19_CMA: dict[str, Any] = {"stall_generations": 0}
+
+
+def _on_before_19(sim: dict[str, Any], cma: dict[str, Any], what: str) -> tuple[dict[str, Any], dict[str, Any], str]:
+    """An experiment as it was measured: main before issue #19 with these settings changed, so it means the same
+    whatever the product's defaults become."""
+    return {**BEFORE_19_SIM, **sim}, {**BEFORE_19_CMA, **cma}, what
+
+
+NOSLIP0_IMP10: dict[str, Any] = {"noslip_iterations": 0, "impratio": 10.0}
+SOLIMP99: dict[str, Any] = {"contact_solimp": (0.99, 0.995, 0.001)}
+#: The gated early stop: 3 generations, below 15 (1 per frame at DexYCB's 5-frame keyframe interval; the
+#: escalation level is 2.5 per frame).
+STALL3LOW: dict[str, Any] = {"stall_generations": 3, "stall_below": 15.0}
+
+#: name -> (SimConfig overrides, CmaSettings overrides, what it tries).
+VARIANTS: dict[str, tuple[dict[str, Any], dict[str, Any], str]] = {
+    "default": ({}, {}, "the product's defaults as they are"),
+    "before-19": _on_before_19({}, {}, "main before issue #19: 10 noslip iterations, impratio 1, solimp 0.9-0.99"),
+    "noslip0-imp1": _on_before_19({"noslip_iterations": 0}, {}, "no noslip pass, MuJoCo's impratio 1"),
+    "noslip0-imp10": _on_before_19(NOSLIP0_IMP10, {}, "no noslip pass, impratio 10"),
+    "noslip0-imp30": _on_before_19({"noslip_iterations": 0, "impratio": 30.0}, {}, "no noslip pass, impratio 30"),
+    "noslip0-imp100": _on_before_19({"noslip_iterations": 0, "impratio": 100.0}, {}, "no noslip pass, impratio 100"),
+    "noslip0-imp10-condim4": _on_before_19(
+        {**NOSLIP0_IMP10, "hand_condim": 4, "object_condim": 4}, {},
+        "no noslip, impratio 10, condim 4 on hand and object (no rolling friction: 2 constraint rows less)",
+    ),
+    "noslip0-imp10-solimp99": _on_before_19(
+        {**NOSLIP0_IMP10, **SOLIMP99}, {},
+        "no noslip, impratio 10, contact impedance 0.99-0.995 (stiffer from the first 0.1 mm: less penetration)",
+    ),
+    "noslip0-imp10-stall3": _on_before_19(
+        NOSLIP0_IMP10, {"stall_generations": 3},
+        "no noslip, impratio 10, a window's CMA-ES stops when its best loss improved < 1 % in 3 generations",
+    ),
+    "noslip0-imp10-stall3low": _on_before_19(
+        NOSLIP0_IMP10, STALL3LOW,
+        "no noslip, impratio 10, early stop as above but only for windows whose best loss is already below 15 "
+        "(1 per frame at DexYCB's 5-frame keyframe interval; the escalation level is 2.5)",
+    ),
+    "noslip0-imp10-solimp99-stall3low": _on_before_19(
+        {**NOSLIP0_IMP10, **SOLIMP99}, STALL3LOW,
+        "the stiffer contact impedance and the gated early stop together (the default since issue #19)",
+    ),
+}
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--sample", default="dev40", help="sample list name in bench/samples (default dev40)")
+    p.add_argument("--limit", type=int, default=None, help="only the first N sequences of the sample")
+    p.add_argument("--variants", default="before-19,default",
+                   help="comma-separated names from --list; the first is the reference (default before-19,default)")
+    p.add_argument("--threads", type=int, default=2, help="simulation threads per sequence (default 2)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--fresh", action="store_true", help="ignore cached per-sequence results")
+    p.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "speed.md")
+    p.add_argument("--list", action="store_true", help="print the variants and exit")
+    args = p.parse_args(argv)
+    args.variant_names = [v.strip() for v in args.variants.split(",") if v.strip()]
+    unknown = [v for v in args.variant_names if v not in VARIANTS]
+    if unknown:
+        p.error(f"unknown variants {', '.join(unknown)}; known: {', '.join(VARIANTS)}")
+    return args
+
+
+def run_args(args: argparse.Namespace, variant: str) -> argparse.Namespace:
+    """The ``bench/refine.py`` arguments ``run_one`` reads, for one variant."""
+    sim, cma, _ = VARIANTS[variant]
+    return argparse.Namespace(popsize=None, max_generations=None, seed=args.seed, threads=args.threads,
+                              fresh=args.fresh, sim_overrides=sim, cma_overrides=cma)
+
+
+def p90(values: list[float]) -> float:
+    return statistics.quantiles(values, n=10, method="inclusive")[-1] if len(values) > 1 else values[0]
+
+
+def figures(rows: list[dict[str, Any]]) -> dict[str, float]:
+    """One variant's row: speed and fidelity (paper protocol) over its sequences."""
+    walls = [r["bench_wall_s"] for r in rows]
+    steps = [r["timings"]["steps"] for r in rows]
+    sim_s = sum(r["timings"]["sim_s"] for r in rows)
+    paper = aggregate(rows, "refined", "paper")
+    return {
+        "n": len(rows),
+        "median_s": statistics.median(walls),
+        "p90_s": p90(walls),
+        "total_s": sum(walls),
+        "steps_per_s": sum(steps) / max(sim_s, 1e-9),
+        "steps_per_seq": statistics.fmean(steps),
+        **{k: paper[k] for k in ("SR", "SR_first", "E_t", "E_r", "E_j", "E_ft", "pen_mean", "pen_max_mean",
+                                 "pen_max_max")},
+    }
+
+
+def render(args: argparse.Namespace, results: dict[str, dict[str, float]], names: list[str], started: str,
+           load: tuple[tuple[float, ...], tuple[float, ...]]) -> str:
+    ref_name = args.variant_names[0]
+    ref = results[ref_name]
+    lines = [
+        "# Speed at the same fidelity (bench/speed.py, issue #19)",
+        "",
+        f"Generated on {started} UTC: sample `{args.sample}`, {len(names)} sequences"
+        f"{f' (the first {args.limit})' if args.limit else ''}, {args.threads} simulation threads per sequence, "
+        f"seed {args.seed}, variants interleaved sequence by sequence. Machine: {os.cpu_count()} cores "
+        f"({platform.processor() or platform.machine()}), load average before {load[0][0]:.2f} / after "
+        f"{load[1][0]:.2f} (1 min), {load[1][2]:.2f} over the last 15 min at the end. Fidelity on the paper's "
+        "protocol (frames 10 onward); penetration is the per-frame deepest hand-object contact.",
+        "",
+        "| variant | what | median s / seq | p90 s / seq | physics steps / s | steps / seq | SR % | SR 1st % | "
+        "E_t cm | E_r deg | E_j cm | E_ft cm | penetration mm (mean per-frame max) | seq max mm (mean / worst) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name in args.variant_names:
+        f = results[name]
+        lines.append(
+            f"| `{name}` | {VARIANTS[name][2]} | {f['median_s']:.1f} | {f['p90_s']:.1f} | {f['steps_per_s']:.0f} | "
+            f"{f['steps_per_seq']:.0f} | {f['SR']:.1f} | {f['SR_first']:.1f} | {f['E_t']:.2f} | {f['E_r']:.2f} | "
+            f"{f['E_j']:.2f} | {f['E_ft']:.2f} | {f['pen_mean']:.2f} | {f['pen_max_mean']:.2f} / "
+            f"{f['pen_max_max']:.2f} |"
+        )
+    lines += ["", f"Against `{ref_name}` (keep rule of issue #19: SR not lower, E_t / E_r not more than 0.05 cm / "
+              "0.2 deg worse, penetration not worse):", ""]
+    for name in args.variant_names[1:]:
+        f = results[name]
+        keep = (f["SR"] >= ref["SR"] and f["E_t"] <= ref["E_t"] + 0.05 and f["E_r"] <= ref["E_r"] + 0.2
+                and f["pen_mean"] <= ref["pen_mean"] + 0.05)
+        lines.append(
+            f"* `{name}`: median x{f['median_s'] / ref['median_s']:.2f}, total time x"
+            f"{f['total_s'] / ref['total_s']:.2f}, physics rate x{f['steps_per_s'] / ref['steps_per_s']:.2f}, steps "
+            f"x{f['steps_per_seq'] / ref['steps_per_seq']:.2f}; SR {f['SR'] - ref['SR']:+.1f} points, E_t "
+            f"{f['E_t'] - ref['E_t']:+.2f} cm, E_r {f['E_r'] - ref['E_r']:+.2f} deg, penetration "
+            f"{f['pen_mean'] - ref['pen_mean']:+.2f} mm: fidelity {'within' if keep else 'OUTSIDE'} the keep rule"
+        )
+    from worker.refine.run import STALL_GENERATIONS, STALL_LOSS_PER_FRAME
+    from worker.simulation.config import SimConfig
+
+    touched = sorted({k for sim, _, _ in VARIANTS.values() for k in sim})
+    sim_defaults = SimConfig().to_dict()
+    lines += ["", "The product's defaults when this ran (what `default` means here): "
+              + ", ".join(f"`{k}={sim_defaults[k]}`" for k in touched)
+              + f", early stop after `{STALL_GENERATIONS}` stalled generations below `{STALL_LOSS_PER_FRAME}` "
+              "loss per frame.", ""]
+    lines += ["Variants (``SimConfig`` / ``CmaSettings`` overrides):", ""]
+    for name in args.variant_names:
+        sim, cma, _ = VARIANTS[name]
+        lines.append(f"* `{name}`: sim {sim or '{}'}, CMA-ES {cma or '{}'}")
+    lines += ["", "Sequences:", "", *(f"- `{n}`" for n in names)]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    from bench.samples.draw import read_sample
+    from common.dexycb import shared_data_dir
+
+    args = parse_args(argv)
+    if args.list:
+        for name, (sim, cma, what) in VARIANTS.items():
+            print(f"{name:24s} {what}\n{'':24s} sim {sim or '{}'} cma {cma or '{}'}")
+        return 0
+    data = shared_data_dir()
+    if data is None:
+        print("bench/speed.py: ../shared/data is not present", file=sys.stderr)
+        return 2
+    sample = read_sample(ROOT / "bench" / "samples" / f"{args.sample}.txt")
+    todo = sample[: args.limit] if args.limit else sample
+    started = datetime.now(UTC).strftime("%Y-%m-%d %H:%M")
+    load_before = os.getloadavg()
+    cache = ROOT / "var" / "bench" / "refine"
+    rows: dict[str, list[dict[str, Any]]] = {v: [] for v in args.variant_names}
+    t0 = time.perf_counter()
+    for i, (name, awkward) in enumerate(todo, 1):
+        for variant in args.variant_names:
+            row = run_one(data / "dexycb" / "dev" / name, run_args(args, variant), cache, awkward)
+            rows[variant].append(row)
+            b = row["metrics"]["refined"]
+            print(f"[{i}/{len(todo)}] {variant:22s} {name}: {'ok' if b['success'] else 'FAIL'} "
+                  f"E_t {b['E_t']:.2f} E_r {b['E_r']:.2f} {row['bench_wall_s']:.1f}s "
+                  f"({row['timings']['steps_per_second']:.0f} steps/s)  [{time.perf_counter() - t0:.0f}s]", flush=True)
+    results = {v: figures(r) for v, r in rows.items()}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(render(args, results, [n for n, _ in todo], started, (load_before, os.getloadavg())))
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

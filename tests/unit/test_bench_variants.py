@@ -1,0 +1,47 @@
+"""The benchmark's physics/CMA-ES overrides (bench/refine.py ``--sim``/``--cma``, bench/speed.py variants)."""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import asdict
+
+import pytest
+
+from bench.refine import cma_defaults, parse_overrides, sim_defaults, sim_tag
+from bench.speed import VARIANTS
+from worker.refine.windowed import CmaSettings
+from worker.simulation.config import SimConfig
+
+
+def _parser() -> argparse.ArgumentParser:
+    return argparse.ArgumentParser(prog="bench", exit_on_error=False)
+
+
+def test_overrides_take_the_type_of_the_default() -> None:
+    out = parse_overrides(["noslip_iterations=0", "impratio=10", "contact_solimp=0.99,0.995,0.001",
+                           "hand_gravcomp=false"], _parser(), "--sim", sim_defaults())
+    assert out == {"noslip_iterations": 0, "impratio": 10.0, "contact_solimp": (0.99, 0.995, 0.001),
+                   "hand_gravcomp": False}
+    assert SimConfig(**out).impratio == 10.0
+    assert parse_overrides(["stall_generations=3"], _parser(), "--cma", cma_defaults()) == {"stall_generations": 3}
+
+
+@pytest.mark.parametrize("pair", ["impratio", "no_such_setting=1", "noslip_iterations=many"])
+def test_a_bad_override_is_refused_by_name(pair: str, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        parse_overrides([pair], _parser(), "--sim", sim_defaults())
+    assert "--sim" in capsys.readouterr().err
+
+
+def test_the_cache_tag_tells_configurations_apart() -> None:
+    assert sim_tag({}) == ""
+    assert sim_tag({"impratio": 10.0, "noslip_iterations": 0}) != sim_tag({"impratio": 30.0, "noslip_iterations": 0})
+
+
+def test_every_variant_names_real_settings() -> None:
+    sim_fields, cma_fields = SimConfig().to_dict(), asdict(CmaSettings())
+    for name, (sim, cma, what) in VARIANTS.items():
+        assert set(sim) <= set(sim_fields), name
+        assert set(cma) <= set(cma_fields), name
+        assert what
+        SimConfig(**sim)  # constructs
