@@ -21,6 +21,10 @@ from worker.refine.run import refine_sequence
 #: How far the refined errors of a sequence and its mirror may differ (cm, degrees).
 E_T_TOLERANCE_CM = 0.3
 E_R_TOLERANCE_DEG = 1.0
+#: How far the raw replays' errors may differ. Without the noslip pass (issue #19) friction is soft, so the last-bit
+#: asymmetry grows a little more in a held object: measured 0.016 cm / 0.08 deg on DEV_RIGHT (0.1 mm with noslip).
+RAW_E_T_TOLERANCE_CM = 0.03
+RAW_E_R_TOLERANCE_DEG = 0.2
 #: A right hand grasping a can (dev40, raw replay already succeeds; the small budget refines a few windows).
 DEV_RIGHT = "20200709-subject-01__20200709_141754.npz"
 
@@ -34,7 +38,8 @@ def _both(seq: Sequence, options: JobOptions) -> tuple[dict[str, Any], dict[str,
 
 
 def _assert_alike(a: dict[str, Any], b: dict[str, Any]) -> None:
-    assert abs(a["raw"]["E_t"] - b["raw"]["E_t"]) < 0.01 and abs(a["raw"]["E_r"] - b["raw"]["E_r"]) < 0.1, (a, b)
+    assert abs(a["raw"]["E_t"] - b["raw"]["E_t"]) < RAW_E_T_TOLERANCE_CM, (a["raw"], b["raw"])
+    assert abs(a["raw"]["E_r"] - b["raw"]["E_r"]) < RAW_E_R_TOLERANCE_DEG, (a["raw"], b["raw"])
     ra, rb = a["refined"], b["refined"]
     assert ra["success"] and rb["success"], (ra, rb)
     assert abs(ra["E_t"] - rb["E_t"]) <= E_T_TOLERANCE_CM, (ra, rb)

@@ -212,18 +212,15 @@ def test_verify_re_simulates_with_the_rotation_pivot_the_result_was_made_with(
         prepare(seq, JobOptions(), rotation_pivot="elbow")
 
 
-def test_verify_re_simulates_with_the_leads_the_result_was_made_with(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_verify_re_simulates_with_the_leads_the_result_was_made_with() -> None:
     """Results made before the wrist and finger leads existed drove the mocap and the servos along the
     reference itself (leads 0) and record neither: they still verify, and claiming a lead for them fails."""
-    import worker.refine.run as run_module
     from worker.example.sequences import short_example_sequence
     from worker.simulation.scene import SimConfig
 
     seq = short_example_sequence()  # a grasp and lift: the wrist moves and the fingers close
     unled = SimConfig(wrist_lead_s=0.0, finger_lead_s=0.0)
-    monkeypatch.setattr(run_module, "prepare", lambda s, o, **dirs: prepare(s, o, unled, **dirs))
-    old = refine_sequence(seq, JobOptions(popsize=4, max_generations=1, restarts=0), threads=1)
-    monkeypatch.undo()
+    old = refine_sequence(seq, JobOptions(popsize=4, max_generations=1, restarts=0), threads=1, config=unled)
     sim = old.summary["config"]["sim"]
     assert sim["wrist_lead_s"] == 0.0 and sim["finger_lead_s"] == 0.0
     leads = ("wrist_lead_s", "finger_lead_s")

@@ -128,8 +128,9 @@ def _config(config: dict[str, Any], report: VerifyReport, allow_config: bool) ->
     unknown = sorted(set(stored) - set(defaults))
     if unknown:
         raise UnsupportedFormatError(f"config.sim has settings this version does not know: {', '.join(unknown)}")
+    recorded = set(stored)
     for name, default in defaults.items():
-        if name not in stored:  # the result predates the setting: the behaviour of its time
+        if name not in recorded:  # the result predates the setting: the behaviour of its time
             stored[name] = OLDER_DEFAULTS.get(name, default)
             report.config_notes.append(f"{name} not recorded (older result): read as {stored[name]}")
     for era, earlier in EARLIER_DEFAULTS.items():
@@ -139,7 +140,7 @@ def _config(config: dict[str, Any], report: VerifyReport, allow_config: bool) ->
                                        + ", ".join(f"{k}={_plain(v)}" for k, v in earlier.items()))
             break
     for name, default in defaults.items():
-        if _differs(stored[name], default):
+        if name in recorded and _differs(stored[name], default):
             report.config_changes.append((f"sim.{name}", _plain(default), _plain(stored[name])))
     pivot = config.get("rotation_pivot")
     if pivot is None:
