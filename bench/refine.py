@@ -94,7 +94,7 @@ def parse_overrides(pairs: list[str], parser: argparse.ArgumentParser, flag: str
     return out
 
 
-def sim_tag(overrides: dict[str, Any]) -> str:
+def override_tag(overrides: dict[str, Any]) -> str:
     """The overrides as a short file-name-safe tag ("" for the product's defaults)."""
     return "".join(f"_{k}={','.join(map(str, v)) if isinstance(v, tuple) else v}" for k, v in sorted(overrides.items()))
 
@@ -107,7 +107,7 @@ def run_one(path: Path, args: argparse.Namespace, cache: Path, awkward: list[str
     from worker.simulation.config import SimConfig
 
     key = (f"{path.stem}__p{args.popsize}_g{args.max_generations}_s{args.seed}_t{args.threads}"
-           f"{sim_tag(args.sim_overrides)}{sim_tag(args.cma_overrides)}_c{code_digest()}.json")
+           f"{override_tag(args.sim_overrides)}{override_tag(args.cma_overrides)}_c{code_digest()}.json")
     hit = cache / key
     if hit.is_file() and not args.fresh:
         out: dict[str, Any] = json.loads(hit.read_text())

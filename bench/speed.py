@@ -29,7 +29,7 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.refine import aggregate, run_one  # noqa: E402
+from bench.refine import aggregate, run_one, sim_defaults  # noqa: E402
 
 #: The configuration of main before issue #19 (noslip pass, MuJoCo's impratio, every CMA-ES generation run).
 BEFORE_19_SIM: dict[str, Any] = {"noslip_iterations": 10, "impratio": 1.0, "contact_solimp": (0.9, 0.99, 0.001)}
@@ -168,12 +168,11 @@ def render(args: argparse.Namespace, results: dict[str, dict[str, float]], names
             f"{f['pen_mean'] - ref['pen_mean']:+.2f} mm: fidelity {'within' if keep else 'OUTSIDE'} the keep rule"
         )
     from worker.refine.run import STALL_GENERATIONS, STALL_LOSS_PER_FRAME
-    from worker.simulation.config import SimConfig
 
     touched = sorted({k for sim, _, _ in VARIANTS.values() for k in sim})
-    sim_defaults = SimConfig().to_dict()
+    defaults = sim_defaults()
     lines += ["", "The product's defaults when this ran (what `default` means here): "
-              + ", ".join(f"`{k}={sim_defaults[k]}`" for k in touched)
+              + ", ".join(f"`{k}={defaults[k]}`" for k in touched)
               + f", early stop after `{STALL_GENERATIONS}` stalled generations below `{STALL_LOSS_PER_FRAME}` "
               "loss per frame.", ""]
     lines += ["Variants (``SimConfig`` / ``CmaSettings`` overrides):", ""]

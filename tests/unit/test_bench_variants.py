@@ -7,7 +7,7 @@ from dataclasses import asdict
 
 import pytest
 
-from bench.refine import cma_defaults, parse_overrides, sim_defaults, sim_tag
+from bench.refine import cma_defaults, override_tag, parse_overrides, sim_defaults
 from bench.speed import VARIANTS
 from worker.refine.windowed import CmaSettings
 from worker.simulation.config import SimConfig
@@ -34,8 +34,9 @@ def test_a_bad_override_is_refused_by_name(pair: str, capsys: pytest.CaptureFixt
 
 
 def test_the_cache_tag_tells_configurations_apart() -> None:
-    assert sim_tag({}) == ""
-    assert sim_tag({"impratio": 10.0, "noslip_iterations": 0}) != sim_tag({"impratio": 30.0, "noslip_iterations": 0})
+    assert override_tag({}) == ""
+    ten, thirty = {"impratio": 10.0, "noslip_iterations": 0}, {"impratio": 30.0, "noslip_iterations": 0}
+    assert override_tag(ten) != override_tag(thirty)
 
 
 def test_every_variant_names_real_settings() -> None:
