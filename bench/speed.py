@@ -32,7 +32,8 @@ sys.path.insert(0, str(ROOT))
 from bench.refine import aggregate, run_one, sim_defaults  # noqa: E402
 
 #: The configuration of main before issue #19 (noslip pass, MuJoCo's impratio, every CMA-ES generation run).
-BEFORE_19_SIM: dict[str, Any] = {"noslip_iterations": 10, "impratio": 1.0, "contact_solimp": (0.9, 0.99, 0.001)}
+BEFORE_19_SIM: dict[str, Any] = {"noslip_iterations": 10, "impratio": 1.0, "contact_solimp": (0.9, 0.99, 0.001),
+                                 "jacobian": "auto"}
 BEFORE_19_CMA: dict[str, Any] = {"stall_generations": 0}
 
 
@@ -51,6 +52,8 @@ STALL3LOW: dict[str, Any] = {"stall_generations": 3, "stall_below": 15.0}
 #: name -> (SimConfig overrides, CmaSettings overrides, what it tries).
 VARIANTS: dict[str, tuple[dict[str, Any], dict[str, Any], str]] = {
     "default": ({}, {}, "the product's defaults as they are"),
+    "dense": ({"jacobian": "auto"}, {}, "the defaults with MuJoCo's automatic Jacobian (dense for one hand), as "
+              "before the sparse one became the default"),
     "before-19": _on_before_19({}, {}, "main before issue #19: 10 noslip iterations, impratio 1, solimp 0.9-0.99"),
     "noslip0-imp1": _on_before_19({"noslip_iterations": 0}, {}, "no noslip pass, MuJoCo's impratio 1"),
     "noslip0-imp10": _on_before_19(NOSLIP0_IMP10, {}, "no noslip pass, impratio 10"),

@@ -211,6 +211,9 @@ def test_settings_follow_the_config() -> None:
     assert m.opt.timestep == pytest.approx(1 / 240) and m.opt.iterations == 7 and m.opt.noslip_iterations == 3
     assert m.opt.impratio == pytest.approx(30.0) and m.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC
     assert m.opt.integrator == mujoco.mjtIntegrator.mjINT_IMPLICITFAST and m.opt.solver == mujoco.mjtSolver.mjSOL_NEWTON
+    assert m.opt.jacobian == mujoco.mjtJacobian.mjJAC_SPARSE  # the default, though one hand is under auto's 60 DoF
+    assert build_scene(seq, retarget_sequence(seq), SimConfig(jacobian="auto")).model.opt.jacobian == (
+        mujoco.mjtJacobian.mjJAC_AUTO)
     ids = scene.hands["right"].actuator_ids
     np.testing.assert_allclose(m.actuator_gainprm[ids, 0], 20.0)
     np.testing.assert_allclose(m.actuator_biasprm[ids, 1:3], [[-20.0, -1.0]] * 45)

@@ -45,3 +45,13 @@ def test_a_mix_of_old_and_new_physics_is_a_non_default_config() -> None:
     _config(_stored(noslip_iterations=10), report, allow_config=False)  # old noslip, new impratio and solimp
     assert [c[0] for c in report.config_changes] == ["sim.noslip_iterations"]
     assert report.failures and "--allow-config" in report.failures[0]
+
+
+def test_a_result_that_predates_the_jacobian_setting_reads_it_as_auto() -> None:
+    """Results made before issue #19's sparse Jacobian ran MuJoCo's automatic choice; they verify with a note."""
+    stored_config = _stored()
+    del stored_config["sim"]["jacobian"]
+    report = VerifyReport()
+    stored, _, _ = _config(stored_config, report, allow_config=False)
+    assert report.failures == [] and stored["jacobian"] == "auto"
+    assert any("jacobian not recorded" in note for note in report.config_notes)

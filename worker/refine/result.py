@@ -104,16 +104,17 @@ def build_summary(
     }
 
 
+#: Settings a result does not record were, before they existed, these: the mocap and servos followed their tracks,
+#: the object started from frame 0, MuJoCo's impratio 1 and automatic Jacobian (until issue #19).
+OLDER_SIM_DEFAULTS: dict[str, Any] = {"wrist_lead_s": 0.0, "finger_lead_s": 0.0, "rest_approach_m": 0.0,
+                                      "impratio": 1.0, "jacobian": "auto"}
+
+
 def sim_config_from_summary(stored: dict[str, Any]) -> SimConfig:
-    """The ``SimConfig`` a result was simulated with, from its summary's JSON form."""
+    """The ``SimConfig`` a result was simulated with, from its summary's JSON form (``OLDER_SIM_DEFAULTS`` for
+    the settings it predates)."""
     sim: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in stored.items()}
-    # Results made before the pivot was recorded turned the hand about the wrist; before the wrist lead was
-    # recorded, the mocap followed the wrist track itself; before the rest pose, the object started from frame 0.
-    sim.setdefault("wrist_lead_s", 0.0)
-    sim.setdefault("rest_approach_m", 0.0)
-    sim.setdefault("finger_lead_s", 0.0)
-    sim.setdefault("impratio", 1.0)  # before issue #19 MuJoCo's default
-    return SimConfig(**sim)
+    return SimConfig(**{**OLDER_SIM_DEFAULTS, **sim})
 
 
 def prepare_from_result(

@@ -37,6 +37,7 @@ from common.sequence import Sequence
 from common.sequence_io import sequence_to_npz_bytes
 from worker.refine.derive import derive_result
 from worker.refine.prepare import MIRROR_LEFT_HAND, ROTATION_PIVOT
+from worker.refine.result import OLDER_SIM_DEFAULTS
 from worker.refine.verify_arrays import ArrayChecker, check_stored_metrics
 from worker.refine.verify_report import CROSS_HOST, Tolerances, VerifyReport
 from worker.refine.verify_summary import check_summary
@@ -44,9 +45,9 @@ from worker.simulation.config import SimConfig
 
 __all__ = ["CROSS_HOST", "Tolerances", "VerifyReport", "check_result", "verify_result"]
 
-#: Settings a result does not record were, before they existed, these (the mocap and servos followed their
-#: tracks, the object started from frame 0, the hand turned about the wrist).
-OLDER_DEFAULTS: dict[str, Any] = {"wrist_lead_s": 0.0, "finger_lead_s": 0.0, "rest_approach_m": 0.0, "impratio": 1.0}
+#: Settings a result does not record were, before they existed, these (``OLDER_SIM_DEFAULTS``); the hand turned
+#: about the wrist.
+OLDER_DEFAULTS: dict[str, Any] = OLDER_SIM_DEFAULTS
 OLDER_PIVOT = "wrist"
 #: Complete sets of physics defaults the product had before: a result made with one of them whole is checked
 #: against that set (a note, not a failure); a mix of old and new values is a non-default config.

@@ -16,6 +16,11 @@ class SimConfig:
     timestep: float = 1.0 / 240.0
     integrator: str = "implicitfast"
     solver: str = "Newton"
+    #: Constraint Jacobian layout (MuJoCo ``jacobian``). MuJoCo's ``auto`` picks dense below 60 degrees of freedom,
+    #: and a one-hand scene has 57; but the hand is a tree of short chains, so the Newton solver's factorisation is
+    #: far cheaper sparse: x1.5-2.0 physics steps per second on DexYCB replays, the same trajectory to 0.1 mm
+    #: (issue #19, bench/results/speed_experiments.md). ``auto`` until then.
+    jacobian: str = "sparse"
     iterations: int = 10
     #: No noslip pass (issue #19): it was half of every physics step, and ``impratio`` holds the grasps instead.
     #: Until then: 10 iterations with impratio 1 (bench/results/speed_experiments.md).

@@ -34,8 +34,8 @@ def option_xml(config: SimConfig) -> str:
     """The MJCF ``<option>`` element of the paper's simulation settings."""
     return (
         f'<option timestep="{config.timestep:.12g}" integrator="{config.integrator}" solver="{config.solver}"\n'
-        f'          iterations="{config.iterations}" noslip_iterations="{config.noslip_iterations}" '
-        f'cone="{config.cone}" impratio="{config.impratio:g}"/>'
+        f'          jacobian="{config.jacobian}" iterations="{config.iterations}" '
+        f'noslip_iterations="{config.noslip_iterations}" cone="{config.cone}" impratio="{config.impratio:g}"/>'
     )
 
 
