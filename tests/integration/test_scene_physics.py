@@ -127,6 +127,37 @@ def test_a_lying_cylinder_gets_a_level_table_rather_than_a_tilted_strip_it_would
     assert pose[2] == pytest.approx(0.03, abs=1e-3)  # snapped onto the level table
 
 
+@pytest.mark.parametrize("shelf", [True, False])
+def test_an_object_recorded_on_another_one_rests_on_a_level_shelf_under_it(shelf: bool) -> None:
+    """A can recorded lying 6 cm above the table (on another object the scene does not hold), rolled 5 degrees
+    about its axis so no hull strip under it is level: with the shelf it stays where it was recorded for 1.5 s;
+    without it, it either falls to the table or rolls off a tilted strip (the marker of issue #15's dev120 run)."""
+    seq = _box_sequence(frames=3)
+    roll = np.radians(5.0) / 2
+    lying = np.array([np.cos(np.pi / 4), 0.0, np.sin(np.pi / 4), 0.0])  # axis along x
+    quat = np.array([np.cos(roll), np.sin(roll), 0.0, 0.0])  # then rolled about x
+    w1, v1, w2, v2 = quat[0], quat[1:], lying[0], lying[1:]
+    q = np.r_[w1 * w2 - v1 @ v2, w1 * v2 + w2 * v1 + np.cross(v1, v2)]
+    seq.object = ObjectSpec(name="can", mass_kg=0.3, primitive="cylinder", size=np.array([0.03, 0.05]))
+    seq.object_pose = np.tile(np.r_[0.0, 0.0, 0.09, q], (3, 1))
+    config = SimConfig(table_shelf=shelf)
+    pose, table = fit_table(seq.validate(), config)
+    if shelf:
+        assert table.tilt_deg == 0.0 and table.point[2] == pytest.approx(0.06, abs=1e-3)
+        np.testing.assert_allclose(pose, seq.object_pose[0])  # as recorded, on the shelf
+    else:
+        assert table.point[2] != pytest.approx(0.06, abs=1e-3)
+    # Where the object is after the fit's own time on the chosen table, in the compiled scene.
+    scene = build_scene(seq, retarget_sequence(seq), config)
+    data = scene.make_data()
+    adr = scene.object_qpos_adr
+    data.qpos[adr : adr + 7] = pose
+    for _ in range(round(config.table_fit_s / scene.model.opt.timestep)):
+        mujoco.mj_step(scene.model, data)
+    drift = float(np.linalg.norm(data.qpos[adr : adr + 3] - seq.object_pose[0, :3]))
+    assert (drift < 0.002) if shelf else (drift > 0.01)
+
+
 @pytest.mark.parametrize("lead_s", [0.0, SimConfig().wrist_lead_s])
 @pytest.mark.parametrize(("speed", "turn_deg_s"), [(0.9, 0.0), (0.0, 290.0)])
 def test_the_wrist_lead_makes_the_welded_palm_follow_a_fast_wrist_track(

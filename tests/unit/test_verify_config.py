@@ -5,7 +5,10 @@ from __future__ import annotations
 
 from typing import Any
 
+import pytest
+
 from worker.refine.prepare import MIRROR_LEFT_HAND, ROTATION_PIVOT
+from worker.refine.result import sim_config_from_summary
 from worker.refine.verify import EARLIER_DEFAULTS, _config
 from worker.refine.verify_report import VerifyReport
 from worker.simulation.config import SimConfig
@@ -47,11 +50,14 @@ def test_a_mix_of_old_and_new_physics_is_a_non_default_config() -> None:
     assert report.failures and "--allow-config" in report.failures[0]
 
 
-def test_a_result_that_predates_the_jacobian_setting_reads_it_as_auto() -> None:
-    """Results made before issue #19's sparse Jacobian ran MuJoCo's automatic choice; they verify with a note."""
+@pytest.mark.parametrize(("name", "then"), [("jacobian", "auto"), ("table_fit_s", 0.5), ("table_shelf", False)])
+def test_a_result_that_predates_a_setting_reads_it_as_it_was_then(name: str, then: Any) -> None:
+    """Results made before issue #19's sparse Jacobian ran MuJoCo's automatic choice, before the support fix of
+    issue #15 a 0.5 s table fit without the shelf; they verify with a note and replay as they were made."""
     stored_config = _stored()
-    del stored_config["sim"]["jacobian"]
+    del stored_config["sim"][name]
     report = VerifyReport()
     stored, _, _ = _config(stored_config, report, allow_config=False)
-    assert report.failures == [] and stored["jacobian"] == "auto"
-    assert any("jacobian not recorded" in note for note in report.config_notes)
+    assert report.failures == [] and stored[name] == then
+    assert any(f"{name} not recorded" in note for note in report.config_notes)
+    assert getattr(sim_config_from_summary({k: v for k, v in stored_config["sim"].items()}), name) == then

@@ -1,13 +1,14 @@
 """The table under the frame-0 object, chosen by simulation (DESIGN §1.4: the object starts at rest).
 
 The recorded frame-0 pose is a vision estimate a few degrees and millimetres off any pose the object could rest
-in on a level table (see ``support_plane``). Candidates: the level table at z = 0 (the object snapped onto
-it) and the hull faces of the recorded object that could carry it as recorded, each for two start poses: frame 0
-and the mean over the approach (``rest_pose``). Each is tried in a model of the object and the table alone
-for ``FIT_SECONDS``; the one that leaves the object closest to that mean wins (score: degrees + millimetres), so
-a lying cylinder balanced on one narrow strip of its side, which rolls away, loses to the level table, and a box
-recorded 4 degrees tilted rests exactly as recorded on a table tilted under it. The fit is deterministic and
-costs a few hundred physics steps of one free body per candidate.
+in on a level table (see ``support_plane``). Candidates: the level table at z = 0 (the object snapped onto it),
+a level shelf under an object recorded above the table (on another object: ``SimConfig.table_shelf``), and the
+hull faces of the recorded object that could carry it as recorded, each for two start poses: frame 0 and the
+mean over the approach (``rest_pose``). Each is tried in a model of the object and the table alone for
+``SimConfig.table_fit_s``; the one that leaves the object closest to that mean wins (score: degrees +
+millimetres), so a lying cylinder balanced on one narrow strip of its side, which rolls away, loses to the level
+table, and a box recorded 4 degrees tilted rests exactly as recorded on a table tilted under it. The fit is
+deterministic and costs a few hundred physics steps of one free body per candidate.
 """
 
 from __future__ import annotations
@@ -24,8 +25,6 @@ from worker.simulation.hand_mjcf import fmt
 from worker.simulation.object_model import OBJECT_JOINT, centre_of_mass, object_mjcf
 from worker.simulation.support_plane import SupportPlane, support_candidates
 
-#: Seconds each candidate table is simulated with the object alone.
-FIT_SECONDS = 0.5
 #: Candidate tilted faces tried (most nearly level first).
 MAX_CANDIDATES = 6
 
@@ -92,9 +91,14 @@ def _start_candidates(
     level = (level_start_pose(start, verts, config), SupportPlane.level())
     if config.table_max_tilt_deg <= 0:
         return [level]
+    bottom = float(verts[:, 2].min())
+    # Recorded above the table: resting on another object, which is not simulated. A level shelf under its lowest
+    # point holds it where it was (a banana 10 cm up otherwise falls before the hand arrives); the shelf collides
+    # with the object only, like the table.
+    shelf = [(start, SupportPlane.level(bottom))] if config.table_shelf and bottom >= config.snap_to_table_m else []
     com = rot @ centre_of_mass(seq.object) + start[:3]
     tilted = support_candidates(verts, config.table_max_tilt_deg, limit=MAX_CANDIDATES, centre_of_mass=com)
-    return [level] + [(start, plane) for plane in tilted]
+    return [level] + shelf + [(start, plane) for plane in tilted]
 
 
 def _drift_scores(
@@ -104,7 +108,7 @@ def _drift_scores(
     candidates: list[tuple[FloatArray, SupportPlane]],
     cache_dir: Path | None,
 ) -> list[float]:
-    """Degrees + millimetres between ``target`` and where the object is after ``FIT_SECONDS``."""
+    """Degrees + millimetres between ``target`` and where the object is after ``config.table_fit_s``."""
     obj = object_mjcf(seq.object, config, target[:3], target[3:], cache_dir=cache_dir)
     xml = f"""<mujoco model="table-fit">
   <compiler angle="radian" autolimits="true"/>
@@ -126,7 +130,7 @@ def _drift_scores(
     # between candidates would not move its collisions.
     table = int(model.body_mocapid[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "table_body")])
     adr = int(model.jnt_qposadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, OBJECT_JOINT)])
-    steps = round(FIT_SECONDS / model.opt.timestep)
+    steps = round(config.table_fit_s / model.opt.timestep)
     scores = []
     for pose, plane in candidates:
         mujoco.mj_resetData(model, data)
