@@ -45,6 +45,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--popsize", type=int, default=None, help="CMA-ES population (default: the product's)")
     p.add_argument("--max-generations", type=int, default=None, help="CMA-ES generations per window")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--restarts", type=int, default=None,
+                   help="refinement restarts after a failed attempt (default: the product's). Attempt k runs with "
+                   "seed + k x 1000003, so --seed 3000009 --restarts 1 runs exactly the 4th and 5th attempts")
     p.add_argument("--out", type=Path, default=None,
                    help="report file (default bench/results/refine_dev.md for dev40, refine_<sample>.md otherwise)")
     p.add_argument("--fresh", action="store_true", help="ignore cached per-sequence results")
@@ -75,6 +78,12 @@ def cma_defaults() -> dict[str, Any]:
     from worker.refine.windowed import CmaSettings
 
     return {k: v for k, v in dataclasses.asdict(CmaSettings()).items() if k != "seed"}
+
+
+def restarts_tag(args: argparse.Namespace) -> str:
+    """The cache key's part for ``--restarts`` (none for the product's default, so earlier caches stay valid)."""
+    restarts = getattr(args, "restarts", None)
+    return "" if restarts is None else f"_r{restarts}"
 
 
 def parse_overrides(pairs: list[str], parser: argparse.ArgumentParser, flag: str, defaults: dict[str, Any]
@@ -111,7 +120,8 @@ def run_one(path: Path, args: argparse.Namespace, cache: Path, awkward: list[str
     from worker.simulation.config import SimConfig
 
     key = (f"{path.stem}__p{args.popsize}_g{args.max_generations}_s{args.seed}_t{args.threads}"
-           f"{override_tag(args.sim_overrides)}{override_tag(args.cma_overrides)}_c{code_digest()}.json")
+           f"{restarts_tag(args)}{override_tag(args.sim_overrides)}{override_tag(args.cma_overrides)}"
+           f"_c{code_digest()}.json")
     hit = cache / key
     if hit.is_file() and not args.fresh:
         out: dict[str, Any] = json.loads(hit.read_text())
@@ -123,7 +133,8 @@ def run_one(path: Path, args: argparse.Namespace, cache: Path, awkward: list[str
             out["table"] = fit_table(load_dexycb_npz(path), SimConfig())[1].to_dict()
         return out
     seq = load_dexycb_npz(path)
-    options = JobOptions(seed=args.seed, popsize=args.popsize, max_generations=args.max_generations)
+    options = JobOptions(seed=args.seed, popsize=args.popsize, max_generations=args.max_generations,
+                         **({} if getattr(args, "restarts", None) is None else {"restarts": args.restarts}))
     t0 = time.perf_counter()
     config = SimConfig(**args.sim_overrides)
     outcome = refine_sequence(seq, options, threads=args.threads, cache_dir=get_settings().resolved_cache_dir(),
@@ -225,6 +236,7 @@ def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) 
         + (", ".join(f"`{k}={v}`" for k, v in sorted(args.sim_overrides.items())) or "the product's defaults")
         + "; CMA-ES: "
         + (", ".join(f"`{k}={v}`" for k, v in sorted(args.cma_overrides.items())) or "the product's defaults")
+        + ("" if getattr(args, "restarts", None) is None else f"; restarts: {args.restarts}")
         + ".",
         "",
         *metrics_table(rows),

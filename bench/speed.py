@@ -54,6 +54,8 @@ VARIANTS: dict[str, tuple[dict[str, Any], dict[str, Any], str]] = {
     "default": ({}, {}, "the product's defaults as they are"),
     "dense": ({"jacobian": "auto"}, {}, "the defaults with MuJoCo's automatic Jacobian (dense for one hand), as "
               "before the sparse one became the default"),
+    "solimp-0.9": ({"contact_solimp": (0.9, 0.99, 0.001)}, {}, "the defaults with the softer contact impedance "
+                   "of main before issue #19 (0.9-0.99): the alternative that kept E_r within the keep rule"),
     "before-19": _on_before_19({}, {}, "main before issue #19: 10 noslip iterations, impratio 1, solimp 0.9-0.99"),
     "noslip0-imp1": _on_before_19({"noslip_iterations": 0}, {}, "no noslip pass, MuJoCo's impratio 1"),
     "noslip0-imp10": _on_before_19(NOSLIP0_IMP10, {}, "no noslip pass, impratio 10"),

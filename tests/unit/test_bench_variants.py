@@ -46,3 +46,14 @@ def test_every_variant_names_real_settings() -> None:
         assert set(cma) <= set(cma_fields), name
         assert what
         SimConfig(**sim)  # constructs
+
+
+def test_the_later_attempts_can_be_run_on_their_own() -> None:
+    """``bench/refine.py --seed 3000009 --restarts 1`` runs exactly the 4th and 5th attempts of seed 0 (its help
+    says so): attempt k's seed is the job's seed + k x 1000003."""
+    from bench.refine import parse_args, restarts_tag
+    from worker.refine.run import attempt_seed
+
+    args = parse_args(["--seed", "3000009", "--restarts", "1"])
+    assert [attempt_seed(args.seed, k) for k in range(args.restarts + 1)] == [attempt_seed(0, 3), attempt_seed(0, 4)]
+    assert restarts_tag(args) == "_r1" and restarts_tag(parse_args([])) == ""
