@@ -35,7 +35,7 @@ from common.sequence import Sequence
 from common.sequence_io import sequence_from_npz_bytes
 from worker.refine.prepare import Prepared, prepare
 from worker.refine.windowed import CmaSettings, WindowLog
-from worker.simulation.config import SimConfig
+from worker.simulation.config import OLDER_SIM_DEFAULTS, SimConfig
 from worker.simulation.replay import versions as replay_versions
 
 RESULT_KIND = "refine"
@@ -102,13 +102,6 @@ def build_summary(
         "num_contacts": int(num_contacts),
         "timings": timings,
     }
-
-
-#: Settings a result does not record were, before they existed, these: the mocap and servos followed their tracks,
-#: the object started from frame 0, MuJoCo's impratio 1 and automatic Jacobian (until issue #19), a 0.5 s table
-#: fit without the shelf candidate (until issue #15's support fix).
-OLDER_SIM_DEFAULTS: dict[str, Any] = {"wrist_lead_s": 0.0, "finger_lead_s": 0.0, "rest_approach_m": 0.0,
-                                      "impratio": 1.0, "jacobian": "auto", "table_fit_s": 0.5, "table_shelf": False}
 
 
 def sim_config_from_summary(stored: dict[str, Any]) -> SimConfig:

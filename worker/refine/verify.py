@@ -37,11 +37,10 @@ from common.sequence import Sequence
 from common.sequence_io import sequence_to_npz_bytes
 from worker.refine.derive import derive_result
 from worker.refine.prepare import MIRROR_LEFT_HAND, ROTATION_PIVOT
-from worker.refine.result import OLDER_SIM_DEFAULTS
 from worker.refine.verify_arrays import ArrayChecker, check_stored_metrics
 from worker.refine.verify_report import CROSS_HOST, Tolerances, VerifyReport
 from worker.refine.verify_summary import check_summary
-from worker.simulation.config import SimConfig
+from worker.simulation.config import OLDER_SIM_DEFAULTS, SimConfig
 
 __all__ = ["CROSS_HOST", "Tolerances", "VerifyReport", "check_result", "verify_result"]
 

@@ -105,3 +105,10 @@ class SimConfig:
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
+
+
+#: Settings a result does not record were, before they existed, these: the mocap and servos followed their tracks,
+#: the object started from frame 0, MuJoCo's impratio 1 and automatic Jacobian (until issue #19), a 0.5 s table
+#: fit without the shelf candidate (until issue #15's support fix).
+OLDER_SIM_DEFAULTS: dict[str, Any] = {"wrist_lead_s": 0.0, "finger_lead_s": 0.0, "rest_approach_m": 0.0,
+                                      "impratio": 1.0, "jacobian": "auto", "table_fit_s": 0.5, "table_shelf": False}
