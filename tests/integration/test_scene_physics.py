@@ -6,6 +6,7 @@ import mujoco
 import numpy as np
 import pytest
 
+from common.geometry import quat_mul
 from common.sequence import HandTrack, ObjectSpec, Sequence
 from worker.hand.model import JOINT_LOWER, JOINT_UPPER, default_geometry, forward_keypoints
 from worker.hand.reference import HandReference
@@ -111,17 +112,22 @@ def test_an_object_recorded_leaning_gets_a_table_under_it_up_to_the_limit(lean_d
         assert angle[-1] > 30.0  # fallen flat
 
 
+def _lying_can_sequence(roll_deg: float, z: float) -> Sequence:
+    """A 3 cm-radius can recorded lying on its side (axis along x), rolled ``roll_deg`` about its axis, centre at
+    height ``z``; hands as in ``_box_sequence``."""
+    seq = _box_sequence(frames=3)
+    lying = np.array([np.cos(np.pi / 4), 0.0, np.sin(np.pi / 4), 0.0])  # axis along x
+    roll = np.radians(roll_deg) / 2
+    q = quat_mul(np.array([np.cos(roll), np.sin(roll), 0.0, 0.0]), lying)  # then rolled about x
+    seq.object = ObjectSpec(name="can", mass_kg=0.3, primitive="cylinder", size=np.array([0.03, 0.05]))
+    seq.object_pose = np.tile(np.r_[0.0, 0.0, z, q], (3, 1))
+    return seq
+
+
 def test_a_lying_cylinder_gets_a_level_table_rather_than_a_tilted_strip_it_would_roll_off() -> None:
     """Recorded lying on its side, rolled 3 degrees about its axis: the hull strip under its centre is a
     candidate table, but the (smooth) cylinder rolls off it in simulation, so the fit keeps a level table."""
-    seq = _box_sequence(frames=3)
-    roll = np.radians(3.0) / 2
-    lying = np.array([np.cos(np.pi / 4), 0.0, np.sin(np.pi / 4), 0.0])  # axis along x
-    quat = np.array([np.cos(roll), np.sin(roll), 0.0, 0.0])  # then rolled about x
-    w1, v1, w2, v2 = quat[0], quat[1:], lying[0], lying[1:]
-    q = np.r_[w1 * w2 - v1 @ v2, w1 * v2 + w2 * v1 + np.cross(v1, v2)]
-    seq.object = ObjectSpec(name="can", mass_kg=0.3, primitive="cylinder", size=np.array([0.03, 0.05]))
-    seq.object_pose = np.tile(np.r_[0.0, 0.0, 0.03, q], (3, 1))
+    seq = _lying_can_sequence(roll_deg=3.0, z=0.03)
     pose, table = fit_table(seq.validate(), SimConfig())
     assert table.tilt_deg == 0.0 and table.point[2] == 0.0
     assert pose[2] == pytest.approx(0.03, abs=1e-3)  # snapped onto the level table
@@ -132,14 +138,7 @@ def test_an_object_recorded_on_another_one_rests_on_a_level_shelf_under_it(shelf
     """A can recorded lying 6 cm above the table (on another object the scene does not hold), rolled 5 degrees
     about its axis so no hull strip under it is level: with the shelf it stays where it was recorded for 1.5 s;
     without it, it either falls to the table or rolls off a tilted strip (the marker of issue #15's dev120 run)."""
-    seq = _box_sequence(frames=3)
-    roll = np.radians(5.0) / 2
-    lying = np.array([np.cos(np.pi / 4), 0.0, np.sin(np.pi / 4), 0.0])  # axis along x
-    quat = np.array([np.cos(roll), np.sin(roll), 0.0, 0.0])  # then rolled about x
-    w1, v1, w2, v2 = quat[0], quat[1:], lying[0], lying[1:]
-    q = np.r_[w1 * w2 - v1 @ v2, w1 * v2 + w2 * v1 + np.cross(v1, v2)]
-    seq.object = ObjectSpec(name="can", mass_kg=0.3, primitive="cylinder", size=np.array([0.03, 0.05]))
-    seq.object_pose = np.tile(np.r_[0.0, 0.0, 0.09, q], (3, 1))
+    seq = _lying_can_sequence(roll_deg=5.0, z=0.09)
     config = SimConfig(table_shelf=shelf)
     pose, table = fit_table(seq.validate(), config)
     if shelf:
