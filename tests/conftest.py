@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import gc
+import sys
 from pathlib import Path
 
 import pytest
@@ -37,3 +39,21 @@ def dexycb_dev_files(shared_data: Path) -> list[Path]:
 # Fixtures for every test package: a database per test on SQLite and PostgreSQL (tests/support/queue_fixtures.py),
 # a MANO-format test model (tests/support/mano.py), a short refinement and offscreen OpenGL (tests/support/visual.py).
 pytest_plugins = ["tests.support.queue_fixtures", "tests.support.mano", "tests.support.visual"]
+
+
+# CPython 3.11.7 and older keep the AST constructor's recursion depth in one interpreter-wide struct; a garbage
+# collection inside it can hand the GIL to another thread that builds an AST too, and the first then raises
+# "SystemError: AST constructor recursion depth mismatch" (python/cpython#106905, fixed in 3.11.8). Collecting
+# the schemathesis module does exactly that: hypothesis parses lambda sources while schemathesis's ASGI portal
+# threads are alive, and one CI run failed there. Pausing the garbage collector while pytest collects closes that
+# window; collecting allocates little, and the collector is back on before the first test runs.
+_AST_RACE_FIXED = sys.version_info >= (3, 11, 8)
+
+
+def pytest_collection(session: pytest.Session) -> None:
+    if not _AST_RACE_FIXED:
+        gc.disable()
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    gc.enable()
