@@ -33,7 +33,8 @@ from bench.refine import aggregate, run_one, sim_defaults  # noqa: E402
 
 #: The configuration of main before issue #19 (noslip pass, MuJoCo's impratio, every CMA-ES generation run).
 BEFORE_19_SIM: dict[str, Any] = {"noslip_iterations": 10, "impratio": 1.0, "contact_solimp": (0.9, 0.99, 0.001),
-                                 "jacobian": "auto", "table_fit_s": 0.5, "table_shelf": False}
+                                 "jacobian": "auto", "table_fit_s": 0.5, "table_shelf": False,
+                                 "hold_until_m": 0.0}
 BEFORE_19_CMA: dict[str, Any] = {"stall_generations": 0}
 
 

@@ -70,6 +70,11 @@ KNOWN_TURN = np.array([1.1, 0.1, -0.7])
 #: The perturbation of the starting controls: pose coefficients and wrist rotation (the known answer).
 KNOWN_POSE_OFFSET = np.array([0.8, -0.6, 0.4, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
 KNOWN_ROTATION_OFFSET = np.array([0.6, -0.4, 0.8])
+#: The known-answer case is about the control parameterisation, so its box is not held before the hand comes
+#: (``SimConfig.hold_until_m``): the truth's hand touches the box one frame after the recorded hand comes within
+#: 2 cm of it, so a start turned a few degrees touches it while the hold still welds it, and with the hold this
+#: test's seed ends with the wrist further from the truth than it started (x1.15; x0.51 without; issue #15).
+KNOWN_ANSWER_SIM = {"hold_until_m": 0.0}
 
 
 def _rotate_about(points: np.ndarray, pivot: np.ndarray, quat: np.ndarray) -> np.ndarray:
@@ -101,10 +106,11 @@ def known_answer_case(options: JobOptions) -> tuple[Sequence, Any, np.ndarray]:
     from worker.refine.evaluator import ParallelEvaluator
     from worker.refine.prepare import prepare, settled_start
     from worker.refine.replay import replay
+    from worker.simulation.config import SimConfig
 
     clean = synthetic_grasp_and_lift(Timeline(approach=8, close=8, settle=3, lift=14, hold=6), errors=False)
     frames = clean.num_frames
-    example = prepare(clean, options)
+    example = prepare(clean, options, SimConfig(**KNOWN_ANSWER_SIM))
     ref, space = example.references[0], example.spaces["right"]
     ramp = np.clip((np.arange(frames) - 5) / 5.0, 0.0, 1.0)[:, None]  # closing in over frames 5-10
     q = np.clip(ref.q + ramp * (space.basis.stddev * KNOWN_GRIP) @ space.basis.components, JOINT_LOWER, JOINT_UPPER)
@@ -113,12 +119,12 @@ def known_answer_case(options: JobOptions) -> tuple[Sequence, Any, np.ndarray]:
     kp = _rotate_about(kp, centre, quat_exp(OMEGA_SCALE * ramp * KNOWN_TURN))
     hand = HandTrack("right", np.ones(frames, dtype=bool), kp)
     truth = replace(clean, name="known-answer", hands=[hand]).validate()
-    prep = prepare(truth, options)
+    prep = prepare(truth, options, SimConfig(**KNOWN_ANSWER_SIM))
     with ParallelEvaluator(prep.scene.model, 1) as ev:
         start, _ = settled_start(prep, ev)
         rec = replay(prep, ev, start, {"right": prep.spaces["right"].zero_keyframes()}, False)
     seq = replace(truth, object_pose=rec.object_pose.copy()).validate()
-    prep = prepare(seq, options)
+    prep = prepare(seq, options, SimConfig(**KNOWN_ANSWER_SIM))
     s0 = prep.spaces["right"]
     turn = np.broadcast_to(quat_exp(-OMEGA_SCALE * KNOWN_ROTATION_OFFSET), s0.wrist_quat.shape)
     assert s0.pivot is not None

@@ -2,8 +2,10 @@
 
 ``ParallelEvaluator`` owns one MjData per thread and a persistent ``mujoco.rollout.Rollout`` thread pool,
 so a long-lived worker can keep it across jobs that share a model (``ensure_model``). A batch of open-loop
-control sequences (ctrl + mocap pose per physics substep, ``control_spec = CTRL | MOCAP_POS | MOCAP_QUAT``)
-is rolled out from one saved state in a C loop; no Python runs per substep.
+control sequences (ctrl, equality switches and mocap pose per physics substep, ``control_spec = CTRL | EQ_ACTIVE |
+MOCAP_POS | MOCAP_QUAT``, laid out as ``control_columns`` says) is rolled out from one saved state in a C loop; no
+Python runs per substep. The equality switches turn the object's hold off when the hand comes
+(``worker.simulation.scene.Scene.hold_active``); ``mujoco.rollout`` would otherwise reset them to the model's.
 
 Determinism: every rollout starts from a full physics state *and* an explicit solver warmstart
 (``initial_warmstart``), so its result never depends on what the MjData simulated before, nor on which
@@ -28,7 +30,7 @@ import numpy as np
 from common.geometry import FloatArray
 
 _S = mujoco.mjtState
-CONTROL_SPEC = int(_S.mjSTATE_CTRL | _S.mjSTATE_MOCAP_POS | _S.mjSTATE_MOCAP_QUAT)
+CONTROL_SPEC = int(_S.mjSTATE_CTRL | _S.mjSTATE_EQ_ACTIVE | _S.mjSTATE_MOCAP_POS | _S.mjSTATE_MOCAP_QUAT)
 STATE_SPEC = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
 
 #: ``step_python`` hook: called with the step index and the MjData right after that step.
@@ -70,6 +72,24 @@ class EvalStats:
 
 def control_size(model: mujoco.MjModel) -> int:
     return int(mujoco.mj_stateSize(model, CONTROL_SPEC))
+
+
+@dataclass(frozen=True)
+class ControlColumns:
+    """Where each input sits in a ``CONTROL_SPEC`` vector (MuJoCo's state order): ctrl (nu), eq_active (neq),
+    mocap_pos (3 nmocap), mocap_quat (4 nmocap)."""
+
+    ctrl: slice
+    eq_active: slice
+    mocap_pos: slice
+    mocap_quat: slice
+
+
+def control_columns(model: mujoco.MjModel) -> ControlColumns:
+    nu, neq, nm = model.nu, model.neq, model.nmocap
+    pos_at = nu + neq
+    return ControlColumns(slice(0, nu), slice(nu, pos_at), slice(pos_at, pos_at + 3 * nm),
+                          slice(pos_at + 3 * nm, pos_at + 7 * nm))
 
 
 class ParallelEvaluator:

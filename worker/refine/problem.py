@@ -16,7 +16,7 @@ import numpy as np
 
 from common.geometry import FloatArray, IntArray, quat_conj, quat_mul, quat_rotate
 from worker.refine.controls import HandControlSpace
-from worker.refine.evaluator import ParallelEvaluator, SimState
+from worker.refine.evaluator import ParallelEvaluator, SimState, control_columns, control_size
 from worker.refine.losses import HandKeypointTargets, ObjectTargets, WindowRecord, window_losses
 from worker.refine.spline import keyframe_window
 
@@ -36,13 +36,26 @@ class HandLayout:
 @dataclass
 class SimLayout:
     """What the refinement drives and reads. ``object_sensor_adr``: 13 sensordata values from there,
-    world framepos (3), framequat (4), framelinvel (3), frameangvel (3) of the object body."""
+    world framepos (3), framequat (4), framelinvel (3), frameangvel (3) of the object body. ``hold_eq``: the
+    weld that holds the object on the steps before frame ``release_frame`` (-1: none;
+    ``worker.simulation.scene.Scene.hold_active``)."""
 
     model: mujoco.MjModel
     substeps: int
     object_body_id: int
     object_sensor_adr: int
     hands: dict[str, HandLayout]
+    hold_eq: int = -1
+    release_frame: int = 0
+
+    def equality_switches(self, steps: IntArray) -> FloatArray:
+        """(n, neq) ``eq_active`` for global physics steps ``steps``: the model's own, and the object's hold on
+        the steps before ``release_frame``'s."""
+        m = self.model
+        out = np.repeat(m.eq_active0[None].astype(np.float64), len(steps), axis=0)
+        if self.hold_eq >= 0:
+            out[:, self.hold_eq] = np.asarray(steps) < self.release_frame * self.substeps
+        return out
 
     def object_from_sensors(self, sens: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Object body-frame position (..., 3), quaternion (..., 4) and world velocity (..., 6) from sensordata.
@@ -79,7 +92,8 @@ class SimLayout:
             )
             for side, h in scene.hands.items()
         }
-        return SimLayout(scene.model, scene.substeps_per_frame, scene.object_body_id, scene.object_sensor_adr, hands)
+        return SimLayout(scene.model, scene.substeps_per_frame, scene.object_body_id, scene.object_sensor_adr, hands,
+                         scene.object_hold_eq, scene.object_release_frame)
 
     @staticmethod
     def from_model(
@@ -147,7 +161,8 @@ class SimWindowProblem:
         self.interval, self.substeps, self.num_frames = first.interval, first.substeps, first.num_frames
         m = layout.model
         self._nq, self._nv = m.nq, m.nv
-        self._ncontrol = m.nu + 7 * m.nmocap
+        self._columns = control_columns(m)
+        self._ncontrol = control_size(m)
 
     # ------------------------------------------------------------------ WindowProblem
     def dim(self, side: str) -> int:
@@ -220,11 +235,12 @@ class SimWindowProblem:
         # Substep k drives towards the sample at its end, (k + 1) / S (as ``worker.simulation.stepping`` does), and
         # substeps past the last frame hold it.
         idx = np.minimum(np.arange(s0, s1) + 1, self.spaces[self.sides[0]].last_sample)
-        m = self.layout.model
         n_cand = 1 if candidates is None else len(next(iter(candidates.values())))
         control = np.zeros((n_cand, n, self._ncontrol))
-        pos_at, quat_at = m.nu, m.nu + 3 * m.nmocap
+        cols = self._columns
+        pos_at, quat_at = cols.mocap_pos.start, cols.mocap_quat.start
         control[:, :, quat_at::4] = 1.0  # identity quaternions for mocap bodies the hands do not drive
+        control[:, :, cols.eq_active] = self.layout.equality_switches(np.arange(s0, s1))
         frame_offsets = {}
         for side, space in self.spaces.items():
             h = self.layout.hands[side]

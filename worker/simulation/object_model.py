@@ -20,6 +20,8 @@ from worker.simulation.hand_mjcf import fmt
 
 OBJECT_BODY = "object"
 OBJECT_JOINT = "object_root"
+#: The weld that holds the object before the hand arrives (``SimConfig.hold_until_m``).
+OBJECT_HOLD = "object_hold"
 
 
 @dataclass(frozen=True)
@@ -89,3 +91,12 @@ def object_mjcf(
     inertial = f'  <inertial pos="{fmt(com)}" mass="{obj.mass_kg:.9g}" fullinertia="{fmt(full)}"/>'
     body = "\n".join([head, inertial, *geoms, "</body>"])
     return ObjectMjcf(assets="\n".join(assets), body=body, num_geoms=len(parts), collision=how)
+
+
+def object_hold_xml(config: SimConfig) -> str:
+    """The object welded to the world where the model places it (no ``relpose``: its pose in ``qpos0``), inactive
+    until a rollout switches it on; as stiff as the wrist welds."""
+    return (
+        f'<weld name="{OBJECT_HOLD}" body1="{OBJECT_BODY}" active="false" '
+        f'solref="{fmt(config.weld_solref)}" solimp="{fmt(config.weld_solimp)}"/>'
+    )

@@ -64,8 +64,17 @@ def rest_pose(
     it at frame 0 or ``approach_m`` <= 0."""
     if approach_m <= 0:
         return np.asarray(object_pose[0], dtype=np.float64).copy()
-    first = min(approach_frame(object_pose, surface_points, hand_keypoints, approach_m), moved_frame(object_pose))
-    return mean_pose(object_pose[: max(first, 1)])
+    return mean_pose(object_pose[: max(resting_frames(object_pose, surface_points, hand_keypoints, approach_m), 1)])
+
+
+def resting_frames(
+    object_pose: FloatArray, surface_points: FloatArray, hand_keypoints: Seq[FloatArray], approach_m: float
+) -> int:
+    """How many frames the object rests untouched in the recording: those before a hand keypoint first comes
+    within ``approach_m`` of its surface and before it moves (``moved_frame``); 0 when ``approach_m`` <= 0."""
+    if approach_m <= 0:
+        return 0
+    return min(approach_frame(object_pose, surface_points, hand_keypoints, approach_m), moved_frame(object_pose))
 
 
 def moved_frame(object_pose: FloatArray, max_shift_m: float = MAX_SHIFT_M, max_turn_deg: float = MAX_TURN_DEG) -> int:

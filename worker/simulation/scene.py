@@ -10,7 +10,10 @@ so callers never look names up in loops:
   (6: linear world, angular *body* frame — MuJoCo's free-joint convention), ``object_geom_ids``,
   ``object_sensor_adr`` (13 values from there: framepos 3, framequat 4, framelinvel 3, frameangvel 3, world);
 * ``substeps_per_frame``; ``object_init_pose`` (7,) the frame-0 pose used (the recorded frame 0 or the rest
-  pose, ``worker.simulation.rest_pose``) and ``table`` the plane under it (``worker.simulation.table_fit``).
+  pose, ``worker.simulation.rest_pose``) and ``table`` the plane under it (``worker.simulation.table_fit``);
+* ``object_hold_eq``: the weld ``object_hold`` that holds the object at ``object_init_pose`` (inactive in the
+  model; -1 when there is none) and ``object_release_frame``: it is active on the steps before that frame
+  (``SimConfig.hold_until_m``; ``hold_active``).
 
 Collisions: hand geoms collide with object geoms only, object geoms with hand and table (contype/conaffinity
 bits in ``sim_config``). Sensors make ``mujoco.rollout`` recordings self-sufficient.
@@ -37,8 +40,8 @@ from worker.simulation.hand_mjcf import (
     hand_sensor_xml,
     hand_worldbody_xml,
 )
-from worker.simulation.object_model import OBJECT_BODY, OBJECT_JOINT, object_mjcf
-from worker.simulation.rest_pose import rest_pose
+from worker.simulation.object_model import OBJECT_BODY, OBJECT_HOLD, OBJECT_JOINT, object_hold_xml, object_mjcf
+from worker.simulation.rest_pose import rest_pose, resting_frames
 from worker.simulation.support_plane import SupportPlane
 from worker.simulation.table_fit import fit_table, option_xml, table_geom_xml
 
@@ -83,6 +86,8 @@ class Scene:
     object_collision: str
     xml: str
     body_side: dict[int, str] = field(default_factory=dict)
+    object_hold_eq: int = -1
+    object_release_frame: int = 0
 
     @property
     def sides(self) -> tuple[str, ...]:
@@ -90,6 +95,12 @@ class Scene:
 
     def make_data(self) -> mujoco.MjData:
         return mujoco.MjData(self.model)
+
+    def hold_active(self, steps: np.ndarray) -> np.ndarray:
+        """Whether the object is held on each of these physics steps (step k takes frame k // substeps towards the
+        next): on every step before ``object_release_frame``'s, when the scene has a hold."""
+        release = self.object_release_frame * self.substeps_per_frame if self.object_hold_eq >= 0 else 0
+        return np.asarray(steps) < release
 
 
 def _ids(model: mujoco.MjModel, kind: mujoco.mjtObj, names: list[str]) -> IntArray:
@@ -107,9 +118,11 @@ def scene_xml(
     start: tuple[FloatArray, SupportPlane],
     *,
     cache_dir: Path | None = None,
+    hold: bool = False,
 ) -> tuple[str, str, int]:
     """The scene's MJCF, the object's collision method and its number of geoms. ``start``: the object's
-    frame-0 pose and the table under it (``fit_table``'s); ``cache_dir``: where convex parts are cached."""
+    frame-0 pose and the table under it (``fit_table``'s); ``cache_dir``: where convex parts are cached;
+    ``hold``: with the (inactive) weld ``object_hold`` of the object to the world at its frame-0 pose."""
     pose0, table = start
     obj = object_mjcf(seq.object, config, pose0[:3], pose0[3:], cache_dir=cache_dir)
     hands_body = "\n".join(hand_worldbody_xml(r.geometry, config, r.wrist_pos[0], r.wrist_quat[0]) for r in references)
@@ -134,6 +147,7 @@ def scene_xml(
   </worldbody>
   <equality>
 {chr(10).join(hand_equality_xml(r.side, config) for r in references)}
+{object_hold_xml(config) if hold else ""}
   </equality>
   <actuator>
 {chr(10).join(hand_actuator_xml(r.side, config) for r in references)}
@@ -155,10 +169,13 @@ def build_scene(
     if not references:
         raise ValueError("references must hold at least one HandReference")
     keypoints = [r.keypoints for r in references]
-    start = rest_pose(seq.object_pose_world(), seq.object.surface_vertices(), keypoints, config.rest_approach_m)
+    poses, surface = seq.object_pose_world(), seq.object.surface_vertices()
+    start = rest_pose(poses, surface, keypoints, config.rest_approach_m)
+    release = resting_frames(poses, surface, keypoints, config.hold_until_m)  # 0 when there is no hold
     pose0, table = fit_table(seq, config, start, cache_dir=cache_dir)
-    xml, collision, ngeom = scene_xml(seq, references, config, (pose0, table), cache_dir=cache_dir)
+    xml, collision, ngeom = scene_xml(seq, references, config, (pose0, table), cache_dir=cache_dir, hold=release > 0)
     model = mujoco.MjModel.from_xml_string(xml)
+    hold_eq = int(mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_EQUALITY, OBJECT_HOLD)) if release > 0 else -1
     hands: dict[str, HandHandles] = {}
     body_side: dict[int, str] = {}
     for r in references:
@@ -205,4 +222,7 @@ def build_scene(
         object_collision=collision,
         xml=xml,
         body_side=body_side,
+        object_hold_eq=hold_eq,
+        object_release_frame=release,
     )
+

@@ -5,7 +5,8 @@ bit-identical whatever that ``MjData`` ran before. In MuJoCo 4.0 ``mjSTATE_FULLP
 solver warmstart (``qacc_warmstart``), and a stale warmstart changes the result in the last bits; states here
 are therefore ``STATE_SPEC = FULLPHYSICS | WARMSTART``. ``rollout`` also accepts a bare FULLPHYSICS state
 (``PHYSICS_SPEC``), restoring it with a zero (cold) warmstart — deterministic as well. The object is only
-ever placed at frame 0 (``initial_state``); afterwards it moves only through contact.
+ever placed at frame 0 (``initial_state``); afterwards it moves only through contact, once released from the weld that
+holds it until the hand comes (``Scene.hold_active``).
 
 Controls (``substep_controls``): hinge targets and wrist positions are interpolated linearly between frames,
 wrist rotations by slerp; substep s of frame f uses the fraction (s + 1) / substeps_per_frame towards frame
@@ -193,7 +194,8 @@ def initial_state(
 ) -> tuple[FloatArray, int]:
     """The frame-0 state: hands at their frame-0 targets, object at ``scene.object_init_pose`` at rest, then
     ``config.settle_seconds`` of simulation with the hands held (the object settles on the table by physics
-    alone). Returns (state with time reset to 0, settle steps taken); the state is ``PHYSICS_SPEC`` (FULLPHYSICS)
+    alone, or stays held where it starts when the scene holds it until the hand comes, ``Scene.hold_active``).
+    Returns (state with time reset to 0, settle steps taken); the state is ``PHYSICS_SPEC`` (FULLPHYSICS)
     by default — ``data.qacc_warmstart`` then holds the settled warmstart — or ``STATE_SPEC`` with
     ``with_warmstart``."""
     model = scene.model
@@ -201,11 +203,16 @@ def initial_state(
     pose_hands(scene, data, targets, 0)
     a = scene.object_qpos_adr
     data.qpos[a : a + 7] = scene.object_init_pose
+    held = bool(scene.hold_active(np.zeros(1, dtype=np.int64))[0])
+    if held:  # the object rests where it starts until the hand comes (``SimConfig.hold_until_m``)
+        data.eq_active[scene.object_hold_eq] = 1
     mujoco.mj_forward(model, data)
     n_settle = round(scene.config.settle_seconds / model.opt.timestep)
     for _ in range(n_settle):
         mujoco.mj_step(model, data)
     data.time = 0.0
+    if held:  # not part of the state: the rollouts switch it step by step
+        data.eq_active[scene.object_hold_eq] = model.eq_active0[scene.object_hold_eq]
     return get_state(scene, data, STATE_SPEC if with_warmstart else PHYSICS_SPEC), n_settle
 
 
@@ -234,7 +241,8 @@ def rollout(
     ``mocap_quat`` (S,nmocap,4); record every ``substeps_per_frame`` steps (see ``RolloutRecord``).
 
     Contacts of a frame are those of its last substep (solved forces); their frame numbers are
-    ``frame_offset + i``. Keypoints and object pose are read after a kinematics pass at the frame's state.
+    ``frame_offset + i``; the object is held on the steps ``Scene.hold_active`` says. Keypoints and object pose
+    are read after a kinematics pass at the frame's state.
     """
     model = scene.model
     steps = ctrl.shape[0]
@@ -263,10 +271,13 @@ def rollout(
     _record_frame(scene, data, rec, 0)
     if states is not None:
         states[0] = state
+    held = scene.hold_active(frame_offset * spf + np.arange(steps))
     for s in range(steps):
         data.ctrl[:] = ctrl[s]
         data.mocap_pos[:] = mocap_pos[s]
         data.mocap_quat[:] = mocap_quat[s]
+        if scene.object_hold_eq >= 0:
+            data.eq_active[scene.object_hold_eq] = held[s]
         mujoco.mj_step(model, data)
         if (s + 1) % spf == 0:
             i = (s + 1) // spf

@@ -9,9 +9,11 @@ Folder contents:
 * ``controls.npz``: per physics step (S = (F - 1) * substeps + 1) ``ctrl`` (S, nu) hinge servo targets,
   ``mocap_pos`` (S, nmocap, 3) and ``mocap_quat`` (S, nmocap, 4) the wrist's mocap pose, already interpolated
   (hinge targets and wrist positions linearly between frames, wrist rotations by slerp, each step driving
-  towards the sample at its end); ``start_state`` (mjSTATE_FULLPHYSICS) and ``start_warmstart`` the settled
-  frame-0 state; per frame, per hand side S: ``S_q_target`` (F, 45), ``S_wrist_pos`` (F, 3), ``S_wrist_quat``
-  (F, 4) the refined tracks before interpolation;
+  towards the sample at its end); ``eq_active`` (S, neq) which equality constraints are on at each step (the
+  wrist welds always; the weld ``object_hold`` that holds the object until the hand comes); ``start_state``
+  (mjSTATE_FULLPHYSICS) and ``start_warmstart`` the settled frame-0 state; per frame, per hand side S:
+  ``S_q_target`` (F, 45), ``S_wrist_pos`` (F, 3), ``S_wrist_quat`` (F, 4) the refined tracks before
+  interpolation;
 * ``trajectories.npz``: ``object_pose_sim`` (F, 7) the simulated object, ``object_pose_ref`` the recorded one,
   ``raw_object_pose_sim`` the raw replay's, ``object_vel_sim``, per side ``S_keypoints_sim`` / ``_ref``;
 * ``contacts.npz``: the per-frame contacts (``common.result_format.CONTACT_KEYS``);
@@ -64,6 +66,7 @@ def export_playback(pb: Playback, out_dir: Path | str) -> Path:
         "ctrl": pb.controls.ctrl,
         "mocap_pos": pb.controls.mocap_pos,
         "mocap_quat": pb.controls.mocap_quat,
+        "eq_active": pb.controls.eq_active,
         "start_state": pb.controls.start_physics,
         "start_warmstart": pb.controls.start_warmstart,
         **per_frame,

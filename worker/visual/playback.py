@@ -51,6 +51,7 @@ class Controls:
     mocap_quat: FloatArray  # (S, nmocap, 4) wxyz
     start_physics: FloatArray  # mjSTATE_FULLPHYSICS state of frame 0 (the settled start)
     start_warmstart: FloatArray  # (nv,) qacc_warmstart of the start state
+    eq_active: FloatArray  # (S, neq) which equality constraints are on: the wrist welds, the object's hold
 
 
 @dataclass
@@ -127,7 +128,7 @@ def resimulate(
     when the result does not embed it (raw replays). ``cache_dir`` (convex parts) and ``mano_dir`` (MANO
     model): as for ``worker.refine.prepare.prepare``; the commands pass the configured folders."""
     from common.geometry import rotation_error_deg
-    from worker.refine.evaluator import CONTROL_SPEC, ParallelEvaluator
+    from worker.refine.evaluator import CONTROL_SPEC, ParallelEvaluator, control_columns
     from worker.refine.prepare import settled_start
     from worker.refine.replay import replay
     from worker.refine.result import compare_object_trajectory
@@ -187,13 +188,14 @@ def resimulate(
             )
             if keep_controls:
                 packed = np.asarray(steps)
-                nu, nm = model.nu, model.nmocap
+                cols, nm = control_columns(model), model.nmocap
                 out.controls = Controls(
-                    ctrl=packed[:, :nu].copy(),
-                    mocap_pos=packed[:, nu : nu + 3 * nm].reshape(-1, nm, 3).copy(),
-                    mocap_quat=packed[:, nu + 3 * nm : nu + 7 * nm].reshape(-1, nm, 4).copy(),
+                    ctrl=packed[:, cols.ctrl].copy(),
+                    mocap_pos=packed[:, cols.mocap_pos].reshape(-1, nm, 3).copy(),
+                    mocap_quat=packed[:, cols.mocap_quat].reshape(-1, nm, 4).copy(),
                     start_physics=start.physics.copy(),
                     start_warmstart=start.warmstart.copy(),
+                    eq_active=packed[:, cols.eq_active].copy(),
                 )
     return out
 

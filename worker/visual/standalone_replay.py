@@ -5,7 +5,8 @@ Usage, inside the exported folder (or give the folder as the argument):
     python replay.py [FOLDER]
 
 It loads ``scene.xml``, restores the settled start state from ``controls.npz``, applies the stored controls
-(hinge servo targets ``ctrl`` and the wrist's mocap pose ``mocap_pos`` / ``mocap_quat``) at every physics step,
+(hinge servo targets ``ctrl``, the wrist's mocap pose ``mocap_pos`` / ``mocap_quat`` and which welds are on,
+``eq_active``: the object is held where it starts until the hand comes) at every physics step,
 reads the object's pose at every video frame, and prints how far it lands from the simulated and the
 recorded object trajectories in ``trajectories.npz``. Exit status 1 when the replay leaves the simulated
 trajectory by more than 1 mm or 1 degree (a different MuJoCo build can round differently).
@@ -40,6 +41,8 @@ def replay(folder: Path) -> np.ndarray:
     data = mujoco.MjData(model)
     c = np.load(folder / "controls.npz")
     ctrl, mocap_pos, mocap_quat = c["ctrl"], c["mocap_pos"], c["mocap_quat"]
+    # Exports made before the object's hold have no switches: their welds stay as the model declares them.
+    eq_active = c["eq_active"] if "eq_active" in c.files else np.repeat(model.eq_active0[None], len(ctrl), axis=0)
     substeps, frames = int(meta["substeps_per_frame"]), int(meta["frames"])
     body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, meta["object_body"])
     mujoco.mj_resetData(model, data)
@@ -52,6 +55,7 @@ def replay(folder: Path) -> np.ndarray:
         data.ctrl[:] = ctrl[i]
         data.mocap_pos[:] = mocap_pos[i]
         data.mocap_quat[:] = mocap_quat[i]
+        data.eq_active[:] = eq_active[i]
         mujoco.mj_step(model, data)
         frame = (i + 1) // substeps
         if (i + 1) % substeps == 0 and frame < frames:
