@@ -11,7 +11,7 @@ import pytest
 from common.job_options import JobOptions
 from common.sequence import Sequence
 from tests.integration.test_scene_physics import _box_sequence, _replay
-from worker.refine.evaluator import ParallelEvaluator
+from worker.refine.evaluator import ParallelEvaluator, control_columns
 from worker.refine.prepare import prepare, settled_start
 from worker.refine.replay import window_problem
 from worker.refine.result import verify_result
@@ -69,7 +69,7 @@ def test_every_rollout_path_switches_the_hold_off_on_the_same_step() -> None:
         problem = window_problem(prep, ev, start, {})
         keyframes = {side: sp.zero_keyframes() for side, sp in prep.spaces.items()}
         control, _ = problem.build_control(keyframes, 0, FRAMES - 1)
-        switches = control[0, :, problem._columns.eq_active][:, prep.layout.hold_eq]
+        switches = control[0, :, control_columns(prep.scene.model).eq_active][:, prep.layout.hold_eq]
         assert switches[: 6 * prep.layout.substeps].all() and not switches[6 * prep.layout.substeps :].any()
         states, _ = ev.rollout(start, control)
         python_states, _ = problem._step_recording(start, control[0])

@@ -19,6 +19,7 @@ from worker.refine.controls import HandControlSpace
 from worker.refine.evaluator import ParallelEvaluator, SimState, control_columns, control_size
 from worker.refine.losses import HandKeypointTargets, ObjectTargets, WindowRecord, window_losses
 from worker.refine.spline import keyframe_window
+from worker.simulation.scene import held_steps
 
 
 @dataclass
@@ -54,7 +55,7 @@ class SimLayout:
         m = self.model
         out = np.repeat(m.eq_active0[None].astype(np.float64), len(steps), axis=0)
         if self.hold_eq >= 0:
-            out[:, self.hold_eq] = np.asarray(steps) < self.release_frame * self.substeps
+            out[:, self.hold_eq] = held_steps(steps, self.release_frame, self.substeps)
         return out
 
     def object_from_sensors(self, sens: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:

@@ -97,10 +97,15 @@ class Scene:
         return mujoco.MjData(self.model)
 
     def hold_active(self, steps: np.ndarray) -> np.ndarray:
-        """Whether the object is held on each of these physics steps (step k takes frame k // substeps towards the
-        next): on every step before ``object_release_frame``'s, when the scene has a hold."""
-        release = self.object_release_frame * self.substeps_per_frame if self.object_hold_eq >= 0 else 0
-        return np.asarray(steps) < release
+        """Whether the object is held on each of these physics steps (``held_steps``; never without a hold)."""
+        release = self.object_release_frame if self.object_hold_eq >= 0 else 0
+        return held_steps(steps, release, self.substeps_per_frame)
+
+
+def held_steps(steps: np.ndarray, release_frame: int, substeps_per_frame: int) -> np.ndarray:
+    """The object's hold schedule, one definition for every rollout path: held on every physics step before
+    ``release_frame``'s (step k takes frame k // substeps_per_frame towards the next)."""
+    return np.asarray(steps) < release_frame * substeps_per_frame
 
 
 def _ids(model: mujoco.MjModel, kind: mujoco.mjtObj, names: list[str]) -> IntArray:

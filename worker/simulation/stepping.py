@@ -203,7 +203,7 @@ def initial_state(
     pose_hands(scene, data, targets, 0)
     a = scene.object_qpos_adr
     data.qpos[a : a + 7] = scene.object_init_pose
-    held = bool(scene.hold_active(np.zeros(1, dtype=np.int64))[0])
+    held = scene.object_hold_eq >= 0  # a scene has the weld only when the object rests before the hand comes
     if held:  # the object rests where it starts until the hand comes (``SimConfig.hold_until_m``)
         data.eq_active[scene.object_hold_eq] = 1
     mujoco.mj_forward(model, data)
