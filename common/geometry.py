@@ -35,6 +35,14 @@ def quat_mul(a: FloatArray, b: FloatArray) -> FloatArray:
     )
 
 
+def cross(a: FloatArray, b: FloatArray) -> FloatArray:
+    """``np.cross`` of (..., 3) vectors, broadcasting: the same products and differences, so the same bits, without
+    its axis bookkeeping, which costs more than the arithmetic on the small arrays of the hand's IK."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
 def quat_conj(q: FloatArray) -> FloatArray:
     """Conjugate (the inverse of a unit quaternion)."""
     return q * np.array([1.0, -1.0, -1.0, -1.0])

@@ -6,11 +6,14 @@ import mujoco
 import numpy as np
 import pytest
 
+from common.geometry import cross
 from worker.hand.model import (
+    AXIS_VECTORS,
     HINGE_NAMES,
     JOINT_LOWER,
     JOINT_UPPER,
     default_geometry,
+    finger_kinematics,
     fit_hand_geometry,
     forward_keypoints,
 )
@@ -73,3 +76,33 @@ def test_fit_rejects_bad_shapes() -> None:
         fit_hand_geometry(np.zeros((5, 20, 3)), np.ones(5, dtype=bool), "right")
     with pytest.raises(ValueError, match="valid"):
         fit_hand_geometry(np.zeros((5, 21, 3)), np.ones(4, dtype=bool), "right")
+
+
+def test_cross_is_numpys_bit_for_bit() -> None:
+    rng = np.random.default_rng(4)
+    a, b = rng.normal(size=(5, 1, 9, 3)), rng.normal(size=(5, 3, 9, 3))  # broadcast as in the IK's Jacobian
+    np.testing.assert_array_equal(cross(a, b), np.cross(a, b))
+
+
+def test_finger_kinematics_is_the_textbook_rodrigues_chain_bit_for_bit() -> None:
+    # The retargeting's results (and every stored result made from them) depend on these exact bits: the
+    # precomputed hinge-axis parts must give what building Rodrigues' formula afresh per call gave.
+    geometry = default_geometry("right")
+    q = np.random.default_rng(5).uniform(JOINT_LOWER, JOINT_UPPER, size=(7, 45))
+
+    def rodrigues(axes: np.ndarray, angles: np.ndarray) -> np.ndarray:
+        c, s = np.cos(angles)[..., None, None], np.sin(angles)[..., None, None]
+        k = np.zeros((*axes.shape[:-1], 3, 3))
+        k[..., 0, 1], k[..., 0, 2], k[..., 1, 2] = -axes[..., 2], axes[..., 1], -axes[..., 0]
+        k = k - np.swapaxes(k, -1, -2)
+        outer = axes[..., :, None] * axes[..., None, :]
+        return c * np.eye(3) + s * k + (1 - c) * outer
+
+    rot = np.broadcast_to(geometry.rest_rot, (7, 5, 3, 3)).copy()
+    pos = np.broadcast_to(geometry.bases, (7, 5, 3)).copy()
+    qf = q.reshape(7, 5, 9)
+    for j in range(3):
+        for h in range(3):
+            rot = rot @ rodrigues(np.broadcast_to(AXIS_VECTORS[h], (7, 5, 3)), qf[:, :, 3 * j + h])
+        pos = pos + rot[..., 0] * geometry.lengths[:, j, None]
+        np.testing.assert_array_equal(finger_kinematics(geometry, q).points[:, :, j], pos)

@@ -228,12 +228,26 @@ def fit_hand_geometry(keypoints_world: FloatArray, valid: npt.NDArray[np.bool_],
 
 def axis_rotations(axes: FloatArray, angles: FloatArray) -> FloatArray:
     """Rodrigues: rotation matrices (..., 3, 3) about unit ``axes`` (..., 3) by ``angles`` (...)."""
-    c, s = np.cos(angles)[..., None, None], np.sin(angles)[..., None, None]
+    skew, outer = _rodrigues_parts(axes)
+    return _rodrigues(skew, outer, angles)
+
+
+def _rodrigues_parts(axes: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The angle-free parts of Rodrigues' formula for unit ``axes`` (..., 3): skew matrices and outer products."""
     k = np.zeros((*axes.shape[:-1], 3, 3))
     k[..., 0, 1], k[..., 0, 2], k[..., 1, 2] = -axes[..., 2], axes[..., 1], -axes[..., 0]
-    k = k - np.swapaxes(k, -1, -2)
-    outer = axes[..., :, None] * axes[..., None, :]
-    return c * np.eye(3) + s * k + (1 - c) * outer
+    return k - np.swapaxes(k, -1, -2), axes[..., :, None] * axes[..., None, :]
+
+
+def _rodrigues(skew: FloatArray, outer: FloatArray, angles: FloatArray) -> FloatArray:
+    c, s = np.cos(angles)[..., None, None], np.sin(angles)[..., None, None]
+    return c * _EYE3 + s * skew + (1 - c) * outer
+
+
+_EYE3 = np.eye(3)
+#: The hinge axes' parts, made once: the retargeting's IK runs the finger kinematics thousands of times a
+#: sequence, and rebuilding these for every call was most of its cost (same arithmetic, same bits).
+_HINGE_SKEW, _HINGE_OUTER = _rodrigues_parts(AXIS_VECTORS)
 
 
 @dataclass
@@ -263,7 +277,7 @@ def finger_kinematics(geometry: HandGeometry, q: FloatArray) -> FingerKinematics
             k = 3 * j + h
             axes[:, :, k] = rot @ AXIS_VECTORS[h]
             anchors[:, :, k] = pos
-            rot = rot @ axis_rotations(np.broadcast_to(AXIS_VECTORS[h], (b, 5, 3)), qf[:, :, k])
+            rot = rot @ _rodrigues(_HINGE_SKEW[h], _HINGE_OUTER[h], qf[:, :, k])  # axis_rotations about axis h
         pos = pos + rot[..., 0] * geometry.lengths[:, j, None]
         points[:, :, j] = pos
     return FingerKinematics(points=points, axes=axes, anchors=anchors)

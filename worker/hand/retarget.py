@@ -17,7 +17,7 @@ import numpy.typing as npt
 from scipy.spatial.transform import Rotation, Slerp
 
 from common.errors import SequenceValidationError
-from common.geometry import FloatArray
+from common.geometry import FloatArray, cross
 from common.sequence import HandTrack, Sequence, Side
 from worker.hand.mano import mano_available, mano_model_path
 from worker.hand.mano.pose import mano_reference
@@ -80,7 +80,7 @@ def solve_fingers(
         pts, axes, anchors = fk.points[0], fk.axes[0], fk.anchors[0]  # (5,3,3), (5,9,3), (5,9,3)
         err = (targets - pts).reshape(5, 9)
         # d p_j / d q_k = axis_k × (p_j - anchor_k)   -> J (5, 3 points, 3 coords, 9 hinges)
-        jac = np.cross(axes[:, None, :, :], pts[:, :, None, :] - anchors[:, None, :, :])  # (5,3,9,3)
+        jac = cross(axes[:, None, :, :], pts[:, :, None, :] - anchors[:, None, :, :])  # (5,3,9,3)
         jac = np.swapaxes(jac * moves[None, :, :, None], 2, 3).reshape(5, 9, 9)
         qf = q.reshape(5, 9)
         jt = np.swapaxes(jac, 1, 2)
