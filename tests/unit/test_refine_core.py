@@ -205,3 +205,22 @@ def _final_object_error(problem: SimWindowProblem, ev: ParallelEvaluator, kf: di
     rec = problem._record(0, FRAMES - 1, states, sensors, offs)
     ev2.close()
     return float(np.linalg.norm(rec.obj_pos[0] - problem.obj.pos[1:], axis=-1).max())
+
+
+def test_probe_is_the_one_candidate_evaluation_and_sees_the_push() -> None:
+    # The probe records only the frame steps and checks contacts with one array lookup per step; its loss must be
+    # the batched rollout's for the same keyframes, and it must see the paddle touch the box it pushes.
+    problem, ev = _problem(ref_push=0.05)
+    with ev:
+        kf = {"right": problem.spaces["right"].zero_keyframes()}
+        for j in range(1, problem.n_keyframes):
+            loss, touched = problem.probe(j, problem.initial, kf)
+            batched = problem.evaluate(j, problem.initial, kf, {"right": kf["right"][j][None]})
+            assert loss["right"] == batched["right"][0]
+            assert touched
+    layout, away, start = tiny_setup(push=-0.03)  # the paddle backs off: it never reaches the box
+    with ParallelEvaluator(layout.model, 1) as ev_away:
+        backing = SimWindowProblem(layout, {"right": away}, _dummy_obj(), _dummy_hand(), resolve_weights({}),
+                                   ev_away, start)
+        kf_away = {"right": away.zero_keyframes()}
+        assert not any(backing.probe(j, start, kf_away)[1] for j in range(1, backing.n_keyframes))

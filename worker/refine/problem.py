@@ -16,7 +16,7 @@ import numpy as np
 
 from common.geometry import FloatArray, IntArray, quat_conj, quat_mul, quat_rotate
 from worker.refine.controls import HandControlSpace
-from worker.refine.evaluator import ParallelEvaluator, SimState, control_columns, control_size
+from worker.refine.evaluator import ParallelEvaluator, SimState, StepHook, control_columns, control_size
 from worker.refine.losses import HandKeypointTargets, ObjectTargets, WindowRecord, window_losses
 from worker.refine.spline import keyframe_window
 from worker.simulation.scene import held_steps
@@ -189,22 +189,23 @@ class SimWindowProblem:
         f0, f1 = self.window(j)
         control, offsets = self.build_control(keyframes, f0, f1)
         touched = False
-        obj_body = self.layout.object_body_id
-        hand_bodies = frozenset().union(*(h.body_ids for h in self.layout.hands.values()))
         m = self.layout.model
+        # touching[b1, b2]: a contact between bodies b1 and b2 is one between a hand and the object.
+        touching = np.zeros((m.nbody, m.nbody), dtype=bool)
+        hand_bodies = sorted(frozenset().union(*(h.body_ids for h in self.layout.hands.values())))
+        touching[self.layout.object_body_id, hand_bodies] = True
+        touching[hand_bodies, self.layout.object_body_id] = True
 
         def hook(i: int, d: mujoco.MjData) -> None:
             nonlocal touched
-            if touched:
+            if touched or d.ncon == 0:
                 return
-            for c in d.contact[: d.ncon]:
-                b1, b2 = int(m.geom_bodyid[c.geom1]), int(m.geom_bodyid[c.geom2])
-                if (b1 == obj_body and b2 in hand_bodies) or (b2 == obj_body and b1 in hand_bodies):
-                    touched = True
-                    return
+            bodies = m.geom_bodyid[d.contact.geom[: d.ncon]]  # (ncon, 2): one array lookup, not a loop per contact
+            touched = bool(touching[bodies[:, 0], bodies[:, 1]].any())
 
-        # The same rollout as a one-candidate evaluation, stepped in Python to see contacts.
-        states, sensors = self._step_recording(state, control[0], hook)
+        # The same rollout as a one-candidate evaluation, stepped in Python to see contacts; only the steps that
+        # ``_record`` reads are copied out.
+        states, sensors = self._step_recording(state, control[0], hook, self._recorded_steps(f0, f1))
         rec = self._record(f0, f1, states[None], sensors[None], offsets)
         per_hand, _ = window_losses(rec, self.obj, self.hand_targets, self.weights)
         return {s: float(v[0]) for s, v in per_hand.items()}, touched
@@ -257,31 +258,46 @@ class SimWindowProblem:
         return control, frame_offsets
 
     def _step_recording(
-        self, state: SimState, control: FloatArray, hook: object = None
+        self, state: SimState, control: FloatArray, hook: StepHook | None = None, steps: IntArray | None = None
     ) -> tuple[FloatArray, FloatArray]:
-        """Python-stepped rollout recording what ``mujoco.rollout`` records (state after, sensors at start)."""
+        """Python-stepped rollout recording what ``mujoco.rollout`` records (state after, sensors at start), at
+        every step or only at ``steps`` (the other rows stay zero)."""
         m = self.layout.model
         nstate = mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_FULLPHYSICS)
-        states = np.empty((control.shape[0], nstate))
-        sensors = np.empty((control.shape[0], m.nsensordata))
+        states = np.zeros((control.shape[0], nstate))
+        sensors = np.zeros((control.shape[0], m.nsensordata))
+        wanted = np.ones(control.shape[0], dtype=bool)
+        if steps is not None:
+            wanted[:] = False
+            wanted[steps] = True
 
         def record(i: int, d: mujoco.MjData) -> None:
-            mujoco.mj_getState(m, d, states[i], mujoco.mjtState.mjSTATE_FULLPHYSICS)
-            sensors[i] = d.sensordata
-            if callable(hook):
+            if wanted[i]:
+                mujoco.mj_getState(m, d, states[i], mujoco.mjtState.mjSTATE_FULLPHYSICS)
+                sensors[i] = d.sensordata
+            if hook is not None:
                 hook(i, d)
 
         self.evaluator.step_python(state, control, record)
         return states, sensors
 
+    def _recorded_steps(self, f0: int, f1: int) -> IntArray:
+        """The rollout steps ``_record`` reads for frames f0+1..f1: the state after, and the sensors of, each."""
+        after, at = self._frame_steps(f0, f1)
+        return np.union1d(after, at)
+
+    def _frame_steps(self, f0: int, f1: int) -> tuple[IntArray, IntArray]:
+        """For frames f0+1..f1 of a rollout from frame f0: the step after which the state is the frame's, and
+        the step whose sensors were computed at the frame's state (see the evaluator's convention)."""
+        frames = np.arange(f0 + 1, f1 + 1)
+        return (frames - f0) * self.substeps - 1, (frames - f0) * self.substeps
+
     def _record(
         self, f0: int, f1: int, states: FloatArray, sensors: FloatArray, offsets: dict[str, FloatArray]
     ) -> WindowRecord:
         """Decode frames f0+1..f1 from per-substep states/sensors of a window rollout."""
-        s = self.substeps
         frames = np.arange(f0 + 1, f1 + 1)
-        after = (frames - f0) * s - 1  # state after this step = state at the frame time
-        at = (frames - f0) * s  # sensors of the next step = computed at the frame time
+        after, at = self._frame_steps(f0, f1)
         sens = sensors[:, at]
         qvel = states[:, after, 1 + self._nq : 1 + self._nq + self._nv]
         obj_pos, obj_quat, obj_vel = self.layout.object_from_sensors(sens)
