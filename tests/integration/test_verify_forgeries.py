@@ -58,6 +58,32 @@ def test_the_honest_result_verifies_bit_for_bit(honest: tuple[dict[str, np.ndarr
     assert len(report.digest) == 64
 
 
+def test_the_derivation_depends_on_neither_replay_threads_nor_a_handed_over_retargeting(
+    honest: tuple[dict[str, np.ndarray], dict[str, Any]],
+) -> None:
+    """The worker's derivation reuses the refinement's retargeting and replays side by side; ``verify`` does
+    neither by default. Both must give the same bits, restarts' replays included."""
+    from common.sequence_io import sequence_from_npz_bytes
+    from worker.hand.retarget import retarget_sequence
+    from worker.refine.derive import derive_result
+    from worker.simulation.config import SimConfig
+
+    arrays, summary = honest
+    seq_bytes = arrays["sequence_npz"].tobytes()
+    options = JobOptions.model_validate(summary["options"])
+    keyframes = {"right": arrays["right_keyframes"]}
+    tried = [keyframes, {"right": arrays["right_keyframes"] * 0.5}]
+    pivot = summary["config"]["rotation_pivot"]
+    alone = derive_result(seq_bytes, options, SimConfig(), pivot, keyframes, tried, threads=1)
+    handed = derive_result(seq_bytes, options, SimConfig(), pivot, keyframes, tried, threads=2,
+                           references=retarget_sequence(sequence_from_npz_bytes(seq_bytes)))
+    assert alone.arrays.keys() == handed.arrays.keys()
+    for key, value in alone.arrays.items():
+        np.testing.assert_array_equal(handed.arrays[key], value, err_msg=key)
+    assert alone.attempt_metrics == handed.attempt_metrics
+    assert alone.steps == handed.steps
+
+
 def test_rewritten_summary_metrics_fail(honest: tuple[dict[str, np.ndarray], dict[str, Any]]) -> None:
     arrays, summary = honest
     forged = {**summary, "metrics": {
@@ -148,7 +174,7 @@ def test_cli_prints_deviation_and_digests(
     assert "largest object deviation 0 mm" in out and "checked sha256 " in out and "bit-identical" in out
     forged = {**arrays, "contact_force": arrays["contact_force"] * 10}
     path.write_bytes(_forged(forged, summary))
-    assert cli_main(["verify", str(path)]) == 2
+    assert cli_main(["verify", str(path), "--threads", "2"]) == 2
     assert "contact_force" in capsys.readouterr().err
 
 

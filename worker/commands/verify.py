@@ -29,6 +29,8 @@ def register(subparsers: Any) -> None:
     v.add_argument("--sequence", type=Path, default=None, help="sequence file (default: the one embedded)")
     v.add_argument("--allow-config", action="store_true",
                    help="accept a physics config that differs from the defaults (the differences are printed)")
+    v.add_argument("--threads", type=int, default=1,
+                   help="replays run side by side on this many threads (default 1; the figures do not depend on it)")
     v.set_defaults(func=_verify)
 
 
@@ -42,7 +44,7 @@ def _verify(args: argparse.Namespace) -> int:
     blob = args.result.read_bytes()
     settings = get_settings()
     report = check_result(blob, seq, allow_config=args.allow_config, cache_dir=settings.resolved_cache_dir(),
-                          mano_dir=settings.mano_dir)
+                          mano_dir=settings.mano_dir, threads=max(1, args.threads))
     if report.config_changes:
         banner = "!" * 78
         print(banner)

@@ -4,10 +4,11 @@
 result embeds, prepares it (retargeting, scene, control spaces) in a fresh model, settles frame 0 in a fresh
 ``MjData``, and replays from frame 0 the raw reference (zero offsets) and the given keyframes (and each restart's
 keyframes), recording contacts; then it computes the metrics of both replays and every derived result array.
-``refine_sequence`` stores exactly what this returns for its best keyframes, and ``verify`` calls it again on what
-the file holds, so an honest result reproduces bit for bit on the same build (issue #15 item 1: the stored
-replay used to run on the refinement's own sequence object while ``verify`` read the embedded copy, which had
-been normalised once more on load; 1e-16 there grew to 0.066 mm in the contact-rich replay).
+``refine_sequence`` stores exactly what this returns for its best keyframes (handing over its own retargeting of
+the same bytes, the one step it does not repeat), and ``verify`` calls it again on what the file holds, so an
+honest result reproduces bit for bit on the same build (issue #15 item 1: the stored replay used to run on the
+refinement's own sequence object while ``verify`` read the embedded copy, which had been normalised once more on
+load; 1e-16 there grew to 0.066 mm in the contact-rich replay).
 """
 
 from __future__ import annotations
@@ -22,9 +23,10 @@ from common.geometry import FloatArray
 from common.job_options import JobOptions
 from common.sequence_io import sequence_from_npz_bytes
 from worker.hand.mano.pose import mano_result_arrays
+from worker.hand.reference import HandReference
 from worker.refine.evaluator import ParallelEvaluator
 from worker.refine.prepare import Prepared, prepare, settled_start
-from worker.refine.replay import ReplayRecord, replay
+from worker.refine.replay import ReplayJob, ReplayRecord, replay_all
 from worker.simulation.config import SimConfig
 from worker.simulation.metrics import compute_metrics, scalar_metrics
 
@@ -54,29 +56,32 @@ def derive_result(
     cache_dir: Path | None = None,
     mano_dir: Path | None = None,
     mirror_left: bool | None = None,
+    references: list[HandReference] | None = None,
+    threads: int = 1,
 ) -> Derived:
     """See the module docstring. ``attempt_keyframes`` the keyframes of every attempt (restarts) in order, stored
     so ``verify`` can check the first attempt's success too; ``cache_dir``, ``mano_dir`` and ``mirror_left`` (the
-    left hand's control convention, ``config.left_hand_controls``) as for ``prepare``."""
+    left hand's control convention, ``config.left_hand_controls``) as for ``prepare``. ``references``: the
+    retargeting of these very bytes, when the caller made it already (``refine_sequence``; ``verify`` never passes
+    it, so a retargeting that did not reproduce would fail there). ``threads``: replays run side by side
+    (``replay_all``; the same records whatever the number)."""
     seq = sequence_from_npz_bytes(sequence_bytes)
     prep = prepare(seq, options, config, rotation_pivot=rotation_pivot, cache_dir=cache_dir, mano_dir=mano_dir,
-                   mirror_left=mirror_left)
+                   mirror_left=mirror_left, references=references)
     for side, space in prep.spaces.items():
         k = keyframes.get(side)
         if k is None or k.shape != (space.n_keyframes, space.dim):
             got = None if k is None else k.shape
             raise ValueError(f"{side}_keyframes must have shape ({space.n_keyframes}, {space.dim}), got {got}")
     attempts = attempt_keyframes or []
-    # A fresh MjData (single-threaded, Python-stepped): nothing simulated before can leak into the result.
+    # Fresh MjData (Python-stepped): nothing simulated before can leak into the result.
     with ParallelEvaluator(prep.scene.model, 1) as ev:
         start, settle = settled_start(prep, ev)
-        zero = {side: sp.zero_keyframes() for side, sp in prep.spaces.items()}
-        raw = replay(prep, ev, start, zero)
-        final = replay(prep, ev, start, keyframes)
-        attempt_metrics = [
-            scalar_metrics(replay_metrics(prep, replay(prep, ev, start, k, record_contacts=False))) for k in attempts
-        ]
-        steps = settle + ev.stats.steps
+    zero = {side: sp.zero_keyframes() for side, sp in prep.spaces.items()}
+    jobs = [ReplayJob(zero), ReplayJob(keyframes), *(ReplayJob(k, record_contacts=False) for k in attempts)]
+    (raw, final, *tried), replay_steps = replay_all(prep, start, jobs, threads)
+    attempt_metrics = [scalar_metrics(replay_metrics(prep, rec)) for rec in tried]
+    steps = settle + replay_steps
     metrics = {"raw": replay_metrics(prep, raw), "refined": replay_metrics(prep, final)}
     arrays = build_arrays(prep, sequence_bytes, keyframes, final, raw, metrics["raw"], metrics["refined"])
     for side in prep.spaces:

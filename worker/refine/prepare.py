@@ -146,17 +146,21 @@ def prepare(
     cache_dir: Path | None = None,
     mano_dir: Path | None = None,
     mirror_left: bool | None = None,
+    references: list[HandReference] | None = None,
 ) -> Prepared:
     """``rotation_pivot``: ``ROTATION_PIVOT`` when None (``verify`` passes the one a result was made with).
     ``cache_dir``: where convex parts are cached (None: memory only); ``mano_dir``: the MANO model folder
     (None: hands given by keypoints only, see ``retarget_sequence``). ``mirror_left``: a left hand's control
     coordinates are the mirror image of a right hand's (pose basis, wrist rotation and translation;
     ``controls``); ``MIRROR_LEFT_HAND`` when None; False reproduces results made before issue #15, which
-    recorded no ``config.left_hand_controls``."""
+    recorded no ``config.left_hand_controls``. ``references``: this very sequence's ``retarget_sequence`` output
+    when the caller has it already (``derive`` from the refinement, which read the same bytes); retargeting is
+    a third of a preparation."""
     if mirror_left is None:
         mirror_left = MIRROR_LEFT_HAND
     config = config or SimConfig()
-    references = retarget_sequence(seq, mano_dir=mano_dir)
+    if references is None:
+        references = retarget_sequence(seq, mano_dir=mano_dir)
     scene = build_scene(seq, references, config, cache_dir=cache_dir)
     layout = SimLayout.from_scene(scene)
     interval = options.keyframe_interval or default_keyframe_interval(seq.fps)

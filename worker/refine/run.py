@@ -146,7 +146,8 @@ def refine_sequence(
     t_derive = time.perf_counter()
     derived = derive_result(seq_bytes, options, prep.scene.config, prep.rotation_pivot, keyframes,
                             tried if len(tried) > 1 else None, cache_dir=cache_dir, mano_dir=mano_dir,
-                            mirror_left=prep.mirror_left)
+                            mirror_left=prep.mirror_left, references=prep.references,
+                            threads=threads)
     derive_s = time.perf_counter() - t_derive
     wall = time.perf_counter() - t0
     final = derived.final

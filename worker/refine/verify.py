@@ -70,10 +70,11 @@ def verify_result(
 
 def check_result(
     blob: bytes, sequence: Sequence | None = None, *, allow_config: bool = False, cache_dir: Path | None = None,
-    mano_dir: Path | None = None,
+    mano_dir: Path | None = None, threads: int = 1,
 ) -> VerifyReport:
     """See the module docstring; failures are listed in the report, not raised. ``cache_dir`` and ``mano_dir``
-    as for ``worker.refine.prepare.prepare`` (the command passes the configured folders)."""
+    as for ``worker.refine.prepare.prepare`` (the command passes the configured folders); ``threads``: replays
+    side by side (the same figures whatever the number)."""
     summary = read_summary(blob)
     if summary.get("kind") != "refine":
         raise UnsupportedFormatError(f"not a refinement result (kind {summary.get('kind')!r})")
@@ -94,7 +95,8 @@ def check_result(
     attempt_kf = _attempt_keyframes(arrays, sides)
     try:
         derived = derive_result(seq_bytes, options, SimConfig(**sim), pivot, keyframes,  # type: ignore[arg-type]
-                                attempt_kf, cache_dir=cache_dir, mano_dir=mano_dir, mirror_left=mirror_left)
+                                attempt_kf, cache_dir=cache_dir, mano_dir=mano_dir, mirror_left=mirror_left,
+                                threads=threads)
     except ValueError as exc:
         raise ResultMismatchError(f"the stored controls do not fit the sequence: {exc}") from exc
     c = ArrayChecker(report, arrays, derived.arrays)

@@ -89,12 +89,15 @@ class RefineJob:
         )
         blob = outcome.to_npz_bytes()
         summary = dict(outcome.summary)
-        proof = verification(blob, cache_dir=get_settings().resolved_cache_dir(), mano_dir=get_settings().mano_dir)
+        proof = verification(blob, cache_dir=get_settings().resolved_cache_dir(), mano_dir=get_settings().mano_dir,
+                             threads=self.threads)
         summary["metrics"] = {**summary["metrics"], "verification": proof}
         return blob, summary
 
 
-def verification(blob: bytes, cache_dir: Path | None = None, mano_dir: Path | None = None) -> dict[str, Any]:
+def verification(
+    blob: bytes, cache_dir: Path | None = None, mano_dir: Path | None = None, threads: int = 1
+) -> dict[str, Any]:
     """``verify`` on the finished result from a fresh replay, before it is stored (issue #15 item 2): the job's
     metrics then say whether it reproduced, and carry the digests a downloaded copy can be checked against
     (``hoi-refine verify`` prints both). A result that does not verify is still stored, flagged and explained.
@@ -102,7 +105,7 @@ def verification(blob: bytes, cache_dir: Path | None = None, mano_dir: Path | No
     from common.result_format import content_digest
     from worker.refine.verify import check_result
 
-    report = check_result(blob, cache_dir=cache_dir, mano_dir=mano_dir)
+    report = check_result(blob, cache_dir=cache_dir, mano_dir=mano_dir, threads=threads)
     return {
         "verified": not report.failures,
         "exact": report.exact,
