@@ -72,6 +72,32 @@ def test_video_has_every_frame_is_not_blank_and_shows_the_lift(playback: Playbac
     assert abs(raw[0][:, 0].mean() - raw[1][:, 0].mean()) < rise_px / 3
 
 
+def test_the_stored_preview_has_every_part_and_its_video_shows_the_lift(
+    short_refine_result: bytes, tmp_path: Path
+) -> None:
+    """What a worker stores beside a result: the video (drawn on its own thread, without anti-aliasing), the plots,
+    the recording and the export, all from one re-simulation."""
+    import io
+    import zipfile
+
+    from worker.visual.preview import EXPORT, PLOTS_PREFIX, RECORDING, VIDEO, preview_artifacts
+
+    parts = {a.name: a for a in preview_artifacts(short_refine_result)}
+    assert {VIDEO, RECORDING, EXPORT} <= set(parts)
+    assert sum(name.startswith(PLOTS_PREFIX) for name in parts) == 3
+    (tmp_path / VIDEO).write_bytes(parts[VIDEO].data)
+    frames, _ = read_mp4(tmp_path / VIDEO)
+    refined = [object_pixels(f[:, 320:]) for f in (frames[0], frames[-1])]
+    assert frames.shape[1:] == (240, 640, 3) and min(len(p) for p in refined) > 200
+    assert refined[0][:, 0].mean() - refined[1][:, 0].mean() > 40  # the box rises, as with anti-aliasing
+    names = zipfile.ZipFile(io.BytesIO(parts[EXPORT].data)).namelist()
+    assert "export/scene.xml" in names and "export/controls.npz" in names
+    (tmp_path / RECORDING).write_bytes(parts[RECORDING].data)
+    assert read_recording(tmp_path / RECORDING)
+    with pytest.raises(ValueError, match="samples"):
+        render_video(resimulate(short_refine_result), str(tmp_path / "x.mp4"), samples=-1)
+
+
 def test_rerun_recording_is_written_and_read_back(playback: Playback, tmp_path: Path) -> None:
     out = write_recording(playback, tmp_path / "run.rrd")
     assert out is not None and out.stat().st_size > 10_000
