@@ -152,8 +152,9 @@ def write_report(path: Path, rows: list[dict[str, Any]], files: list[Path], args
         "",
         f"Against 1 x 1, over the span (steady: workers / mean job seconds, the rate of a dataset much longer "
         f"than {len(files)} jobs): {speedups}.{per_job} Within one worker only the rollouts of one CMA-ES "
-        "generation run in parallel (popsize / threads each, then a barrier); the window commits and the raw and "
-        f"final replays step on one thread. Separate workers overlap all of it. {load_text}",
+        "generation run in parallel (popsize / threads each, then a barrier), and the result's raw and refined "
+        "replays run side by side; the window probes and commits, the retargeting and the CMA-ES step on one "
+        f"thread. Separate workers overlap all of it. {load_text}",
         "",
         "Sequences:",
         "",
