@@ -164,6 +164,11 @@ class SimWindowProblem:
         self._nq, self._nv = m.nq, m.nv
         self._columns = control_columns(m)
         self._ncontrol = control_size(m)
+        # [b1, b2]: a contact between bodies b1 and b2 is one between a hand and the object (``probe``).
+        self._hand_object_pair = np.zeros((m.nbody, m.nbody), dtype=bool)
+        hand_bodies = sorted(frozenset().union(*(h.body_ids for h in layout.hands.values())))
+        self._hand_object_pair[layout.object_body_id, hand_bodies] = True
+        self._hand_object_pair[hand_bodies, layout.object_body_id] = True
 
     # ------------------------------------------------------------------ WindowProblem
     def dim(self, side: str) -> int:
@@ -189,12 +194,7 @@ class SimWindowProblem:
         f0, f1 = self.window(j)
         control, offsets = self.build_control(keyframes, f0, f1)
         touched = False
-        m = self.layout.model
-        # touching[b1, b2]: a contact between bodies b1 and b2 is one between a hand and the object.
-        touching = np.zeros((m.nbody, m.nbody), dtype=bool)
-        hand_bodies = sorted(frozenset().union(*(h.body_ids for h in self.layout.hands.values())))
-        touching[self.layout.object_body_id, hand_bodies] = True
-        touching[hand_bodies, self.layout.object_body_id] = True
+        m, touching = self.layout.model, self._hand_object_pair
 
         def hook(i: int, d: mujoco.MjData) -> None:
             nonlocal touched
@@ -266,10 +266,8 @@ class SimWindowProblem:
         nstate = mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_FULLPHYSICS)
         states = np.zeros((control.shape[0], nstate))
         sensors = np.zeros((control.shape[0], m.nsensordata))
-        wanted = np.ones(control.shape[0], dtype=bool)
-        if steps is not None:
-            wanted[:] = False
-            wanted[steps] = True
+        wanted = np.zeros(control.shape[0], dtype=bool)
+        wanted[slice(None) if steps is None else steps] = True
 
         def record(i: int, d: mujoco.MjData) -> None:
             if wanted[i]:
