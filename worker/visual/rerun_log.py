@@ -80,6 +80,8 @@ def write_recording(playback: Playback, out: Path | str | None = None, spawn: bo
 
 
 def _log(rec: Any, pb: Playback) -> None:
+    # Whole columns per entity (``send_columns``), not one ``log`` call per entity and frame: the recording is
+    # made after every job, and row-by-row logging was thousands of Python calls for a few hundred frames.
     import rerun as rr
 
     scene, model = pb.scene, pb.scene.model
@@ -87,68 +89,100 @@ def _log(rec: Any, pb: Playback) -> None:
     hand_geoms = [g for g in range(model.ngeom) if int(model.geom_bodyid[g]) in scene.body_side]
     object_geoms = [int(g) for g in scene.object_geom_ids]
     meshes = {g: geom_mesh(model, g) for g in (*hand_geoms, *object_geoms)}
+    drawn = [g for g in (*hand_geoms, *object_geoms) if meshes[g] is not None]
     name = {g: mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, g) or f"geom{g}" for g in meshes}
-    runs = list(pb.trajectories)
-    for run in runs:
-        for group, geoms in (("hand", hand_geoms), ("object", object_geoms)):
-            for g in geoms:
-                if meshes[g] is not None:
-                    v, f = meshes[g]  # type: ignore[misc]
-                    rec.log(f"world/{run}/{group}/{name[g]}",
-                            rr.Mesh3D(vertex_positions=v, triangle_indices=f, albedo_factor=_COLOURS[group]),
-                            static=True)  # fmt: skip
+    group_of = {g: "hand" for g in hand_geoms} | {g: "object" for g in object_geoms}
+    for run in pb.trajectories:
+        for g in drawn:
+            v, f = meshes[g]  # type: ignore[misc]
+            rec.log(f"world/{run}/{group_of[g]}/{name[g]}",
+                    rr.Mesh3D(vertex_positions=v, triangle_indices=f, albedo_factor=_COLOURS[group_of[g]]),
+                    static=True)  # fmt: skip
     for g in object_geoms:
         if meshes[g] is not None:
             v, f = meshes[g]  # type: ignore[misc]
-            rec.log(f"world/recorded/object/{name[g]}",
-                    rr.Mesh3D(vertex_positions=v, triangle_indices=f, albedo_factor=_COLOURS["ghost"]), static=True)
+            rec.log(
+                f"world/recorded/object/{name[g]}",
+                rr.Mesh3D(vertex_positions=v, triangle_indices=f, albedo_factor=_COLOURS["ghost"]),
+                static=True,
+            )
+    frames = rr.TimeColumn("frame", sequence=np.arange(pb.num_frames))
     data = mujoco.MjData(model)
+    for run, traj in pb.trajectories.items():
+        pos, rot = _geom_poses(model, data, traj.qpos, drawn)
+        for i, g in enumerate(drawn):
+            rec.send_columns(
+                f"world/{run}/{group_of[g]}/{name[g]}",
+                indexes=[frames],
+                columns=rr.Transform3D.columns(translation=pos[:, i], mat3x3=rot[:, i]),
+            )
+        _log_contacts(rec, run, traj.contacts, pb.num_frames, frames)
+        rec.send_columns(f"metrics/E_t/{run}", indexes=[frames], columns=rr.Scalars.columns(scalars=traj.e_t_cm))
+        rec.send_columns(f"metrics/E_r/{run}", indexes=[frames], columns=rr.Scalars.columns(scalars=traj.e_r_deg))
+        for finger, values in contact_force_per_finger(traj.contacts, pb.num_frames).items():
+            rec.send_columns(f"forces/{run}/{finger}", indexes=[frames], columns=rr.Scalars.columns(scalars=values))
+    # The recorded object: each geom carried by the recorded body pose at its fixed place in the body frame.
     body = scene.object_body_id
-    forces = {run: contact_force_per_finger(t.contacts, pb.num_frames) for run, t in pb.trajectories.items()}
-    for frame in range(pb.num_frames):
-        rec.set_time("frame", sequence=frame)
-        for run, traj in pb.trajectories.items():
-            data.qpos[:] = traj.qpos[frame]
-            mujoco.mj_kinematics(model, data)
-            for group, geoms in (("hand", hand_geoms), ("object", object_geoms)):
-                for g in geoms:
-                    if meshes[g] is not None:
-                        rec.log(f"world/{run}/{group}/{name[g]}",
-                                rr.Transform3D(translation=data.geom_xpos[g], mat3x3=data.geom_xmat[g].reshape(3, 3)))
-            _log_contacts(rec, run, traj.contacts, frame)
-            rec.log(f"metrics/E_t/{run}", rr.Scalars(float(traj.e_t_cm[frame])))
-            rec.log(f"metrics/E_r/{run}", rr.Scalars(float(traj.e_r_deg[frame])))
-            for finger, values in forces[run].items():
-                rec.log(f"forces/{run}/{finger}", rr.Scalars(float(values[frame])))
-        # The recorded object: each geom's pose in the body frame, carried by the recorded body pose (the last
-        # run's kinematics give the geom-in-body offsets).
-        r_body = data.xmat[body].reshape(3, 3)
-        ref = pb.object_pose_ref[frame]
-        r_flat = np.empty(9)
-        mujoco.mju_quat2Mat(r_flat, ref[3:] / np.linalg.norm(ref[3:]))
-        r_ref = r_flat.reshape(3, 3)
-        for g in object_geoms:
-            if meshes[g] is not None:
-                local_pos = r_body.T @ (data.geom_xpos[g] - data.xpos[body])
-                local_rot = r_body.T @ data.geom_xmat[g].reshape(3, 3)
-                rec.log(f"world/recorded/object/{name[g]}",
-                        rr.Transform3D(translation=ref[:3] + r_ref @ local_pos, mat3x3=r_ref @ local_rot))
-        for side, kp in pb.keypoints_ref.items():
-            pts = kp[frame]
-            rec.log(f"world/recorded/hand_{side}", rr.LineStrips3D([[pts[a], pts[b]] for a, b in SKELETON],
-                                                                   colors=[_COLOURS["ghost"][:3]], radii=0.002))
+    mujoco.mj_kinematics(model, data)
+    r_body = data.xmat[body].reshape(3, 3)
+    ref = pb.object_pose_ref[: pb.num_frames]
+    flat = np.empty((len(ref), 9))
+    for frame, quat in enumerate(ref[:, 3:]):
+        mujoco.mju_quat2Mat(flat[frame], quat / np.linalg.norm(quat))
+    r_ref = flat.reshape(-1, 3, 3)
+    for g in object_geoms:
+        if meshes[g] is not None:
+            local_pos = r_body.T @ (data.geom_xpos[g] - data.xpos[body])
+            local_rot = r_body.T @ data.geom_xmat[g].reshape(3, 3)
+            rec.send_columns(f"world/recorded/object/{name[g]}", indexes=[frames],
+                             columns=rr.Transform3D.columns(translation=ref[:, :3] + r_ref @ local_pos,
+                                                            mat3x3=r_ref @ local_rot))  # fmt: skip
+    bones = np.array(SKELETON)
+    for side, all_kp in pb.keypoints_ref.items():
+        kp = all_kp[: pb.num_frames]
+        strips: Any = np.stack([kp[:, bones[:, 0]], kp[:, bones[:, 1]]], axis=2).reshape(-1, 2, 3)  # (F * bones, 2, 3)
+        n = len(strips)
+        rec.send_columns(
+            f"world/recorded/hand_{side}",
+            indexes=[frames],
+            columns=rr.LineStrips3D.columns(
+                strips=strips, colors=np.tile(_COLOURS["ghost"][:3], (n, 1)), radii=np.full(n, 0.002)
+            ).partition([len(bones)] * len(kp)),
+        )
 
 
-def _log_contacts(rec: Any, run: str, contacts: dict[str, np.ndarray], frame: int) -> None:
+def _geom_poses(
+    model: mujoco.MjModel, data: mujoco.MjData, qpos: FloatArray, geoms: list[int]
+) -> tuple[FloatArray, FloatArray]:
+    """World position (F, G, 3) and rotation (F, G, 3, 3) of ``geoms`` at each frame's ``qpos``."""
+    pos = np.empty((len(qpos), len(geoms), 3))
+    rot = np.empty((len(qpos), len(geoms), 3, 3))
+    for frame, q in enumerate(qpos):
+        data.qpos[:] = q
+        mujoco.mj_kinematics(model, data)
+        pos[frame] = data.geom_xpos[geoms]
+        rot[frame] = data.geom_xmat[geoms].reshape(-1, 3, 3)
+    return pos, rot
+
+
+def _log_contacts(rec: Any, run: str, contacts: dict[str, np.ndarray], num_frames: int, frames: Any) -> None:
     import rerun as rr
 
-    rows = np.flatnonzero(np.asarray(contacts["contact_frame"]) == frame)
+    at = np.asarray(contacts["contact_frame"], dtype=np.int64)
+    rows = np.flatnonzero((at >= 0) & (at < num_frames))
+    rows = rows[np.argsort(at[rows], kind="stable")]  # frame order, each frame's contacts in stored order
+    counts = np.bincount(at[rows], minlength=num_frames)
     pos = np.asarray(contacts["contact_pos_world"], dtype=np.float64).reshape(-1, 3)[rows]
     force = np.asarray(contacts["contact_force"], dtype=np.float64).reshape(-1, 3)[rows]
-    rec.log(f"world/{run}/contacts", rr.Points3D(pos, radii=0.003, colors=[_COLOURS[run][:3]]))
+    colours = np.tile(_COLOURS[run][:3], (len(rows), 1))
+    rec.send_columns(f"world/{run}/contacts", indexes=[frames],
+                     columns=rr.Points3D.columns(positions=pos, radii=np.full(len(rows), 0.003),
+                                                 colors=colours).partition(counts))  # fmt: skip
     # The hand's force on the object, its head at the contact point (as in the video).
     vectors = force * FORCE_ARROW_M_PER_N
-    rec.log(f"world/{run}/forces", rr.Arrows3D(vectors=vectors, origins=pos - vectors, colors=[_COLOURS[run][:3]]))
+    rec.send_columns(f"world/{run}/forces", indexes=[frames],
+                     columns=rr.Arrows3D.columns(vectors=vectors, origins=pos - vectors,
+                                                 colors=colours).partition(counts))  # fmt: skip
 
 
 def read_recording(path: Path | str) -> dict[str, int]:
