@@ -19,6 +19,7 @@ from common.api_key_store import ApiKeyStore
 from common.database import create_engine_for
 from common.job_options import JobOptions
 from common.queue import JobQueue
+from common.queue_types import Artifact
 from common.settings import Settings
 from tests.support.queue_fixtures import BACKENDS
 from worker.runtime.backoff import Backoff, WorkerStopping, call_with_backoff
@@ -68,6 +69,7 @@ def test_success_writes_result_and_progress_names_the_process(rt_queue: JobQueue
     assert rec.state == "SUCCEEDED" and rec.attempt == 1
     blob, summary = rt_queue.get_result(None, job_id)
     assert summary["generations"] == 3
+    assert 3 * GEN_S <= summary["compute_seconds"] < 60  # the job function's time, measured by the loop
     with np.load(io.BytesIO(blob)) as data:
         assert data["values"].shape == (32,)
     assert (rec.progress or {}).get("pid") == os.getpid()
@@ -109,6 +111,36 @@ def test_graceful_stop_releases_the_job_without_consuming_an_attempt(rt_queue: J
     rec = rt_queue.get(None, job_id)
     assert rec.state == "QUEUED" and rec.attempt == 1
     assert loop.jobs_done == {"released": 1}
+
+
+@BACKEND
+def test_run_draws_a_jobs_preview_while_the_next_job_computes_and_writes_every_outcome(rt_queue: JobQueue) -> None:
+    owner, _ = ApiKeyStore(rt_queue.engine).create("test")
+    first, _ = rt_queue.submit(owner, b"first" * 10, JobOptions(seed=1, max_generations=2), None, "first", 10)
+    second, _ = rt_queue.submit(owner, b"second" * 10, JobOptions(seed=2, max_generations=4), None, "second", 10)
+    seen: dict[int, str] = {}
+
+    def preview(result: bytes, options: JobOptions) -> list[Artifact]:
+        if options.seed == 1:
+            # Held until the second job is being computed: a loop that drew previews between jobs never gets there
+            # (and the preview's error would be stored instead of its file).
+            _wait(lambda: (rt_queue.get(None, second.id).progress or {}).get("generation", 0) >= 1, 10)
+            seen[1] = rt_queue.get(None, second.id).state
+        return [Artifact("video.mp4", "video/mp4", b"mp4:" + result[:4], 8)]
+
+    loop = WorkerLoop(rt_queue, SelfTestJob(), worker_id="w1", lease_seconds=LEASE_S, idle_poll_seconds=0.05,
+                      artifact_fn=preview, overlap_preview=True)  # fmt: skip
+    assert loop.run(max_jobs=2) == {"succeeded": 2}  # returns once the last preview is written, not before
+    assert seen == {1: "RUNNING"}
+    for job in (first, second):
+        rec = rt_queue.get(None, job.id)
+        assert rec.state == "SUCCEEDED" and rec.summary["preview"]["files"] == ["video.mp4"]  # type: ignore[index]
+        assert rt_queue.get_artifact(owner, job.id, "video.mp4").data.startswith(b"mp4:")
+    # The first job's result was written (under its own lease, its heartbeat beating) after the second was claimed.
+    first_done = rt_queue.get(None, first.id).finished_at
+    second_started = rt_queue.get(None, second.id).started_at
+    assert first_done is not None and second_started is not None and first_done > second_started
+    assert loop.status()["finishing_job_id"] is None and loop.current() is None
 
 
 @BACKEND

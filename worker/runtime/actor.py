@@ -67,6 +67,9 @@ class WorkerActor:
             lease_seconds=settings.lease_seconds,
             extra_progress={"threads": threads},
             artifact_fn=make_artifact_function(job_kind),
+            # A worker holds ``threads`` CPUs (Ray's num_cpus): only with more than one does drawing a preview
+            # beside the next job use cores its own rollouts leave idle instead of another worker's.
+            overlap_preview=threads > 1,
         )
         log.info("actor %s ready (pid %d, %d thread(s), job kind %s)", worker_id, os.getpid(), threads, job_kind)
 

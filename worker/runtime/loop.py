@@ -58,6 +58,9 @@ class JobFunction(Protocol):
 #: result bytes and the job's options, returns ``common.queue_types.Artifact`` items (none when the options say so).
 ArtifactFn = Callable[[bytes, JobOptions], list[Any]]
 
+#: ``run_once(overlap=True)``'s answer for a job whose preview and result write go on in the background.
+FINISHING = "finishing"
+
 
 @dataclass
 class CurrentJob:
@@ -81,6 +84,7 @@ class WorkerLoop:
         heartbeat_interval: float | None = None,
         extra_progress: dict[str, Any] | None = None,
         artifact_fn: ArtifactFn | None = None,
+        overlap_preview: bool = False,
     ) -> None:
         if not lease_seconds > 0:
             raise ValueError(f"lease_seconds must be > 0, got {lease_seconds}")
@@ -94,12 +98,18 @@ class WorkerLoop:
         self.backoff = backoff or Backoff()
         self.extra_progress = dict(extra_progress or {})
         self.artifact_fn = artifact_fn
+        # ``run`` draws a job's preview beside the next job's computation (see ``run``).
+        self.overlap_preview = overlap_preview
         self.stop_event = threading.Event()
         self.jobs_done: dict[str, int] = {}
         self._lock = threading.Lock()
         self._current: CurrentJob | None = None
         self._last_requeue = -float("inf")
         self._heartbeat: Heartbeat | None = None
+        # The previous job's preview and result write, still running while this loop computes the next job
+        # (``run``): at most one at a time.
+        self._finishing: threading.Thread | None = None
+        self._finishing_job: str | None = None
 
     # ------------------------------------------------------------------ control (any thread)
 
@@ -116,39 +126,52 @@ class WorkerLoop:
 
     def status(self) -> dict[str, Any]:
         cur = self.current()
+        with self._lock:
+            finishing, done = self._finishing_job, dict(self.jobs_done)
         return {
             "worker_id": self.worker_id,
             "pid": os.getpid(),
             "job_id": cur.job_id if cur else None,
             "lease_token": cur.lease_token if cur else None,
-            "jobs_done": dict(self.jobs_done),
+            "finishing_job_id": finishing,
+            "jobs_done": done,
         }
 
     # ------------------------------------------------------------------ loop
 
     def run(self, max_jobs: int | None = None) -> dict[str, int]:
-        """Loop until ``stop()`` (or ``max_jobs`` outcomes other than idle); returns outcome counts."""
+        """Loop until ``stop()`` (or ``max_jobs`` outcomes other than idle); returns outcome counts.
+
+        With ``overlap_preview`` a job's preview is drawn beside the next job's computation
+        (``run_once(overlap=True)``): the preview runs largely on one thread, and would otherwise leave the other
+        cores of a multi-threaded worker idle. The last one is waited for before this returns, so every claimed job
+        has its outcome written."""
         log.info("worker %s (pid %d) started", self.worker_id, os.getpid())
         done = 0
-        while not self.stop_event.is_set():
-            try:
-                outcome = self.run_once()
-            except WorkerStopping:
-                break
-            if outcome == "idle":
-                self.stop_event.wait(self.idle_poll_seconds)
-                continue
-            done += 1
-            if max_jobs is not None and done >= max_jobs:
-                break
+        try:
+            while not self.stop_event.is_set():
+                try:
+                    outcome = self.run_once(overlap=self.overlap_preview)
+                except WorkerStopping:
+                    break
+                if outcome == "idle":
+                    self.stop_event.wait(self.idle_poll_seconds)
+                    continue
+                done += 1
+                if max_jobs is not None and done >= max_jobs:
+                    break
+        finally:
+            self._wait_for_finishing()
         log.info("worker %s stopped after %s", self.worker_id, self.jobs_done)
         return dict(self.jobs_done)
 
     def _db(self, what: str, fn: Callable[[], Any]) -> Any:
         return call_with_backoff(fn, what, self.backoff, stop=self.stop_event, logger=log)
 
-    def run_once(self) -> str:
-        """Claim and run at most one job; returns its outcome or ``"idle"``."""
+    def run_once(self, overlap: bool = False) -> str:
+        """Claim and run at most one job; returns its outcome or ``"idle"``. With ``overlap`` a successful job's
+        preview and result write go on in the background and this returns ``"finishing"`` (the outcome is counted
+        when it is written); otherwise the outcome is written before this returns."""
         # Expired leases of dead workers go back to QUEUED before we look for work (issue #5.2).
         # At most once per heartbeat interval: an idle worker polls every second, and each requeue is a write
         # transaction (on SQLite it takes the database write lock).
@@ -163,11 +186,22 @@ class WorkerLoop:
         claimed = self._db("claim", lambda: self.queue.claim(self.worker_id, lease_seconds=self.lease_seconds))
         if claimed is None:
             return "idle"
-        outcome = self._run_claimed(claimed)
-        self.jobs_done[outcome] = self.jobs_done.get(outcome, 0) + 1
+        outcome = self._run_claimed(claimed, overlap)
+        if outcome != FINISHING:
+            self._count(outcome)
         return outcome
 
-    def _run_claimed(self, job: ClaimedJob) -> str:
+    def _count(self, outcome: str) -> None:
+        with self._lock:
+            self.jobs_done[outcome] = self.jobs_done.get(outcome, 0) + 1
+
+    def _wait_for_finishing(self) -> None:
+        thread = self._finishing
+        if thread is not None:
+            thread.join()
+            self._finishing = None
+
+    def _run_claimed(self, job: ClaimedJob, overlap: bool = False) -> str:
         log.info("claimed job %s (attempt %d) %r", job.job_id, job.attempt, job.name)
         base = {**self.extra_progress, "worker_id": self.worker_id, "pid": os.getpid(), "attempt": job.attempt}
         hb = Heartbeat(
@@ -184,15 +218,18 @@ class WorkerLoop:
         # First beat at once: the job's progress shows which process runs it before any work is done.
         hb.beat()
         hb.start()
+        outcome = ""
         try:
-            return self._execute(job, hb)
+            outcome = self._execute(job, hb, overlap)
+            return outcome
         finally:
-            hb.stop()
+            if outcome != FINISHING:  # else the finishing thread stops the heartbeat once the result is written
+                hb.stop()
             with self._lock:
                 self._current = None
                 self._heartbeat = None
 
-    def _execute(self, job: ClaimedJob, hb: Heartbeat) -> str:
+    def _execute(self, job: ClaimedJob, hb: Heartbeat, overlap: bool = False) -> str:
         t0 = time.monotonic()
         try:
             if hb.should_stop():
@@ -210,7 +247,37 @@ class WorkerLoop:
             log.exception("job %s failed (retryable=%s)", job.job_id, retryable)
             error = _error_text(exc)
             return self._write(job, "failed", lambda: self.queue.fail(job.job_id, job.lease_token, error, retryable))
-        log.info("job %s computed in %.1f s", job.job_id, time.monotonic() - t0)
+        computed = time.monotonic() - t0
+        log.info("job %s computed in %.1f s", job.job_id, computed)
+        # Beside ``preview.seconds``: a job's run time (claim to result) also holds its preview, and with
+        # ``overlap_preview`` the previous job's preview drawn beside this one's computation.
+        summary["compute_seconds"] = round(computed, 3)
+        # One preview at a time: a job that finishes its computation before the previous job's preview waits here.
+        self._wait_for_finishing()
+        if overlap and self.artifact_fn is not None and job.options.preview_video:
+            thread = threading.Thread(
+                target=self._finish_in_background, args=(job, result, summary, hb), name=f"finish-{job.job_id}"
+            )
+            with self._lock:
+                self._finishing, self._finishing_job = thread, job.job_id
+            thread.start()
+            return FINISHING
+        return self._finish(job, result, summary, hb)
+
+    def _finish_in_background(self, job: ClaimedJob, result: bytes, summary: dict[str, Any], hb: Heartbeat) -> None:
+        try:
+            self._count(self._finish(job, result, summary, hb))
+        except Exception:
+            # The lease runs out and the job is run again; the loop goes on with the next job.
+            log.exception("job %s: writing its result failed", job.job_id)
+            self._count("error")
+        finally:
+            hb.stop()
+            with self._lock:
+                self._finishing_job = None
+
+    def _finish(self, job: ClaimedJob, result: bytes, summary: dict[str, Any], hb: Heartbeat) -> str:
+        """The preview (when asked for) and the result, written under the job's lease."""
         artifacts = self._artifacts(job, result, summary, hb)
         if artifacts:
             return self._write(job, "succeeded", lambda: self.queue.complete(
