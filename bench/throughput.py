@@ -88,7 +88,10 @@ def run_config(workers: int, threads: int, payloads: list[tuple[str, bytes]], op
         last = max(j.finished_at for j in jobs if j.finished_at)
         span = (last - first).total_seconds()
         runs = [(j.finished_at - j.started_at).total_seconds() for j in jobs if j.finished_at and j.started_at]
-        sims = [float(queue.get_result(None, i)[1]["timings"]["sim_s"]) for i in ids]
+        summaries = [queue.get_result(None, i)[1] for i in ids]
+        sims = [float(s["timings"]["sim_s"]) for s in summaries]
+        computes = [float(s["compute_seconds"]) for s in summaries]
+        previews = [float(s.get("preview", {}).get("seconds", 0.0)) for s in summaries]
         return {
             "workers": workers,
             "threads": threads,
@@ -97,13 +100,28 @@ def run_config(workers: int, threads: int, payloads: list[tuple[str, bytes]], op
             "startup_s": total - span,
             "per_hour": len(ids) * 3600.0 / span,
             "mean_run_s": sum(runs) / len(runs),
-            # A dataset's rate: every worker busy with a job of the mean length, no tail where one worker is idle
-            # (with a handful of jobs the span's last job often runs alone, which the span-based rate counts).
-            "steady_per_hour": workers * 3600.0 / (sum(runs) / len(runs)),
+            # The refinement and its verification alone, without the preview (the worker times it).
+            "mean_compute_s": sum(computes) / len(computes),
+            "mean_preview_s": sum(previews) / len(previews),
+            "steady_per_hour": steady_rate(jobs),
             "sim_share": sum(sims) / sum(runs),
             # 1-minute load average before and after: the machine is shared, so say how busy it was.
             "load": (load_before, os.getloadavg()[0]),
         }
+
+
+def steady_rate(jobs: list[Any]) -> float:
+    """A dataset's rate, without the tail of a short run where one worker is idle (with a handful of jobs the span's
+    last job often runs alone, which the span-based rate counts): each worker's jobs over its own span, from its
+    first claim to its last result, summed over workers. With one worker it is the span's rate."""
+    spans: dict[str, list[Any]] = {}
+    for j in jobs:
+        spans.setdefault(j.worker_id or "?", []).append(j)
+    rate = 0.0
+    for own in spans.values():
+        span = (max(j.finished_at for j in own) - min(j.started_at for j in own)).total_seconds()
+        rate += len(own) * 3600.0 / span
+    return rate
 
 
 def write_report(path: Path, rows: list[dict[str, Any]], files: list[Path], args: argparse.Namespace) -> None:
@@ -118,15 +136,16 @@ def write_report(path: Path, rows: list[dict[str, Any]], files: list[Path], args
         f"{args.popsize or 'default'}, max generations {args.max_generations or 'default'}, seed {args.seed}; "
         "SQLite queue, local Ray, the production worker actors.",
         "",
-        "| workers x threads | sequences / hour | span s (first claim to last result) | mean job s | "
-        "steady sequences / hour (workers / mean job) | "
+        "| workers x threads | sequences / hour | span s (first claim to last result) | mean job s (claim to result) "
+        "| mean computation s (refinement + verification) | mean preview s | "
+        "steady sequences / hour (each worker over its own span) | "
         "Ray + actor start-up s | share of worker wall time in simulation | load avg before / after |",
-        "|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
             f"| {r['workers']} x {r['threads']} | {r['per_hour']:.1f} | {r['span_s']:.1f} | {r['mean_run_s']:.1f} "
-            f"| {r['steady_per_hour']:.1f} "
+            f"| {r['mean_compute_s']:.1f} | {r['mean_preview_s']:.1f} | {r['steady_per_hour']:.1f} "
             f"| {r['startup_s']:.1f} | {100 * r['sim_share']:.0f}% | {r['load'][0]:.1f} / {r['load'][1]:.1f} |"
         )
     base, steady = rows[0]["per_hour"], rows[0]["steady_per_hour"]
@@ -136,8 +155,10 @@ def write_report(path: Path, rows: list[dict[str, Any]], files: list[Path], args
     )
     threaded = [r for r in rows if r["workers"] == 1 and r["threads"] > 1]
     per_job = "".join(
-        f" One sequence on {r['threads']} threads took x{r['mean_run_s'] / rows[0]['mean_run_s']:.2f} of its "
-        "1-thread time (mean job seconds)." for r in threaded
+        f" One sequence on {r['threads']} threads took x{r['mean_compute_s'] / rows[0]['mean_compute_s']:.2f} of "
+        f"its 1-thread time to compute (refinement and verification), x{r['mean_run_s'] / rows[0]['mean_run_s']:.2f}"
+        " from claim to stored result (with its preview, and on more than one thread the previous job's preview "
+        "drawn beside it)." for r in threaded
     )
     # This benchmark's own workers make a load of up to the CPU count; more than that was someone else's work.
     shared = max(max(r["load"]) for r in rows) > (cpu or 1) + 0.5
@@ -150,11 +171,13 @@ def write_report(path: Path, rows: list[dict[str, Any]], files: list[Path], args
     )
     lines += [
         "",
-        f"Against 1 x 1, over the span (steady: workers / mean job seconds, the rate of a dataset much longer "
-        f"than {len(files)} jobs): {speedups}.{per_job} Within one worker only the rollouts of one CMA-ES "
+        f"Against 1 x 1, over the span (steady: each worker's jobs over its own span, the rate of a dataset much "
+        f"longer than {len(files)} jobs): {speedups}.{per_job} Within one worker only the rollouts of one CMA-ES "
         "generation run in parallel (popsize / threads each, then a barrier), and the result's raw and refined "
         "replays run side by side; the window probes and commits, the retargeting and the CMA-ES step on one "
-        f"thread. Separate workers overlap all of it. {load_text}",
+        "thread. A worker of more than one thread draws a job's preview beside the next job's computation "
+        "(`overlap_preview`); a 1-thread worker draws it between jobs, so it never takes a core beyond its one. "
+        f"Separate workers overlap all of it. {load_text}",
         "",
         "Sequences:",
         "",
