@@ -1,14 +1,16 @@
 """Worker throughput: sequences per hour for 1 worker x 1 thread, 1 x 2 and 2 x 1 (issue #5, "must show").
 
-    .venv/bin/python bench/throughput.py [--sample dev40] [--count 12] [--popsize P] [--max-generations G]
+    .venv/bin/python bench/throughput.py [--sample dev40] [--count 12] [--passes 2] [--popsize P] [--max-generations G]
 
 For each configuration: a fresh SQLite queue, the same ``--count`` DexYCB development sequences (the first
 lines of ``bench/samples/<sample>.txt``, read from ../shared/data) submitted as jobs, then a ``WorkerPool``
 (local Ray, the production actors and refinement) drains the queue. Throughput counts from the first claim
 to the last completion, so Ray's start-up is excluded; it is reported separately. The share of worker wall
 time inside simulation is the sum of the jobs' ``timings.sim_s`` (seconds inside MuJoCo rollouts and
-replays, measured by the evaluator) over the sum of their run times (claim to completion). Writes
-``bench/results/throughput.md``.
+replays, measured by the evaluator) over the sum of their run times (claim to completion). The configurations
+run ``--passes`` times, every other pass in reverse order (1x1, 1x2, 2x1, then 2x1, 1x2, 1x1): a shared machine's
+speed drifts over the minutes one pass takes, and the mirrored order cancels a steady drift from the ratios.
+Writes ``bench/results/throughput.md``.
 """
 
 from __future__ import annotations
@@ -37,6 +39,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--popsize", type=int, default=None, help="CMA-ES population (default: the product's)")
     p.add_argument("--max-generations", type=int, default=None, help="CMA-ES generations per window")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--passes", type=int, default=2,
+                   help="passes over the configurations, every other one in reverse order (default 2): this "
+                        "machine's speed drifts over minutes, and 1x1, 1x2, 2x1 then 2x1, 1x2, 1x1 cancels a steady "
+                        "drift from the ratios")  # fmt: skip
     p.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "throughput.md")
     return p.parse_args(argv)
 
@@ -95,6 +101,11 @@ def run_config(workers: int, threads: int, payloads: list[tuple[str, bytes]], op
         return {
             "workers": workers,
             "threads": threads,
+            "jobs": len(ids),
+            "runs": runs,
+            "computes": computes,
+            "previews": previews,
+            "sims": sims,
             "span_s": span,
             "total_s": total,
             "startup_s": total - span,
@@ -124,7 +135,32 @@ def steady_rate(jobs: list[Any]) -> float:
     return rate
 
 
-def write_report(path: Path, rows: list[dict[str, Any]], files: list[Path], args: argparse.Namespace) -> None:
+def combine(passes: list[dict[str, Any]]) -> dict[str, Any]:
+    """One configuration over all passes: rates over the summed spans, means over all jobs."""
+    runs = [x for r in passes for x in r["runs"]]
+    computes = [x for r in passes for x in r["computes"]]
+    previews = [x for r in passes for x in r["previews"]]
+    span = sum(r["span_s"] for r in passes)
+    return {
+        "workers": passes[0]["workers"],
+        "threads": passes[0]["threads"],
+        "pass": "all",
+        "span_s": span,
+        "startup_s": sum(r["startup_s"] for r in passes) / len(passes),
+        "per_hour": sum(r["jobs"] for r in passes) * 3600.0 / span,
+        "mean_run_s": sum(runs) / len(runs),
+        "mean_compute_s": sum(computes) / len(computes),
+        "mean_preview_s": sum(previews) / len(previews),
+        "steady_per_hour": sum(r["steady_per_hour"] for r in passes) / len(passes),
+        "sim_share": sum(x for r in passes for x in r["sims"]) / sum(runs),
+        "load": (min(r["load"][0] for r in passes), max(r["load"][1] for r in passes)),
+    }
+
+
+def write_report(
+    path: Path, rows: list[dict[str, Any]], files: list[Path], args: argparse.Namespace, each: list[dict[str, Any]]
+) -> None:
+    """``rows``: one per configuration (``combine``d); ``each``: every pass's rows in the order they ran."""
     cpu = os.cpu_count()
     lines = [
         "# Worker throughput (issue #5)",
@@ -136,15 +172,17 @@ def write_report(path: Path, rows: list[dict[str, Any]], files: list[Path], args
         f"{args.popsize or 'default'}, max generations {args.max_generations or 'default'}, seed {args.seed}; "
         "SQLite queue, local Ray, the production worker actors.",
         "",
-        "| workers x threads | sequences / hour | span s (first claim to last result) | mean job s (claim to result) "
+        "| workers x threads | pass | sequences / hour | span s (first claim to last result) "
+        "| mean job s (claim to result) "
         "| mean computation s (refinement + verification) | mean preview s | "
         "steady sequences / hour (each worker over its own span) | "
         "Ray + actor start-up s | share of worker wall time in simulation | load avg before / after |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for r in rows:
+    for r in [*each, *rows]:
         lines.append(
-            f"| {r['workers']} x {r['threads']} | {r['per_hour']:.1f} | {r['span_s']:.1f} | {r['mean_run_s']:.1f} "
+            f"| {r['workers']} x {r['threads']} | {r['pass']} | {r['per_hour']:.1f} | {r['span_s']:.1f} "
+            f"| {r['mean_run_s']:.1f} "
             f"| {r['mean_compute_s']:.1f} | {r['mean_preview_s']:.1f} | {r['steady_per_hour']:.1f} "
             f"| {r['startup_s']:.1f} | {100 * r['sim_share']:.0f}% | {r['load'][0]:.1f} / {r['load'][1]:.1f} |"
         )
@@ -161,7 +199,7 @@ def write_report(path: Path, rows: list[dict[str, Any]], files: list[Path], args
         "drawn beside it)." for r in threaded
     )
     # This benchmark's own workers make a load of up to the CPU count; more than that was someone else's work.
-    shared = max(max(r["load"]) for r in rows) > (cpu or 1) + 0.5
+    shared = max(max(r["load"]) for r in each) > (cpu or 1) + 0.5
     load_text = (
         "The machine was shared while this ran (load average in the last column, on "
         f"{cpu} cores), so no configuration had both cores to itself: read the absolute figures as lower bounds "
@@ -171,6 +209,9 @@ def write_report(path: Path, rows: list[dict[str, Any]], files: list[Path], args
     )
     lines += [
         "",
+        f"Rows by pass in the order they ran ({args.passes} passes, every other one in reverse order, so that a "
+        "steady drift of the machine's speed cancels from the ratios), then each configuration over all passes "
+        "(rates over the summed spans). "
         f"Against 1 x 1, over the span (steady: each worker's jobs over its own span, the rate of a dataset much "
         f"longer than {len(files)} jobs): {speedups}.{per_job} Within one worker only the rollouts of one CMA-ES "
         "generation run in parallel (popsize / threads each, then a barrier), and the result's raw and refined "
@@ -197,13 +238,17 @@ def main(argv: list[str] | None = None) -> int:
     files = sample_files(args.sample, args.count)
     payloads = [(f.stem, sequence_to_npz_bytes(load_dexycb_npz(f))) for f in files]
     options = JobOptions(seed=args.seed, popsize=args.popsize, max_generations=args.max_generations)
-    rows = []
-    for workers, threads in CONFIGS:
-        print(f"{workers} worker(s) x {threads} thread(s) ...", flush=True)
-        row = run_config(workers, threads, payloads, options)
-        print(f"  {row['per_hour']:.1f} sequences/hour, {100 * row['sim_share']:.0f}% in simulation", flush=True)
-        rows.append(row)
-    write_report(args.out, rows, files, args)
+    if args.passes < 1:
+        raise SystemExit("--passes must be at least 1")
+    each: list[dict[str, Any]] = []
+    for number in range(1, args.passes + 1):
+        for workers, threads in CONFIGS if number % 2 else CONFIGS[::-1]:
+            print(f"pass {number}: {workers} worker(s) x {threads} thread(s) ...", flush=True)
+            row = {**run_config(workers, threads, payloads, options), "pass": number}
+            print(f"  {row['per_hour']:.1f} sequences/hour, {100 * row['sim_share']:.0f}% in simulation", flush=True)
+            each.append(row)
+    rows = [combine([r for r in each if (r["workers"], r["threads"]) == config]) for config in CONFIGS]
+    write_report(args.out, rows, files, args, each)
     print(f"wrote {args.out}")
     return 0
 
