@@ -69,7 +69,7 @@ def test_success_writes_result_and_progress_names_the_process(rt_queue: JobQueue
     assert rec.state == "SUCCEEDED" and rec.attempt == 1
     blob, summary = rt_queue.get_result(None, job_id)
     assert summary["generations"] == 3
-    assert 3 * GEN_S <= summary["compute_seconds"] < 60  # the job function's time, measured by the loop
+    assert summary["compute_seconds"] >= 3 * GEN_S  # the job function's time (3 generations' sleeps), by the loop
     with np.load(io.BytesIO(blob)) as data:
         assert data["values"].shape == (32,)
     assert (rec.progress or {}).get("pid") == os.getpid()

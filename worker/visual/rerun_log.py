@@ -20,7 +20,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from common.geometry import FloatArray
+from common.geometry import FloatArray, quat_to_matrix
 from worker.visual.playback import Playback, contact_force_per_finger
 from worker.visual.render import FORCE_ARROW_M_PER_N
 
@@ -98,14 +98,14 @@ def _log(rec: Any, pb: Playback) -> None:
             rec.log(f"world/{run}/{group_of[g]}/{name[g]}",
                     rr.Mesh3D(vertex_positions=v, triangle_indices=f, albedo_factor=_COLOURS[group_of[g]]),
                     static=True)  # fmt: skip
-    for g in object_geoms:
-        if meshes[g] is not None:
-            v, f = meshes[g]  # type: ignore[misc]
-            rec.log(
-                f"world/recorded/object/{name[g]}",
-                rr.Mesh3D(vertex_positions=v, triangle_indices=f, albedo_factor=_COLOURS["ghost"]),
-                static=True,
-            )
+    drawn_objects = [g for g in drawn if group_of[g] == "object"]
+    for g in drawn_objects:
+        v, f = meshes[g]  # type: ignore[misc]
+        rec.log(
+            f"world/recorded/object/{name[g]}",
+            rr.Mesh3D(vertex_positions=v, triangle_indices=f, albedo_factor=_COLOURS["ghost"]),
+            static=True,
+        )
     frames = rr.TimeColumn("frame", sequence=np.arange(pb.num_frames))
     data = mujoco.MjData(model)
     for run, traj in pb.trajectories.items():
@@ -126,17 +126,13 @@ def _log(rec: Any, pb: Playback) -> None:
     mujoco.mj_kinematics(model, data)
     r_body = data.xmat[body].reshape(3, 3)
     ref = pb.object_pose_ref[: pb.num_frames]
-    flat = np.empty((len(ref), 9))
-    for frame, quat in enumerate(ref[:, 3:]):
-        mujoco.mju_quat2Mat(flat[frame], quat / np.linalg.norm(quat))
-    r_ref = flat.reshape(-1, 3, 3)
-    for g in object_geoms:
-        if meshes[g] is not None:
-            local_pos = r_body.T @ (data.geom_xpos[g] - data.xpos[body])
-            local_rot = r_body.T @ data.geom_xmat[g].reshape(3, 3)
-            rec.send_columns(f"world/recorded/object/{name[g]}", indexes=[frames],
-                             columns=rr.Transform3D.columns(translation=ref[:, :3] + r_ref @ local_pos,
-                                                            mat3x3=r_ref @ local_rot))  # fmt: skip
+    r_ref = quat_to_matrix(ref[:, 3:])
+    for g in drawn_objects:
+        local_pos = r_body.T @ (data.geom_xpos[g] - data.xpos[body])
+        local_rot = r_body.T @ data.geom_xmat[g].reshape(3, 3)
+        rec.send_columns(f"world/recorded/object/{name[g]}", indexes=[frames],
+                         columns=rr.Transform3D.columns(translation=ref[:, :3] + r_ref @ local_pos,
+                                                        mat3x3=r_ref @ local_rot))  # fmt: skip
     bones = np.array(SKELETON)
     for side, all_kp in pb.keypoints_ref.items():
         kp = all_kp[: pb.num_frames]
