@@ -43,8 +43,20 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="passes over the configurations, every other one in reverse order (default 2): this "
                         "machine's speed drifts over minutes, and 1x1, 1x2, 2x1 then 2x1, 1x2, 1x1 cancels a steady "
                         "drift from the ratios")  # fmt: skip
+    p.add_argument("--configs", type=parse_configs, default=CONFIGS, metavar="WxT,...",
+                   help="workers x threads to run, e.g. 1x2 (default 1x1,1x2,2x1)")
     p.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "throughput.md")
     return p.parse_args(argv)
+
+
+def parse_configs(text: str) -> tuple[tuple[int, int], ...]:
+    try:
+        configs = tuple((int(w), int(t)) for w, t in (item.lower().split("x") for item in text.split(",")))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected workers x threads like 1x2,2x1, got {text!r}") from None
+    if not configs or any(w < 1 or t < 1 for w, t in configs):
+        raise argparse.ArgumentTypeError(f"workers and threads must be at least 1: {text!r}")
+    return configs
 
 
 def sample_files(sample: str, count: int) -> list[Path]:
@@ -161,6 +173,9 @@ def write_report(
     path: Path, rows: list[dict[str, Any]], files: list[Path], args: argparse.Namespace, each: list[dict[str, Any]]
 ) -> None:
     """``rows``: one per configuration (``combine``d); ``each``: every pass's rows in the order they ran."""
+    from common.settings import get_settings
+
+    settings = get_settings()
     cpu = os.cpu_count()
     lines = [
         "# Worker throughput (issue #5)",
@@ -170,7 +185,8 @@ def write_report(
         f"Jobs: the same {len(files)} DexYCB development sequences per configuration "
         f"(`bench/samples/{args.sample}.txt`, first {len(files)}), CMA-ES popsize "
         f"{args.popsize or 'default'}, max generations {args.max_generations or 'default'}, seed {args.seed}; "
-        "SQLite queue, local Ray, the production worker actors.",
+        "SQLite queue, local Ray, the production worker actors "
+        f"(worker nice {settings.worker_nice}, preview thread nice +{settings.preview_nice}).",
         "",
         "| workers x threads | pass | sequences / hour | span s (first claim to last result) "
         "| mean job s (claim to result) "
@@ -186,18 +202,27 @@ def write_report(
             f"| {r['mean_compute_s']:.1f} | {r['mean_preview_s']:.1f} | {r['steady_per_hour']:.1f} "
             f"| {r['startup_s']:.1f} | {100 * r['sim_share']:.0f}% | {r['load'][0]:.1f} / {r['load'][1]:.1f} |"
         )
-    base, steady = rows[0]["per_hour"], rows[0]["steady_per_hour"]
-    speedups = ", ".join(
-        f"{r['workers']} x {r['threads']}: x{r['per_hour'] / base:.2f} (steady x{r['steady_per_hour'] / steady:.2f})"
-        for r in rows[1:]
-    )
-    threaded = [r for r in rows if r["workers"] == 1 and r["threads"] > 1]
-    per_job = "".join(
-        f" One sequence on {r['threads']} threads took x{r['mean_compute_s'] / rows[0]['mean_compute_s']:.2f} of "
-        f"its 1-thread time to compute (refinement and verification), x{r['mean_run_s'] / rows[0]['mean_run_s']:.2f}"
-        " from claim to stored result (with its preview, and on more than one thread the previous job's preview "
-        "drawn beside it)." for r in threaded
-    )
+    single = next((r for r in rows if (r["workers"], r["threads"]) == (1, 1)), None)
+    if single is None:
+        against = "No 1 x 1 run (`--configs`), so no ratios."
+    else:
+        base, steady = single["per_hour"], single["steady_per_hour"]
+        speedups = ", ".join(
+            f"{r['workers']} x {r['threads']}: x{r['per_hour'] / base:.2f} "
+            f"(steady x{r['steady_per_hour'] / steady:.2f})"
+            for r in rows if r is not single
+        )
+        per_job = "".join(
+            f" One sequence on {r['threads']} threads took x{r['mean_compute_s'] / single['mean_compute_s']:.2f} of "
+            f"its 1-thread time to compute (refinement and verification), "
+            f"x{r['mean_run_s'] / single['mean_run_s']:.2f} from claim to stored result (with its preview, and on "
+            "more than one thread the previous job's preview drawn beside it)."
+            for r in rows if r["workers"] == 1 and r["threads"] > 1
+        )
+        against = (
+            "Against 1 x 1, over the span (steady: each worker's jobs over its own span, the rate of a dataset much "
+            f"longer than {len(files)} jobs): {speedups}.{per_job}"
+        )
     # This benchmark's own workers make a load of up to the CPU count; more than that was someone else's work.
     shared = max(max(r["load"]) for r in each) > (cpu or 1) + 0.5
     load_text = (
@@ -212,8 +237,7 @@ def write_report(
         f"Rows by pass in the order they ran ({args.passes} passes, every other one in reverse order, so that a "
         "steady drift of the machine's speed cancels from the ratios), then each configuration over all passes "
         "(rates over the summed spans). "
-        f"Against 1 x 1, over the span (steady: each worker's jobs over its own span, the rate of a dataset much "
-        f"longer than {len(files)} jobs): {speedups}.{per_job} Within one worker only the rollouts of one CMA-ES "
+        f"{against} Within one worker only the rollouts of one CMA-ES "
         "generation run in parallel (popsize / threads each, then a barrier), and the result's raw and refined "
         "replays run side by side; the window probes and commits, the retargeting and the CMA-ES step on one "
         "thread. A worker of more than one thread draws a job's preview beside the next job's computation "
@@ -242,12 +266,12 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit("--passes must be at least 1")
     each: list[dict[str, Any]] = []
     for number in range(1, args.passes + 1):
-        for workers, threads in CONFIGS if number % 2 else CONFIGS[::-1]:
+        for workers, threads in args.configs if number % 2 else args.configs[::-1]:
             print(f"pass {number}: {workers} worker(s) x {threads} thread(s) ...", flush=True)
             row = {**run_config(workers, threads, payloads, options), "pass": number}
             print(f"  {row['per_hour']:.1f} sequences/hour, {100 * row['sim_share']:.0f}% in simulation", flush=True)
             each.append(row)
-    rows = [combine([r for r in each if (r["workers"], r["threads"]) == config]) for config in CONFIGS]
+    rows = [combine([r for r in each if (r["workers"], r["threads"]) == config]) for config in args.configs]
     write_report(args.out, rows, files, args, each)
     print(f"wrote {args.out}")
     return 0

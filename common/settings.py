@@ -83,6 +83,9 @@ class Settings(BaseSettings):
     # --- workers -------------------------------------------------------------------------------
     #: Niceness added to worker processes (0-19): the physics yields the CPU to the API's status polls.
     worker_nice: int = Field(default=10, ge=0, le=19)
+    #: Niceness a worker of more than one thread adds to the thread that draws a job's preview beside the next
+    #: job's computation (0-19): the preview fills the rollouts' barrier waits instead of slowing them.
+    preview_nice: int = Field(default=5, ge=0, le=19)
 
     def parse_limits(self) -> ParseLimits:
         """What one uploaded sequence may hold (frames, mesh size, uncompressed bytes)."""

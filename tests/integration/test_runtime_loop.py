@@ -119,8 +119,10 @@ def test_run_draws_a_jobs_preview_while_the_next_job_computes_and_writes_every_o
     first, _ = rt_queue.submit(owner, b"first" * 10, JobOptions(seed=1, max_generations=2), None, "first", 10)
     second, _ = rt_queue.submit(owner, b"second" * 10, JobOptions(seed=2, max_generations=4), None, "second", 10)
     seen: dict[int, str] = {}
+    nice: list[int] = []
 
     def preview(result: bytes, options: JobOptions) -> list[Artifact]:
+        nice.append(os.getpriority(os.PRIO_PROCESS, 0))  # this thread's (Linux keeps nice per thread)
         if options.seed == 1:
             # Held until the second job is being computed: a loop that drew previews between jobs never gets there
             # (and the preview's error would be stored instead of its file).
@@ -129,9 +131,12 @@ def test_run_draws_a_jobs_preview_while_the_next_job_computes_and_writes_every_o
         return [Artifact("video.mp4", "video/mp4", b"mp4:" + result[:4], 8)]
 
     loop = WorkerLoop(rt_queue, SelfTestJob(), worker_id="w1", lease_seconds=LEASE_S, idle_poll_seconds=0.05,
-                      artifact_fn=preview, overlap_preview=True)  # fmt: skip
+                      artifact_fn=preview, overlap_preview=True, preview_nice=3)  # fmt: skip
+    base = os.getpriority(os.PRIO_PROCESS, 0)
     assert loop.run(max_jobs=2) == {"succeeded": 2}  # returns once the last preview is written, not before
     assert seen == {1: "RUNNING"}
+    # The previews ran on their own threads, below the computation's priority; this thread kept its own.
+    assert nice == [min(base + 3, 19)] * 2 and os.getpriority(os.PRIO_PROCESS, 0) == base
     for job in (first, second):
         rec = rt_queue.get(None, job.id)
         assert rec.state == "SUCCEEDED" and rec.summary["preview"]["files"] == ["video.mp4"]  # type: ignore[index]

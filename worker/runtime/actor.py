@@ -70,6 +70,7 @@ class WorkerActor:
             # A worker holds ``threads`` CPUs (Ray's num_cpus): only with more than one does drawing a preview
             # beside the next job use cores its own rollouts leave idle instead of another worker's.
             overlap_preview=threads > 1,
+            preview_nice=settings.preview_nice,
         )
         log.info("actor %s ready (pid %d, %d thread(s), job kind %s)", worker_id, os.getpid(), threads, job_kind)
 

@@ -24,6 +24,7 @@ from common.job_options import JobOptions
 from common.queue_types import ClaimedJob
 from worker.runtime.backoff import Backoff, WorkerStopping, call_with_backoff, is_unreachable
 from worker.runtime.heartbeat import Heartbeat
+from worker.runtime.priority import lower_this_thread
 
 log = logging.getLogger(__name__)
 
@@ -85,6 +86,7 @@ class WorkerLoop:
         extra_progress: dict[str, Any] | None = None,
         artifact_fn: ArtifactFn | None = None,
         overlap_preview: bool = False,
+        preview_nice: int = 0,
     ) -> None:
         if not lease_seconds > 0:
             raise ValueError(f"lease_seconds must be > 0, got {lease_seconds}")
@@ -100,6 +102,9 @@ class WorkerLoop:
         self.artifact_fn = artifact_fn
         # ``run`` draws a job's preview beside the next job's computation (see ``run``).
         self.overlap_preview = overlap_preview
+        # How much lower the thread drawing that preview runs than the computation: at the same priority it takes
+        # half a core from the rollouts; lower, it mostly fills their waits at the generation barriers.
+        self.preview_nice = preview_nice
         self.stop_event = threading.Event()
         self.jobs_done: dict[str, int] = {}
         self._lock = threading.Lock()
@@ -265,6 +270,7 @@ class WorkerLoop:
         return self._finish(job, result, summary, hb)
 
     def _finish_in_background(self, job: ClaimedJob, result: bytes, summary: dict[str, Any], hb: Heartbeat) -> None:
+        lower_this_thread(self.preview_nice)
         try:
             self._count(self._finish(job, result, summary, hb))
         except Exception:

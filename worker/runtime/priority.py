@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
 from pathlib import Path
 
 log = logging.getLogger(__name__)
@@ -33,3 +34,16 @@ def lower_priority(niceness: int) -> int:
         except (ProcessLookupError, PermissionError) as exc:  # a thread that just ended; a capped limit
             log.debug("could not renice thread %d: %s", tid, exc)
     return os.getpriority(os.PRIO_PROCESS, 0)
+
+
+def lower_this_thread(by: int) -> int:
+    """Raise the calling thread's nice value by ``by`` (capped at 19; threads it starts later inherit it);
+    returns the nice value afterwards. Lowering a thread's priority needs no privilege."""
+    tid = threading.get_native_id()
+    now = os.getpriority(os.PRIO_PROCESS, tid)
+    if by > 0 and now < 19:
+        try:
+            os.setpriority(os.PRIO_PROCESS, tid, min(19, now + by))
+        except PermissionError as exc:  # a capped limit: the thread keeps its priority
+            log.debug("could not renice thread %d: %s", tid, exc)
+    return os.getpriority(os.PRIO_PROCESS, tid)
