@@ -103,7 +103,7 @@ class WorkerLoop:
         # ``run`` draws a job's preview beside the next job's computation (see ``run``).
         self.overlap_preview = overlap_preview
         # How much lower the thread drawing that preview runs than the computation: at the same priority it takes
-        # half a core from the rollouts; lower, it mostly fills their waits at the generation barriers.
+        # a third of the two cores from the rollouts; lower, it mostly fills their waits at the generation barriers.
         self.preview_nice = preview_nice
         self.stop_event = threading.Event()
         self.jobs_done: dict[str, int] = {}

@@ -42,8 +42,5 @@ def lower_this_thread(by: int) -> int:
     tid = threading.get_native_id()
     now = os.getpriority(os.PRIO_PROCESS, tid)
     if by > 0 and now < 19:
-        try:
-            os.setpriority(os.PRIO_PROCESS, tid, min(19, now + by))
-        except PermissionError as exc:  # a capped limit: the thread keeps its priority
-            log.debug("could not renice thread %d: %s", tid, exc)
+        os.setpriority(os.PRIO_PROCESS, tid, min(19, now + by))
     return os.getpriority(os.PRIO_PROCESS, tid)
