@@ -57,6 +57,10 @@ VARIANTS: dict[str, tuple[dict[str, Any], dict[str, Any], str]] = {
               "before the sparse one became the default"),
     "solimp-0.9": ({"contact_solimp": (0.9, 0.99, 0.001)}, {}, "the defaults with the softer contact impedance "
                    "of main before issue #19 (0.9-0.99): the alternative that kept E_r within the keep rule"),
+    "solimp-0.995": ({"contact_solimp": (0.995, 0.998, 0.001)}, {}, "the defaults with a stiffer contact "
+                     "impedance (0.995-0.998): steady penetration under a load scales with (1 - d) / d, 0.5x"),
+    "solimp-0.998": ({"contact_solimp": (0.998, 0.999, 0.001)}, {}, "the defaults with a stiffer contact "
+                     "impedance still (0.998-0.999): (1 - d) / d 0.2x the default's"),
     "before-19": _on_before_19({}, {}, "main before issue #19: 10 noslip iterations, impratio 1, solimp 0.9-0.99"),
     "noslip0-imp1": _on_before_19({"noslip_iterations": 0}, {}, "no noslip pass, MuJoCo's impratio 1"),
     "noslip0-imp10": _on_before_19(NOSLIP0_IMP10, {}, "no noslip pass, impratio 10"),
