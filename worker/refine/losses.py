@@ -73,12 +73,6 @@ def resolve_weights(overrides: Mapping[Any, float] | None) -> dict[str, float]:
     return out
 
 
-
-
-
-
-
-
 def finite_difference_velocity(pos: FloatArray, quat: FloatArray, fps: float) -> FloatArray:
     """(T, 6) world linear and angular velocity of a pose track by central differences."""
     t = pos.shape[0]

@@ -55,7 +55,6 @@ EARLIER_DEFAULTS: dict[str, dict[str, Any]] = {
 }
 
 
-
 def verify_result(
     blob: bytes, sequence: Sequence | None = None, *, allow_config: bool = False, cache_dir: Path | None = None,
     mano_dir: Path | None = None,
