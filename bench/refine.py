@@ -119,9 +119,10 @@ def run_one(path: Path, args: argparse.Namespace, cache: Path, awkward: list[str
     from worker.refine.run import refine_sequence
     from worker.simulation.config import SimConfig
 
+    weights: dict[str, float] = getattr(args, "loss_weights", None) or {}
     key = (f"{path.stem}__p{args.popsize}_g{args.max_generations}_s{args.seed}_t{args.threads}"
            f"{restarts_tag(args)}{override_tag(args.sim_overrides)}{override_tag(args.cma_overrides)}"
-           f"_c{code_digest()}.json")
+           f"{override_tag({f'w-{k}': v for k, v in weights.items()})}_c{code_digest()}.json")
     hit = cache / key
     if hit.is_file() and not args.fresh:
         out: dict[str, Any] = json.loads(hit.read_text())
@@ -134,6 +135,7 @@ def run_one(path: Path, args: argparse.Namespace, cache: Path, awkward: list[str
         return out
     seq = load_dexycb_npz(path)
     options = JobOptions(seed=args.seed, popsize=args.popsize, max_generations=args.max_generations,
+                         loss_weights=weights,
                          **({} if getattr(args, "restarts", None) is None else {"restarts": args.restarts}))
     t0 = time.perf_counter()
     config = SimConfig(**args.sim_overrides)

@@ -65,6 +65,9 @@ VARIANTS: dict[str, tuple[dict[str, Any], dict[str, Any], str]] = {
                "floor (two timesteps) 5.6 instead of 8.3 ms, steady penetration in theory x0.44, x1.5 the steps"),
     "dt-480": ({"timestep": 1.0 / 480.0}, {}, "the defaults with a 1/480 s timestep: time constant floor 4.2 ms, "
                "steady penetration in theory x0.25, x2 the steps"),
+    "pen-0.1": ({}, {}, "the defaults with the penetration loss term at weight 0.1 ((depth / 1 mm)^2 per frame)"),
+    "pen-0.3": ({}, {}, "the defaults with the penetration loss term at weight 0.3"),
+    "pen-1": ({}, {}, "the defaults with the penetration loss term at weight 1"),
     "before-19": _on_before_19({}, {}, "main before issue #19: 10 noslip iterations, impratio 1, solimp 0.9-0.99"),
     "noslip0-imp1": _on_before_19({"noslip_iterations": 0}, {}, "no noslip pass, MuJoCo's impratio 1"),
     "noslip0-imp10": _on_before_19(NOSLIP0_IMP10, {}, "no noslip pass, impratio 10"),
@@ -94,6 +97,14 @@ VARIANTS: dict[str, tuple[dict[str, Any], dict[str, Any], str]] = {
 }
 
 
+#: Loss weight overrides (``JobOptions.loss_weights``) of the variants that change the loss, not the physics.
+VARIANT_WEIGHTS: dict[str, dict[str, float]] = {
+    "pen-0.1": {"penetration": 0.1},
+    "pen-0.3": {"penetration": 0.3},
+    "pen-1": {"penetration": 1.0},
+}
+
+
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--sample", default="dev40", help="sample list name in bench/samples (default dev40)")
@@ -117,7 +128,8 @@ def run_args(args: argparse.Namespace, variant: str) -> argparse.Namespace:
     """The ``bench/refine.py`` arguments ``run_one`` reads, for one variant."""
     sim, cma, _ = VARIANTS[variant]
     return argparse.Namespace(popsize=None, max_generations=None, seed=args.seed, threads=args.threads,
-                              fresh=args.fresh, sim_overrides=sim, cma_overrides=cma)
+                              fresh=args.fresh, sim_overrides=sim, cma_overrides=cma,
+                              loss_weights=VARIANT_WEIGHTS.get(variant, {}))
 
 
 def p90(values: list[float]) -> float:
@@ -192,7 +204,8 @@ def render(args: argparse.Namespace, results: dict[str, dict[str, float]], names
     lines += ["Variants (``SimConfig`` / ``CmaSettings`` overrides):", ""]
     for name in args.variant_names:
         sim, cma, _ = VARIANTS[name]
-        lines.append(f"* `{name}`: sim {sim or '{}'}, CMA-ES {cma or '{}'}")
+        lines.append(f"* `{name}`: sim {sim or '{}'}, CMA-ES {cma or '{}'}"
+                     + (f", loss weights {VARIANT_WEIGHTS[name]}" if name in VARIANT_WEIGHTS else ""))
     lines += ["", "Sequences:", "", *(f"- `{n}`" for n in names)]
     return "\n".join(lines) + "\n"
 

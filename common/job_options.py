@@ -18,6 +18,7 @@ LossName = Literal[
     "fingertip_contact",
     "control_consistency",
     "hand_velocity",
+    "penetration",
 ]
 LOSS_NAMES: tuple[str, ...] = LossName.__args__  # type: ignore[attr-defined]
 

@@ -20,6 +20,10 @@ scale so the default weights read as "how much one scale unit of error costs":
   object-local contact point, / 1 cm (averaged over the targets of the frame).
 * ``control_consistency``: ||delta(f) - delta(f-1)||^2 in the optimiser's unit-variance coordinates.
 * ``hand_velocity``: mean squared hinge velocity / (10 rad/s)^2.
+* ``penetration``: (d / 1 mm)^2 with d the hand's deepest penetration into the object at the frame (MuJoCo's
+  signed contact distance, ``worker.simulation.scene.penetration_sensor_xml``): soft contacts need some
+  penetration to carry a load, so the square lets the shallow contact of a light grip cost little and makes
+  the deep ones a hard squeeze or a finger pushed through a thin part leaves (issue #15 item 4) expensive.
 
 Each weight can be set to 0 (ablation) through ``JobOptions.loss_weights`` / ``--weights``.
 """
@@ -27,7 +31,7 @@ Each weight can be set to 0 (ablation) through ``JobOptions.loss_weights`` / ``-
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -47,6 +51,7 @@ DEFAULT_WEIGHTS: dict[str, float] = {
     "fingertip_contact": 0.3,
     "control_consistency": 0.05,
     "hand_velocity": 0.01,
+    "penetration": 0.0,
 }
 assert set(DEFAULT_WEIGHTS) == set(LOSS_NAMES)
 
@@ -58,6 +63,7 @@ ANGVEL_SCALE = 1.0  # rad/s
 FINGERTIP_WEIGHT = 2.0
 CONTACT_THRESHOLD = 0.01  # m, reference fingertip-to-surface distance that counts as touching
 HINGE_VEL_SCALE = 10.0  # rad/s
+PENETRATION_SCALE = 0.001  # m
 EXCURSION_POS, EXCURSION_POS_SCALE = 0.02, 0.005  # m: free margin, then quadratic per 5 mm
 EXCURSION_ROT, EXCURSION_ROT_SCALE = np.radians(20.0), np.radians(5.0)  # rad
 
@@ -161,6 +167,8 @@ class WindowRecord:
     keypoints: dict[str, FloatArray]  # side -> (C, F, J, 3)
     hinge_vel: dict[str, FloatArray]  # side -> (C, F, H)
     offsets: dict[str, FloatArray]  # side -> (C, F + 1, dim), delta at frames[0] - 1 .. frames[-1]
+    #: side -> (C, F) deepest hand-object penetration (m, >= 0); empty: not recorded (no penetration term)
+    penetration: dict[str, FloatArray] = field(default_factory=dict)
 
 
 def object_terms(rec: WindowRecord, ref: ObjectTargets) -> dict[str, FloatArray]:
@@ -198,11 +206,14 @@ def hand_terms(rec: WindowRecord, side: str, ref: HandKeypointTargets) -> dict[s
     offs = rec.offsets[side]
     consistency = (np.diff(offs, axis=1) ** 2).sum(axis=(1, 2))
     hvel = (np.mean(rec.hinge_vel[side] ** 2, axis=2) / HINGE_VEL_SCALE**2).sum(axis=1)
+    depth = rec.penetration.get(side)
+    pen = np.zeros(kp.shape[0]) if depth is None else ((depth / PENETRATION_SCALE) ** 2).sum(axis=1)
     return {
         "hand_joints": joints,
         "fingertip_contact": contact,
         "control_consistency": consistency,
         "hand_velocity": hvel,
+        "penetration": pen,
     }
 
 

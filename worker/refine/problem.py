@@ -32,6 +32,14 @@ class HandLayout:
     mocap_id: int
     keypoint_sensor_adrs: IntArray  # (J, 3) sensordata indices of the keypoint framepos sensors
     body_ids: frozenset[int]
+    #: sensordata index of the hand's object-contact distance sensor (-1: the model has none, no penetration)
+    penetration_sensor_adr: int = -1
+
+    def penetration(self, sens: FloatArray) -> FloatArray:
+        """(...,) the hand's deepest penetration into the object (m, >= 0) from sensordata (..., ns)."""
+        if self.penetration_sensor_adr < 0:
+            return np.zeros(sens.shape[:-1])
+        return np.maximum(-sens[..., self.penetration_sensor_adr], 0.0)
 
 
 @dataclass
@@ -90,6 +98,7 @@ class SimLayout:
                 mocap_id=int(h.mocap_id),
                 keypoint_sensor_adrs=np.asarray(h.keypoint_sensor_adr)[:, None] + np.arange(3),
                 body_ids=frozenset(int(b) for b in h.body_ids),
+                penetration_sensor_adr=int(h.penetration_sensor_adr),
             )
             for side, h in scene.hands.items()
         }
@@ -307,4 +316,5 @@ class SimWindowProblem:
             keypoints={side: sens[..., h.keypoint_sensor_adrs] for side, h in self.layout.hands.items()},
             hinge_vel={side: qvel[..., h.hinge_dof_adrs] for side, h in self.layout.hands.items()},
             offsets=offsets,
+            penetration={side: h.penetration(sens) for side, h in self.layout.hands.items()},
         )

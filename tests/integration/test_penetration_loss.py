@@ -1,0 +1,59 @@
+"""The penetration loss term (issue #15 item 4): the contact sensor every rollout records reads the same depth
+as the metric's per-frame penetration (from ``data.contact``), and the term costs only when weighted."""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from common.job_options import JobOptions
+from tests.support.synthetic_push import push_sequence
+from worker.refine.evaluator import ParallelEvaluator
+from worker.refine.losses import resolve_weights
+from worker.refine.prepare import prepare, settled_start
+from worker.refine.problem import SimWindowProblem
+from worker.refine.replay import replay
+
+
+def test_penetration_sensor_matches_the_metrics_contact_depth() -> None:
+    seq = push_sequence(frames=24)
+    prep = prepare(seq, JobOptions())
+    hand = prep.layout.hands["right"]
+    assert hand.penetration_sensor_adr >= 0
+    s = prep.layout.substeps
+    sensed = np.zeros(prep.num_frames)
+
+    def at_frames(i: int, d: mujoco.MjData) -> None:
+        if i % s == 0:
+            sensed[i // s] = float(hand.penetration(np.asarray(d.sensordata)))
+
+    with ParallelEvaluator(prep.scene.model, 1) as ev:
+        start, _ = settled_start(prep, ev)
+        kf = {side: sp.zero_keyframes() for side, sp in prep.spaces.items()}
+        rec = replay(prep, ev, start, kf, on_step=at_frames)
+    assert rec.contact_frames is not None
+    metric = rec.contact_frames.penetration_m
+    assert metric.max() > 1e-4, "the push must press the hand into the box for this test to mean anything"
+    np.testing.assert_allclose(sensed, metric, atol=1e-12)
+
+
+def test_penetration_term_is_recorded_and_weighted() -> None:
+    seq = push_sequence(frames=24)
+    prep = prepare(seq, JobOptions())
+    with ParallelEvaluator(prep.scene.model, 1) as ev:
+        start, _ = settled_start(prep, ev)
+        kf = {side: sp.zero_keyframes() for side, sp in prep.spaces.items()}
+        cand = {"right": np.random.default_rng(0).normal(scale=0.3, size=(3, prep.spaces["right"].dim))}
+        totals, pen, f0, f1 = {}, np.zeros(0), 0, 0
+        for weight in (0.0, 2.0):
+            problem = SimWindowProblem(prep.layout, prep.spaces, prep.obj_targets, prep.hand_targets,
+                                       resolve_weights({"penetration": weight}), ev, start)
+            j = 0  # frames 1-10: the hand pushes the box from frame 1 on
+            totals[weight] = problem.evaluate(j, start, kf, cand)["right"]
+            f0, f1 = problem.window(j)
+            control, offsets = problem.build_control(kf, f0, f1, j, cand)
+            states, sensors = ev.rollout(start, control)
+            pen = problem._record(f0, f1, states, sensors, offsets).penetration["right"]  # (C, F) m
+    assert pen.shape == (3, f1 - f0) and pen.max() > 1e-4
+    # The same rollouts, so the difference is exactly the weighted term: 2 * sum over frames of (depth / 1 mm)^2.
+    np.testing.assert_allclose(totals[2.0] - totals[0.0], 2.0 * ((pen / 1e-3) ** 2).sum(axis=1), rtol=1e-9)
