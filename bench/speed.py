@@ -65,8 +65,8 @@ VARIANTS: dict[str, tuple[dict[str, Any], dict[str, Any], str]] = {
                "floor (two timesteps) 5.6 instead of 8.3 ms, steady penetration in theory x0.44, x1.5 the steps"),
     "dt-480": ({"timestep": 1.0 / 480.0}, {}, "the defaults with a 1/480 s timestep: time constant floor 4.2 ms, "
                "steady penetration in theory x0.25, x2 the steps"),
-    "pen-0.1": ({}, {}, "the defaults with the penetration loss term at weight 0.1 ((depth / 1 mm)^2 per frame)"),
-    "pen-0.3": ({}, {}, "the defaults with the penetration loss term at weight 0.3"),
+    "pen-0": ({}, {}, "the defaults without the penetration loss term (as before screen 11)"),
+    "pen-0.3": ({}, {}, "the defaults with the penetration loss term ((depth / 1 mm)^2 per frame) at weight 0.3"),
     "pen-1": ({}, {}, "the defaults with the penetration loss term at weight 1"),
     "before-19": _on_before_19({}, {}, "main before issue #19: 10 noslip iterations, impratio 1, solimp 0.9-0.99"),
     "noslip0-imp1": _on_before_19({"noslip_iterations": 0}, {}, "no noslip pass, MuJoCo's impratio 1"),
@@ -99,7 +99,7 @@ VARIANTS: dict[str, tuple[dict[str, Any], dict[str, Any], str]] = {
 
 #: Loss weight overrides (``JobOptions.loss_weights``) of the variants that change the loss, not the physics.
 VARIANT_WEIGHTS: dict[str, dict[str, float]] = {
-    "pen-0.1": {"penetration": 0.1},
+    "pen-0": {"penetration": 0.0},
     "pen-0.3": {"penetration": 0.3},
     "pen-1": {"penetration": 1.0},
 }
