@@ -57,3 +57,20 @@ def test_penetration_term_is_recorded_and_weighted() -> None:
     assert pen.shape == (3, f1 - f0) and pen.max() > 1e-4
     # The same rollouts, so the difference is exactly the weighted term: 2 * sum over frames of (depth / 1 mm)^2.
     np.testing.assert_allclose(totals[2.0] - totals[0.0], 2.0 * ((pen / 1e-3) ** 2).sum(axis=1), rtol=1e-9)
+
+
+def test_penetration_term_is_the_square_of_the_depth_in_millimetres_summed_over_frames() -> None:
+    from worker.refine.losses import HandKeypointTargets, WindowRecord, hand_terms
+
+    c, f, j = 3, 4, 21
+    depth = np.array([[0.0] * f, [0.0005] * f, [0.0, 0.0, 0.0, 0.003]])
+    rec = WindowRecord(frames=np.arange(f), obj_pos=np.zeros((c, f, 3)), obj_quat=np.tile([1.0, 0, 0, 0], (c, f, 1)),
+                       obj_vel=np.zeros((c, f, 6)), keypoints={"right": np.zeros((c, f, j, 3))},
+                       hinge_vel={"right": np.zeros((c, f, 45))}, offsets={"right": np.zeros((c, f + 1, 2))},
+                       penetration={"right": depth})
+    ref = HandKeypointTargets(np.zeros((f, j, 3)), np.ones(f, dtype=bool), (4, 8, 12, 16, 20),
+                              np.zeros((f, 5), dtype=bool), np.zeros((f, 5, 3)))
+    np.testing.assert_allclose(hand_terms(rec, "right", ref)["penetration"], [0.0, 0.25 * f, 9.0])
+    # Without a recorded penetration (a model without the sensor) the term is zero.
+    rec.penetration = {}
+    np.testing.assert_allclose(hand_terms(rec, "right", ref)["penetration"], 0.0)
