@@ -57,8 +57,6 @@ class ContactFrames:
     table: BoolArray
 
 
-
-
 def lifted_frames(object_pose_ref: FloatArray) -> BoolArray:
     """Frames (F,) in which the recorded object is more than ``LIFT_M`` above its frame-0 position."""
     return np.asarray(object_pose_ref[:, 2] - object_pose_ref[0, 2] > LIFT_M)
