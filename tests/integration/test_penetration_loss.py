@@ -1,5 +1,6 @@
 """The penetration loss term (issue #15 item 4): the contact sensor every rollout records reads the same depth
-as the metric's per-frame penetration (from ``data.contact``), and the term costs only when weighted."""
+as the metric's per-frame penetration (from ``data.contact``), and the term costs only when weighted and only
+on the frames where the rollout's object is lifted."""
 
 from __future__ import annotations
 
@@ -37,26 +38,32 @@ def test_penetration_sensor_matches_the_metrics_contact_depth() -> None:
     np.testing.assert_allclose(sensed, metric, atol=1e-12)
 
 
-def test_penetration_term_is_recorded_and_weighted() -> None:
+def test_penetration_term_is_recorded_weighted_and_charged_only_while_the_object_is_lifted() -> None:
     seq = push_sequence(frames=24)
     prep = prepare(seq, JobOptions())
     with ParallelEvaluator(prep.scene.model, 1) as ev:
         start, _ = settled_start(prep, ev)
         kf = {side: sp.zero_keyframes() for side, sp in prep.spaces.items()}
         cand = {"right": np.random.default_rng(0).normal(scale=0.3, size=(3, prep.spaces["right"].dim))}
-        totals, pen, f0, f1 = {}, np.zeros(0), 0, 0
+        resting, lifted, pen, f0, f1 = {}, {}, np.zeros(0), 0, 0
         for weight in (0.0, 2.0):
             problem = SimWindowProblem(prep.layout, prep.spaces, prep.obj_targets, prep.hand_targets,
                                        resolve_weights({"penetration": weight}), ev, start)
-            j = 0  # frames 1-10: the hand pushes the box from frame 1 on
-            totals[weight] = problem.evaluate(j, start, kf, cand)["right"]
+            j = 0  # frames 1-10: the hand pushes the box along the table from frame 1 on
             f0, f1 = problem.window(j)
             control, offsets = problem.build_control(kf, f0, f1, j, cand)
             states, sensors = ev.rollout(start, control)
+            rec = problem._record(f0, f1, states, sensors, offsets)
+            assert rec.lifted is not None and not rec.lifted.any(), "the pushed box stays on the table"
+            resting[weight] = problem.evaluate(j, start, kf, cand)["right"]
+            problem._rest_z = -np.inf  # as if the box were carried: every frame is charged
+            lifted[weight] = problem.evaluate(j, start, kf, cand)["right"]
             pen = problem._record(f0, f1, states, sensors, offsets).penetration["right"]  # (C, F) m
     assert pen.shape == (3, f1 - f0) and pen.max() > 1e-4
-    # The same rollouts, so the difference is exactly the weighted term: 2 * sum over frames of (depth / 1 mm)^2.
-    np.testing.assert_allclose(totals[2.0] - totals[0.0], 2.0 * ((pen / 1e-3) ** 2).sum(axis=1), rtol=1e-9)
+    # A resting object: the hand pressing into it costs nothing (the grip forms freely) ...
+    np.testing.assert_array_equal(resting[2.0], resting[0.0])
+    # ... a lifted one: the same rollouts, so the difference is exactly 2 * sum over frames of (depth / 1 mm)^2.
+    np.testing.assert_allclose(lifted[2.0] - lifted[0.0], 2.0 * ((pen / 1e-3) ** 2).sum(axis=1), rtol=1e-9)
 
 
 def test_penetration_term_is_the_square_of_the_depth_in_millimetres_summed_over_frames() -> None:
@@ -71,6 +78,9 @@ def test_penetration_term_is_the_square_of_the_depth_in_millimetres_summed_over_
     ref = HandKeypointTargets(np.zeros((f, j, 3)), np.ones(f, dtype=bool), (4, 8, 12, 16, 20),
                               np.zeros((f, 5), dtype=bool), np.zeros((f, 5, 3)))
     np.testing.assert_allclose(hand_terms(rec, "right", ref)["penetration"], [0.0, 0.25 * f, 9.0])
+    # Only the frames where the rollout's object is lifted count.
+    rec.lifted = np.array([[True] * f, [False, True, False, True], [True, True, True, False]])
+    np.testing.assert_allclose(hand_terms(rec, "right", ref)["penetration"], [0.0, 0.25 * 2, 0.0])
     # Without a recorded penetration (a model without the sensor) the term is zero.
     rec.penetration = {}
     np.testing.assert_allclose(hand_terms(rec, "right", ref)["penetration"], 0.0)

@@ -17,7 +17,13 @@ import numpy as np
 from common.geometry import FloatArray, IntArray, quat_conj, quat_mul, quat_rotate
 from worker.refine.controls import HandControlSpace
 from worker.refine.evaluator import ParallelEvaluator, SimState, StepHook, control_columns, control_size
-from worker.refine.losses import HandKeypointTargets, ObjectTargets, WindowRecord, window_losses
+from worker.refine.losses import (
+    PENETRATION_LIFT_M,
+    HandKeypointTargets,
+    ObjectTargets,
+    WindowRecord,
+    window_losses,
+)
 from worker.refine.spline import keyframe_window
 from worker.simulation.scene import held_steps
 
@@ -178,6 +184,9 @@ class SimWindowProblem:
         hand_bodies = sorted(frozenset().union(*(h.body_ids for h in layout.hands.values())))
         self._hand_object_pair[layout.object_body_id, hand_bodies] = True
         self._hand_object_pair[hand_bodies, layout.object_body_id] = True
+        # The object's height at the settled start: the penetration term's gate (``WindowRecord.lifted``).
+        qadr = int(m.jnt_qposadr[m.body_jntadr[layout.object_body_id]])
+        self._rest_z = float(initial.physics[1 + qadr + 2])
 
     # ------------------------------------------------------------------ WindowProblem
     def dim(self, side: str) -> int:
@@ -317,4 +326,5 @@ class SimWindowProblem:
             hinge_vel={side: qvel[..., h.hinge_dof_adrs] for side, h in self.layout.hands.items()},
             offsets=offsets,
             penetration={side: h.penetration(sens) for side, h in self.layout.hands.items()},
+            lifted=obj_pos[..., 2] > self._rest_z + PENETRATION_LIFT_M,
         )
