@@ -6,7 +6,9 @@ Modules, in pipeline order:
 * ``controls``   offsets [10 pose-PCA coefficients, 3 wrist rotation (, 3 translation)] -> per-substep
                  hinge targets and wrist mocap poses;
 * ``evaluator``  ``ParallelEvaluator``: a pool of MjData behind ``mujoco.rollout`` (reusable across jobs);
-* ``losses``     the six loss terms over recorded frames, default weights;
+                 ``warp_evaluator.WarpEvaluator`` runs its batched rollouts on MuJoCo Warp (optional ``.[gpu]``
+                 extra, so not imported here; ``bench/gpu_rollout.py``);
+* ``losses``     the loss terms over recorded frames, default weights;
 * ``problem``    ``SimWindowProblem``: controls -> rollouts -> losses for one window;
 * ``windowed``   the sliding-window CMA-ES (``optimise_windows``), progress and cancellation;
 * ``prepare``    references, scene, control spaces and loss targets of a sequence;

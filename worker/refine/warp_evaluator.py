@@ -34,7 +34,7 @@ import numpy as np
 import warp as wp
 
 from common.geometry import FloatArray
-from worker.refine.evaluator import CONTROL_SPEC, STATE_SPEC, ParallelEvaluator, SimState, control_size
+from worker.refine.evaluator import STATE_SPEC, ParallelEvaluator, SimState, control_size
 
 #: Overflows that mean contacts or constraint rows were dropped (the rollout is then repeated with more room).
 #: Solver and line-search iteration limits are not among them: the CPU solver stops at its limits too.
@@ -256,4 +256,4 @@ class WarpEvaluator(ParallelEvaluator):
         wp.synchronize_device(self.device)
 
 
-__all__ = ["CONTROL_SPEC", "WarpEvaluator"]
+__all__ = ["MAX_REGROWTHS", "WarpEvaluator"]
