@@ -76,7 +76,14 @@ def test_submit_folder_to_two_workers_interrupt_and_resume(dexycb_dev_files: lis
             "--out", str(out), "--wait", "--concurrency", "1", "--poll-interval", "0.3",
             "--max-generations", "1", "--popsize", "4", "--seed", "3",
         ]  # fmt: skip
-        first = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        # A shell's background job starts with SIGINT ignored, and an ignored signal stays ignored in the children:
+        # the Ctrl-C below would then never reach the command. With a handler (not "ignore") here the child starts
+        # with the default disposition, as it does from a terminal.
+        previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+        try:
+            first = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        finally:
+            signal.signal(signal.SIGINT, previous)
         deadline = time.monotonic() + 120
         while _submitted(out) < SEQUENCES // 2 and first.poll() is None:
             assert time.monotonic() < deadline, "submission did not start"
