@@ -69,6 +69,14 @@ class EvalStats:
     python_seconds: float = 0.0
     python_steps: int = 0
 
+    def add_rollout(self, candidates: int, steps: int, seconds: float) -> None:
+        """Count one batched rollout of ``candidates`` x ``steps`` steps that took ``seconds``."""
+        self.sim_seconds += seconds
+        self.rollout_seconds += seconds
+        self.steps += candidates * steps
+        self.rollouts += candidates
+        self.calls += 1
+
 
 def control_size(model: mujoco.MjModel) -> int:
     return int(mujoco.mj_stateSize(model, CONTROL_SPEC))
@@ -147,12 +155,7 @@ class ParallelEvaluator:
             control_spec=CONTROL_SPEC,
             initial_warmstart=start.warmstart[None],
         )
-        elapsed = time.perf_counter() - t0
-        self.stats.sim_seconds += elapsed
-        self.stats.rollout_seconds += elapsed
-        self.stats.steps += n_cand * n_steps
-        self.stats.rollouts += n_cand
-        self.stats.calls += 1
+        self.stats.add_rollout(n_cand, n_steps, time.perf_counter() - t0)
         return state, sensordata
 
     def step_python(self, start: SimState, control: FloatArray, on_step: StepHook | None = None) -> SimState:

@@ -182,12 +182,7 @@ class WarpEvaluator(ParallelEvaluator):
                 self.regrowths += 1
             states = np.ascontiguousarray(batch.states.numpy()[:n_steps].transpose(1, 0, 2), dtype=np.float64)
             sensors = np.ascontiguousarray(batch.sensors.numpy()[:n_steps].transpose(1, 0, 2), dtype=np.float64)
-        elapsed = time.perf_counter() - t0
-        self.stats.sim_seconds += elapsed
-        self.stats.rollout_seconds += elapsed
-        self.stats.steps += n_cand * n_steps
-        self.stats.rollouts += n_cand
-        self.stats.calls += 1
+        self.stats.add_rollout(n_cand, n_steps, time.perf_counter() - t0)
         self.gpu_steps += n_cand * n_steps
         return states, sensors
 
