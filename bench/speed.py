@@ -22,6 +22,7 @@ import platform
 import statistics
 import sys
 import time
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -38,10 +39,21 @@ BEFORE_19_SIM: dict[str, Any] = {"noslip_iterations": 10, "impratio": 1.0, "cont
 BEFORE_19_CMA: dict[str, Any] = {"stall_generations": 0}
 
 
-def _on_before_19(sim: dict[str, Any], cma: dict[str, Any], what: str) -> tuple[dict[str, Any], dict[str, Any], str]:
+@dataclass(frozen=True)
+class Variant:
+    """One configuration of a speed run: what it changes against the product's defaults, and why."""
+
+    sim: dict[str, Any]  # ``SimConfig`` overrides
+    cma: dict[str, Any]  # ``CmaSettings`` overrides
+    what: str
+    weights: dict[str, float] = field(default_factory=dict)  # ``JobOptions.loss_weights`` overrides
+    threads: int | None = None  # simulation threads per sequence (None: the run's ``--threads``)
+
+
+def _on_before_19(sim: dict[str, Any], cma: dict[str, Any], what: str) -> Variant:
     """An experiment as it was measured: main before issue #19 with these settings changed, so it means the same
     whatever the product's defaults become."""
-    return {**BEFORE_19_SIM, **sim}, {**BEFORE_19_CMA, **cma}, what
+    return Variant({**BEFORE_19_SIM, **sim}, {**BEFORE_19_CMA, **cma}, what)
 
 
 NOSLIP0_IMP10: dict[str, Any] = {"noslip_iterations": 0, "impratio": 10.0}
@@ -50,24 +62,30 @@ SOLIMP99: dict[str, Any] = {"contact_solimp": (0.99, 0.995, 0.001)}
 #: escalation level is 2.5 per frame).
 STALL3LOW: dict[str, Any] = {"stall_generations": 3, "stall_below": 15.0}
 
-#: name -> (SimConfig overrides, CmaSettings overrides, what it tries).
-VARIANTS: dict[str, tuple[dict[str, Any], dict[str, Any], str]] = {
-    "default": ({}, {}, "the product's defaults as they are"),
-    "dense": ({"jacobian": "auto"}, {}, "the defaults with MuJoCo's automatic Jacobian (dense for one hand), as "
-              "before the sparse one became the default"),
-    "solimp-0.9": ({"contact_solimp": (0.9, 0.99, 0.001)}, {}, "the defaults with the softer contact impedance "
-                   "of main before issue #19 (0.9-0.99): the alternative that kept E_r within the keep rule"),
-    "solimp-0.995": ({"contact_solimp": (0.995, 0.998, 0.001)}, {}, "the defaults with a stiffer contact "
-                     "impedance (0.995-0.998): steady penetration under a load scales with (1 - d) / d, 0.5x"),
-    "solimp-0.998": ({"contact_solimp": (0.998, 0.999, 0.001)}, {}, "the defaults with a stiffer contact "
-                     "impedance still (0.998-0.999): (1 - d) / d 0.2x the default's"),
-    "dt-360": ({"timestep": 1.0 / 360.0}, {}, "the defaults with a 1/360 s timestep: the contact time constant's "
-               "floor (two timesteps) 5.6 instead of 8.3 ms, steady penetration in theory x0.44, x1.5 the steps"),
-    "dt-480": ({"timestep": 1.0 / 480.0}, {}, "the defaults with a 1/480 s timestep: time constant floor 4.2 ms, "
-               "steady penetration in theory x0.25, x2 the steps"),
-    "pen-0": ({}, {}, "the defaults without the penetration loss term (as before screen 11)"),
-    "pen-0.3": ({}, {}, "the defaults with the penetration loss term ((depth / 1 mm)^2 per frame) at weight 0.3"),
-    "pen-1": ({}, {}, "the defaults with the penetration loss term at weight 1"),
+VARIANTS: dict[str, Variant] = {
+    "default": Variant({}, {}, "the product's defaults as they are"),
+    "default-1-thread": Variant({}, {}, "the product's defaults on 1 simulation thread (issue #19 item 3: one "
+                                "sequence on 2 threads in <= 0.6x its 1-thread time)", threads=1),
+    "dense": Variant({"jacobian": "auto"}, {}, "the defaults with MuJoCo's automatic Jacobian (dense for one "
+                     "hand), as before the sparse one became the default"),
+    "solimp-0.9": Variant({"contact_solimp": (0.9, 0.99, 0.001)}, {}, "the defaults with the softer contact "
+                          "impedance of main before issue #19 (0.9-0.99): the alternative that kept E_r within the "
+                          "keep rule"),
+    "solimp-0.995": Variant({"contact_solimp": (0.995, 0.998, 0.001)}, {}, "the defaults with a stiffer contact "
+                            "impedance (0.995-0.998): steady penetration under a load scales with (1 - d) / d, 0.5x"),
+    "solimp-0.998": Variant({"contact_solimp": (0.998, 0.999, 0.001)}, {}, "the defaults with a stiffer contact "
+                            "impedance still (0.998-0.999): (1 - d) / d 0.2x the default's"),
+    "dt-360": Variant({"timestep": 1.0 / 360.0}, {}, "the defaults with a 1/360 s timestep: the contact time "
+                      "constant's floor (two timesteps) 5.6 instead of 8.3 ms, steady penetration in theory x0.44, "
+                      "x1.5 the steps"),
+    "dt-480": Variant({"timestep": 1.0 / 480.0}, {}, "the defaults with a 1/480 s timestep: time constant floor "
+                      "4.2 ms, steady penetration in theory x0.25, x2 the steps"),
+    "pen-0": Variant({}, {}, "the defaults without the penetration loss term (as before screen 11)",
+                     weights={"penetration": 0.0}),
+    "pen-0.3": Variant({}, {}, "the defaults with the penetration loss term ((depth / 1 mm)^2 per frame) at "
+                       "weight 0.3", weights={"penetration": 0.3}),
+    "pen-1": Variant({}, {}, "the defaults with the penetration loss term at weight 1",
+                     weights={"penetration": 1.0}),
     "before-19": _on_before_19({}, {}, "main before issue #19: 10 noslip iterations, impratio 1, solimp 0.9-0.99"),
     "noslip0-imp1": _on_before_19({"noslip_iterations": 0}, {}, "no noslip pass, MuJoCo's impratio 1"),
     "noslip0-imp10": _on_before_19(NOSLIP0_IMP10, {}, "no noslip pass, impratio 10"),
@@ -97,13 +115,6 @@ VARIANTS: dict[str, tuple[dict[str, Any], dict[str, Any], str]] = {
 }
 
 
-#: Loss weight overrides (``JobOptions.loss_weights``) of the variants that change the loss, not the physics.
-VARIANT_WEIGHTS: dict[str, dict[str, float]] = {
-    "pen-0": {"penetration": 0.0},
-    "pen-0.3": {"penetration": 0.3},
-    "pen-1": {"penetration": 1.0},
-}
-
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -126,10 +137,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def run_args(args: argparse.Namespace, variant: str) -> argparse.Namespace:
     """The ``bench/refine.py`` arguments ``run_one`` reads, for one variant."""
-    sim, cma, _ = VARIANTS[variant]
-    return argparse.Namespace(popsize=None, max_generations=None, seed=args.seed, threads=args.threads,
-                              fresh=args.fresh, sim_overrides=sim, cma_overrides=cma,
-                              loss_weights=VARIANT_WEIGHTS.get(variant, {}))
+    v = VARIANTS[variant]
+    return argparse.Namespace(popsize=None, max_generations=None, seed=args.seed,
+                              threads=args.threads if v.threads is None else v.threads,
+                              fresh=args.fresh, sim_overrides=v.sim, cma_overrides=v.cma, loss_weights=v.weights)
 
 
 def p90(values: list[float]) -> float:
@@ -154,15 +165,36 @@ def figures(rows: list[dict[str, Any]]) -> dict[str, float]:
     }
 
 
+def thread_scaling(args: argparse.Namespace, rows: dict[str, list[dict[str, Any]]]) -> list[str]:
+    """For each variant run on its own thread count beside the same configuration on the run's ``--threads``:
+    the time of one sequence on ``--threads`` threads as a share of its time on the variant's (issue #19 item 3),
+    over the summed times, the median sequence and the median of the per-sequence ratios."""
+    lines = []
+    for name in args.variant_names:
+        v = VARIANTS[name]
+        twins = [o for o in args.variant_names if o != name and VARIANTS[o].threads is None
+                 and (VARIANTS[o].sim, VARIANTS[o].cma, VARIANTS[o].weights) == (v.sim, v.cma, v.weights)]
+        if v.threads is None or not twins:
+            continue
+        many, few = [r["bench_wall_s"] for r in rows[twins[0]]], [r["bench_wall_s"] for r in rows[name]]
+        lines.append(
+            f"* `{twins[0]}` ({args.threads} threads) against `{name}` ({v.threads}): total time x"
+            f"{sum(many) / sum(few):.2f}, median x{statistics.median(many) / statistics.median(few):.2f}, "
+            f"per-sequence ratio median x{statistics.median(a / b for a, b in zip(many, few, strict=True)):.2f}"
+        )
+    return ["", "Thread scaling (the same configuration, one sequence at a time):", "", *lines] if lines else []
+
+
 def render(args: argparse.Namespace, results: dict[str, dict[str, float]], names: list[str], started: str,
-           load: tuple[tuple[float, ...], tuple[float, ...]]) -> str:
+           load: tuple[tuple[float, ...], tuple[float, ...]], scaling: list[str] | None = None) -> str:
     ref_name = args.variant_names[0]
     ref = results[ref_name]
     lines = [
         "# Speed at the same fidelity (bench/speed.py, issue #19)",
         "",
         f"Generated on {started} UTC: sample `{args.sample}`, {len(names)} sequences"
-        f"{f' (the first {args.limit})' if args.limit else ''}, {args.threads} simulation threads per sequence, "
+        f"{f' (the first {args.limit})' if args.limit else ''}, {args.threads} simulation threads per sequence "
+        "(unless a variant says otherwise), "
         f"seed {args.seed}, variants interleaved sequence by sequence. Machine: {os.cpu_count()} cores "
         f"({platform.processor() or platform.machine()}), load average before {load[0][0]:.2f} / after "
         f"{load[1][0]:.2f} (1 min), {load[1][2]:.2f} over the last 15 min at the end. Fidelity on the paper's "
@@ -175,7 +207,7 @@ def render(args: argparse.Namespace, results: dict[str, dict[str, float]], names
     for name in args.variant_names:
         f = results[name]
         lines.append(
-            f"| `{name}` | {VARIANTS[name][2]} | {f['median_s']:.1f} | {f['p90_s']:.1f} | {f['steps_per_s']:.0f} | "
+            f"| `{name}` | {VARIANTS[name].what} | {f['median_s']:.1f} | {f['p90_s']:.1f} | {f['steps_per_s']:.0f} | "
             f"{f['steps_per_seq']:.0f} | {f['SR']:.1f} | {f['SR_first']:.1f} | {f['E_t']:.2f} | {f['E_r']:.2f} | "
             f"{f['E_j']:.2f} | {f['E_ft']:.2f} | {f['pen_mean']:.2f} | {f['pen_max_mean']:.2f} / "
             f"{f['pen_max_max']:.2f} |"
@@ -193,9 +225,10 @@ def render(args: argparse.Namespace, results: dict[str, dict[str, float]], names
             f"{f['E_t'] - ref['E_t']:+.2f} cm, E_r {f['E_r'] - ref['E_r']:+.2f} deg, penetration "
             f"{f['pen_mean'] - ref['pen_mean']:+.2f} mm: fidelity {'within' if keep else 'OUTSIDE'} the keep rule"
         )
+    lines += scaling or []
     from worker.refine.run import STALL_GENERATIONS, STALL_LOSS_PER_FRAME
 
-    touched = sorted({k for sim, _, _ in VARIANTS.values() for k in sim})
+    touched = sorted({k for v in VARIANTS.values() for k in v.sim})
     defaults = sim_defaults()
     lines += ["", "The product's defaults when this ran (what `default` means here): "
               + ", ".join(f"`{k}={defaults[k]}`" for k in touched)
@@ -203,9 +236,10 @@ def render(args: argparse.Namespace, results: dict[str, dict[str, float]], names
               "loss per frame.", ""]
     lines += ["Variants (``SimConfig`` / ``CmaSettings`` overrides):", ""]
     for name in args.variant_names:
-        sim, cma, _ = VARIANTS[name]
-        lines.append(f"* `{name}`: sim {sim or '{}'}, CMA-ES {cma or '{}'}"
-                     + (f", loss weights {VARIANT_WEIGHTS[name]}" if name in VARIANT_WEIGHTS else ""))
+        v = VARIANTS[name]
+        lines.append(f"* `{name}`: sim {v.sim or '{}'}, CMA-ES {v.cma or '{}'}"
+                     + (f", loss weights {v.weights}" if v.weights else "")
+                     + (f", {v.threads} simulation thread(s)" if v.threads is not None else ""))
     lines += ["", "Sequences:", "", *(f"- `{n}`" for n in names)]
     return "\n".join(lines) + "\n"
 
@@ -216,8 +250,9 @@ def main(argv: list[str] | None = None) -> int:
 
     args = parse_args(argv)
     if args.list:
-        for name, (sim, cma, what) in VARIANTS.items():
-            print(f"{name:24s} {what}\n{'':24s} sim {sim or '{}'} cma {cma or '{}'}")
+        for name, v in VARIANTS.items():
+            print(f"{name:24s} {v.what}\n{'':24s} sim {v.sim or '{}'} cma {v.cma or '{}'} weights {v.weights or '{}'}"
+                  + (f" threads {v.threads}" if v.threads is not None else ""))
         return 0
     data = shared_data_dir()
     if data is None:
@@ -240,7 +275,8 @@ def main(argv: list[str] | None = None) -> int:
                   f"({row['timings']['steps_per_second']:.0f} steps/s)  [{time.perf_counter() - t0:.0f}s]", flush=True)
     results = {v: figures(r) for v, r in rows.items()}
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(render(args, results, [n for n, _ in todo], started, (load_before, os.getloadavg())))
+    args.out.write_text(render(args, results, [n for n, _ in todo], started, (load_before, os.getloadavg()),
+                                    thread_scaling(args, rows)))
     print(f"wrote {args.out}")
     return 0
 

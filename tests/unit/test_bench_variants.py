@@ -9,6 +9,7 @@ import pytest
 
 from bench.refine import cma_defaults, override_tag, parse_overrides, sim_defaults
 from bench.speed import VARIANTS
+from worker.refine.losses import DEFAULT_WEIGHTS
 from worker.refine.windowed import CmaSettings
 from worker.simulation.config import SimConfig
 
@@ -41,11 +42,12 @@ def test_the_cache_tag_tells_configurations_apart() -> None:
 
 def test_every_variant_names_real_settings() -> None:
     sim_fields, cma_fields = SimConfig().to_dict(), asdict(CmaSettings())
-    for name, (sim, cma, what) in VARIANTS.items():
-        assert set(sim) <= set(sim_fields), name
-        assert set(cma) <= set(cma_fields), name
-        assert what
-        SimConfig(**sim)  # constructs
+    for name, v in VARIANTS.items():
+        assert set(v.sim) <= set(sim_fields), name
+        assert set(v.cma) <= set(cma_fields), name
+        assert set(v.weights) <= set(DEFAULT_WEIGHTS), name
+        assert v.what and (v.threads is None or v.threads >= 1), name
+        SimConfig(**v.sim)  # constructs
 
 
 def test_the_later_attempts_can_be_run_on_their_own() -> None:
