@@ -69,7 +69,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 class Report:
     def __init__(self, out: Path | None) -> None:
-        self.out, self.lines = out, []
+        self.out = out
+        self.lines: list[str] = []
 
     def add(self, *lines: str) -> None:
         for line in lines:
@@ -125,8 +126,8 @@ def agreement(path: Path, args: argparse.Namespace, report: Report) -> list[dict
                 gpu_s = time.perf_counter() - t0
                 p_cpu, q_cpu, _ = on_cpu.layout.object_from_sensors(z_cpu[:, -1])
                 p_gpu, q_gpu, _ = on_cpu.layout.object_from_sensors(z_gpu[:, -1])
-                loss_cpu = sum(on_cpu.evaluate(j, state, keyframes, cands).values())
-                loss_gpu = sum(on_gpu.evaluate(j, state, keyframes, cands).values())
+                loss_cpu = np.sum(list(on_cpu.evaluate(j, state, keyframes, cands).values()), axis=0)
+                loss_gpu = np.sum(list(on_gpu.evaluate(j, state, keyframes, cands).values()), axis=0)
                 p_first = on_cpu.layout.object_from_sensors(z_cpu[:, 0])[0]
                 touching = bool(np.max(np.linalg.norm(p_cpu - p_first, axis=-1)) > 0.001)  # the object moves
                 row = {
@@ -257,8 +258,6 @@ def pool_job(task: tuple[str, str, str | None, int | None]) -> dict[str, Any]:
 def pool(paths: list[Path], args: argparse.Namespace, report: Report, seconds_left: float | None) -> None:
     """Whole-machine throughput of each backend (module docstring, item 4); stops at ``seconds_left``."""
     import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-    from concurrent.futures import TimeoutError as FuturesTimeout
 
     todo = paths[: args.pool_sequences]
     report.add("", f"## Pool: {len(todo)} sequences, {args.pool_size} processes (1 CPU thread each)", "",
@@ -268,20 +267,18 @@ def pool(paths: list[Path], args: argparse.Namespace, report: Report, seconds_le
         tasks = [(str(p), backend, args.device, args.max_generations) for p in todo]
         t0 = time.perf_counter()
         rows: list[dict[str, Any]] = []
-        # spawn: a CUDA context does not survive a fork.
-        ex = ProcessPoolExecutor(args.pool_size, mp_context=multiprocessing.get_context("spawn"))
-        futures = [ex.submit(pool_job, t) for t in tasks]
-        budget = None if seconds_left is None else max(1.0, seconds_left - (time.perf_counter() - t0))
-        try:
-            for fut in as_completed(futures, timeout=budget):
-                rows.append(fut.result())
-        except FuturesTimeout:
-            pass
+        deadline = None if seconds_left is None else t0 + max(1.0, seconds_left)
+        # spawn: a CUDA context does not survive a fork. Leaving the block terminates the pool, so a run out of
+        # time stops the sequences still being refined.
+        with multiprocessing.get_context("spawn").Pool(args.pool_size) as workers:
+            done = workers.imap_unordered(pool_job, tasks)
+            try:
+                for _ in tasks:
+                    left = None if deadline is None else max(0.0, deadline - time.perf_counter())
+                    rows.append(done.next(timeout=left))
+            except multiprocessing.TimeoutError:
+                pass
         wall = time.perf_counter() - t0
-        if len(rows) < len(tasks):  # out of time: stop the rest (a bench tool may reach into the pool)
-            for proc in list(getattr(ex, "_processes", {}).values()):
-                proc.terminate()
-        ex.shutdown(wait=len(rows) == len(tasks), cancel_futures=True)
         if seconds_left is not None:
             seconds_left -= wall
         if not rows:
