@@ -45,10 +45,11 @@ def add_job_option_arguments(parser: argparse.ArgumentParser, queue: bool = Fals
         help=f"loss weights, e.g. object_pose=2,hand_joints=0.5 (names: {', '.join(LOSS_NAMES)}; 0 disables a term)",
     )  # fmt: skip
     g.add_argument("--free-wrist-translation", action="store_true", help="also optimise a wrist translation offset")
+    restarts = JobOptions.model_fields["restarts"].default  # the contract's default, stated once
     g.add_argument(
-        "--restarts", type=int, default=2,
+        "--restarts", type=int, default=restarts,
         help="refine again with another seed when the result fails (every frame within 3 cm / 30 deg), up to N "
-        "times, keeping the best (default 2; 0 disables)",
+        f"times, keeping the best (default {restarts}; 0 disables)",
     )  # fmt: skip
     if queue:
         g.add_argument("--priority", type=int, default=0, help="queue priority, -100..100 (higher runs first)")
