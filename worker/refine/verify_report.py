@@ -29,6 +29,11 @@ class Tolerances:
     """
 
     inputs: float = 1e-6  # m / rad / unitless: controls, reference keypoints and object poses
+    #: The per-frame figures (errors in cm / deg, penetration in mm) where the re-simulation is bit-identical:
+    #: NumPy computes them with CPU-specific kernels (AVX-512's vectorised arctan2 against AVX2's give the same
+    #: rotation error ~1e-15 deg apart), so even an exact replay on another host may differ in the last bits.
+    #: Far below anything a figure is read to.
+    figures_last_bits: float = 1e-9
     object_pos_m: float = 5e-3
     object_rot_deg: float = 5.0
     drift_fraction: float = 0.1
