@@ -115,9 +115,14 @@ def test_per_frame_figures_may_differ_only_in_their_last_bits_on_an_exact_replay
     arrays, summary = honest
     key = "metrics_refined_e_r_deg"
     last_bits = {**arrays, key: np.nextafter(np.nextafter(arrays[key], np.inf), np.inf)}
-    report = check_result(_forged(last_bits, summary))
+    refined = summary["metrics"]["refined"]
+    nudged = {**summary, "metrics": {**summary["metrics"],
+                                     "refined": {**refined, "E_r": float(np.nextafter(refined["E_r"], np.inf))}}}
+    report = check_result(_forged(last_bits, nudged))
     assert report.exact and report.failures == []
     _fails_naming(_forged({**arrays, key: arrays[key] + 1e-6}, summary), key)
+    rewritten = {**summary, "metrics": {**summary["metrics"], "refined": {**refined, "E_r": refined["E_r"] + 1e-6}}}
+    _fails_naming(_forged(arrays, rewritten), "metrics.refined.E_r")
 
 
 def test_moved_wrist_and_replaced_reference_fail(honest: tuple[dict[str, np.ndarray], dict[str, Any]]) -> None:
