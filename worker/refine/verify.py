@@ -12,12 +12,12 @@ restart), contacts, every derived array and both protocols' metrics. Then:
    contacts, the stored per-frame metric arrays, the contacts' object-frame points against their world points
    and the stored object pose, the first attempt's success.
 3. **Re-simulation.** Every stored array and summary figure against the fresh derivation. On the build that made
-   the result the replay is bit-identical (``exact``), and then everything must be equal but the per-frame
-   figures, which NumPy computes with CPU-specific kernels and so may differ in their last bits even where the
-   replay is exact on another host (``Tolerances.figures_last_bits``). On another host it is usually not exact:
-   NumPy and OpenBLAS pick CPU-specific kernels (AVX-512 or AVX2) whose last bits differ, and contact-rich
-   dynamics grow a 1e-16 difference into millimetres (measured: ``CROSS_HOST``). Then each field is compared
-   within a physical tolerance instead (``Tolerances``).
+   the result the replay is bit-identical (``exact``), and then everything must be equal but the figures
+   (per-frame and summary), which NumPy computes with CPU-specific kernels and so may differ in their last bits
+   even where the replay is exact on another host (``Tolerances.figures_last_bits``). On another host it is
+   usually not exact: NumPy and OpenBLAS pick CPU-specific kernels (AVX-512 or AVX2) whose last bits differ, and
+   contact-rich dynamics grow a 1e-16 difference into millimetres (measured: ``CROSS_HOST``). Then each field is
+   compared within a physical tolerance instead (``Tolerances``).
 
 Any difference fails naming the field and its largest difference. The report carries a SHA-256 over everything
 that was checked (stored arrays and summary parts), so two parties can tell they checked the same content.
