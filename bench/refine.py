@@ -57,7 +57,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--cma", action="append", default=[], metavar="NAME=VALUE",
                    help="a CMA-ES setting (worker.refine.windowed.CmaSettings) other than the product's, e.g. "
                    "--cma stall_generations=3; repeatable")
+    p.add_argument("--weight", action="append", default=[], metavar="NAME=VALUE",
+                   help="a loss weight (worker.refine.losses.DEFAULT_WEIGHTS) other than the product's, e.g. "
+                   "--weight grasp_reach=1; repeatable")
     args = p.parse_args(argv)
+    args.loss_weights = {k: float(v) for k, v in parse_overrides(args.weight, p, "--weight", weight_defaults()).items()}
     args.sim_overrides = parse_overrides(args.sim, p, "--sim", sim_defaults())
     args.cma_overrides = parse_overrides(args.cma, p, "--cma", cma_defaults())
     if args.out is None:
@@ -70,6 +74,12 @@ def sim_defaults() -> dict[str, Any]:
     from worker.simulation.config import SimConfig
 
     return SimConfig().to_dict()
+
+
+def weight_defaults() -> dict[str, Any]:
+    from worker.refine.losses import DEFAULT_WEIGHTS
+
+    return dict(DEFAULT_WEIGHTS)
 
 
 def cma_defaults() -> dict[str, Any]:
@@ -239,6 +249,8 @@ def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) 
         + "; CMA-ES: "
         + (", ".join(f"`{k}={v}`" for k, v in sorted(args.cma_overrides.items())) or "the product's defaults")
         + ("" if getattr(args, "restarts", None) is None else f"; restarts: {args.restarts}")
+        + ("" if not getattr(args, "loss_weights", None) else "; loss weights: "
+           + ", ".join(f"`{k}={v}`" for k, v in sorted(args.loss_weights.items())))
         + ".",
         "",
         *metrics_table(rows),
