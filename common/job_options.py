@@ -19,6 +19,7 @@ LossName = Literal[
     "control_consistency",
     "hand_velocity",
     "penetration",
+    "grasp_reach",
 ]
 LOSS_NAMES: tuple[str, ...] = LossName.__args__  # type: ignore[attr-defined]
 

@@ -36,13 +36,22 @@ scale so the default weights read as "how much one scale unit of error costs":
   88.3 to 90.8 % (E_r +0.31 deg, nearly all of it one sequence failing either way; penetration unchanged, worst
   sequence maximum 9.3 -> 4.3 mm). A free depth, or charging the recording's lifted frames instead of the
   rollout's, did worse on dev120 (``bench/results/speed_experiments.md``, screen 11).
+* ``grasp_reach``: on the frames a hand must hold the object (the recorded object has moved from its start and
+  the recorded hand touches it, ``HandKeypointTargets.grip``): the gap between the simulated thumb's distal
+  segment and the object's surface, plus the smallest such gap among the other four fingers, each beyond
+  ``REACH_TOLERANCE``, / 1 cm. A recorded grasp is often a centimetre open (vision error: the thumb hovers
+  over a thin marker); replayed, nothing touches, the object stays on the table and every candidate that
+  closes the hand part-way scores the same as one that does not, so CMA-ES has nothing to follow. This term
+  is zero for any hand that holds the object with the thumb and one opposing finger. The gaps come from the
+  rollout's keypoints (the distal capsules of ``DistalSegments``) and a distance table of the object's surface
+  (``distance_grid``), with no extra physics.
 
 Each weight can be set to 0 (ablation) through ``JobOptions.loss_weights`` / ``--weights``.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -64,6 +73,7 @@ DEFAULT_WEIGHTS: dict[str, float] = {
     "control_consistency": 0.05,
     "hand_velocity": 0.01,
     "penetration": 0.3,
+    "grasp_reach": 3.0,
 }
 assert set(DEFAULT_WEIGHTS) == set(LOSS_NAMES)
 
@@ -79,6 +89,12 @@ PENETRATION_SCALE = 0.001  # m
 #: The penetration term counts a frame once the rollout's object is this far above its height at the settled
 #: start (``WindowRecord.lifted``): above the few millimetres a hand tilting or pushing a resting object lifts it.
 PENETRATION_LIFT_M = 0.005
+#: Gaps (m) within this count as touching for ``grasp_reach``: the surface points are sampled, the hand's
+#: distal segments are capsules (MANO hulls when the hand is MANO's), and soft contacts act slightly apart.
+REACH_TOLERANCE = 0.002
+#: Gaps beyond this (m) count as this: a hand that has already lost the object in the rollout is not pulled
+#: back towards it across the scene (that only bends the hand away from its recording).
+REACH_CAP = 0.03
 EXCURSION_POS, EXCURSION_POS_SCALE = 0.02, 0.005  # m: free margin, then quadratic per 5 mm
 EXCURSION_ROT, EXCURSION_ROT_SCALE = np.radians(20.0), np.radians(5.0)  # rad
 
@@ -113,6 +129,29 @@ def finite_difference_velocity(pos: FloatArray, quat: FloatArray, fps: float) ->
 
 
 @dataclass
+class DistalSegments:
+    """Each finger's distal segment as the simulated hand builds it (``worker.simulation.hand_mjcf``): a capsule
+    from the DIP keypoint towards the fingertip keypoint over ``end_fraction`` of that span, of ``radius``."""
+
+    dip: tuple[int, ...]  # (5,) keypoint indices, thumb first
+    tip: tuple[int, ...]  # (5,)
+    end_fraction: FloatArray  # (5,)
+    radius: FloatArray  # (5,) m
+
+    SAMPLES = 4  # points along each segment's axis
+
+    def gaps(self, keypoints: FloatArray, surface: Callable[[FloatArray], FloatArray]) -> FloatArray:
+        """(..., 5) distance of each distal capsule's surface to the object surface, from object-frame keypoints
+        (..., J, 3) (negative inside, by up to the radius)."""
+        dip = keypoints[..., list(self.dip), :]
+        span = keypoints[..., list(self.tip), :] - dip
+        s = np.linspace(0.0, 1.0, self.SAMPLES)[:, None] * self.end_fraction[None, :]  # (S, 5)
+        points = dip[..., None, :, :] + s[..., None] * span[..., None, :, :]  # (..., S, 5, 3)
+        dist = surface(points.reshape(-1, 3)).reshape(points.shape[:-1])
+        return np.asarray(dist.min(axis=-2) - self.radius, dtype=np.float64)
+
+
+@dataclass
 class HandKeypointTargets:
     """One hand's reference for the losses."""
 
@@ -121,6 +160,11 @@ class HandKeypointTargets:
     fingertips: tuple[int, ...]  # keypoint indices
     contact_mask: BoolArray  # (T, n_tips) fingertip touches the object in the reference
     contact_local: FloatArray  # (T, n_tips, 3) where, in the object frame
+    #: (T,) frames the hand must hold the object (``grasp_reach``); None: the term is off.
+    grip: BoolArray | None = None
+    distal: DistalSegments | None = None
+    #: object-frame points (..., 3) -> distance to the object surface (...,) (``distance_grid.DistanceGrid``)
+    surface: Callable[[FloatArray], FloatArray] | None = None
 
     def __post_init__(self) -> None:
         t, j, _ = self.keypoints.shape
@@ -230,12 +274,21 @@ def hand_terms(rec: WindowRecord, side: str, ref: HandKeypointTargets) -> dict[s
     else:
         charged = 1.0 if rec.lifted is None else rec.lifted
         pen = ((depth / PENETRATION_SCALE) ** 2 * charged).sum(axis=1)
+    reach = np.zeros(kp.shape[0])
+    if ref.grip is not None and ref.distal is not None and ref.surface is not None:
+        grip = ref.grip[f]
+        if grip.any():
+            pts = kp[:, grip]  # (C, G, J, 3)
+            local = quat_rotate(quat_conj(rec.obj_quat[:, grip])[:, :, None], pts - rec.obj_pos[:, grip][:, :, None])
+            gaps = np.clip(ref.distal.gaps(local, ref.surface) - REACH_TOLERANCE, 0.0, REACH_CAP)  # (C, G, 5)
+            reach = ((gaps[..., 0] + gaps[..., 1:].min(axis=-1)) / POS_SCALE).sum(axis=1)
     return {
         "hand_joints": joints,
         "fingertip_contact": contact,
         "control_consistency": consistency,
         "hand_velocity": hvel,
         "penetration": pen,
+        "grasp_reach": reach,
     }
 
 

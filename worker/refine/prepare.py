@@ -15,13 +15,16 @@ from common.geometry import FloatArray
 from common.job_options import JobOptions
 from common.sequence import FINGERTIP_INDICES, Sequence
 from worker.hand.mano.pose import mano_pca_basis
-from worker.hand.model import JOINT_LIMITS, MIRROR_SIGNS
+from worker.hand.model import FINGER_BASE_KEYPOINT, JOINT_LIMITS, MIRROR_SIGNS, HandGeometry
 from worker.hand.pose_basis import load_pose_basis
 from worker.hand.reference import HandReference
 from worker.hand.retarget import retarget_sequence
 from worker.refine.controls import HandControlSpace, PoseBasis10
+from worker.refine.distance_grid import DistanceGrid
 from worker.refine.evaluator import ParallelEvaluator, SimState
 from worker.refine.losses import (
+    BoolArray,
+    DistalSegments,
     HandKeypointTargets,
     ObjectTargets,
     SurfaceDistance,
@@ -31,6 +34,7 @@ from worker.refine.losses import (
 from worker.refine.problem import SimLayout
 from worker.refine.spline import default_keyframe_interval
 from worker.simulation.config import SimConfig
+from worker.simulation.rest_pose import moved_frame
 from worker.simulation.scene import Scene, build_scene
 from worker.simulation.stepping import HandTargets, initial_state, lead_track, lead_values
 
@@ -51,6 +55,8 @@ ROTATION_PIVOT = "hand"
 #: left hands at a small budget (7 of 8 refined a little worse, one more failure); kept because it makes the two
 #: sides one method (tests/integration/test_refine_mirror.py). False restores the old treatment of left hands.
 MIRROR_LEFT_HAND = True
+#: The grip (``grip_frames``) must have formed this long (s) before the recorded object is seen to move.
+GRIP_LEAD_S = 0.1
 
 
 @dataclass
@@ -170,11 +176,17 @@ def prepare(
         raise ValueError(f"rotation_pivot must be one of {', '.join(PIVOTS)}, got {pivot_kind!r}")
     pose = seq.object_pose_world()
     obj = ObjectTargets(pose[:, :3], pose[:, 3:], finite_difference_velocity(pose[:, :3], pose[:, 3:], seq.fps))
-    surface = SurfaceDistance(_surface_samples(seq))
+    samples = _surface_samples(seq)
+    surface = SurfaceDistance(samples)
+    surface_grid = DistanceGrid(samples)
     hands: dict[str, HandKeypointTargets] = {}
     for r in references:
         mask, local = contact_targets(r.keypoints, r.valid, pose[:, :3], pose[:, 3:], surface, FINGERTIP_INDICES)
-        hands[r.side] = HandKeypointTargets(r.keypoints, r.valid, FINGERTIP_INDICES, mask, local)
+        hands[r.side] = HandKeypointTargets(
+            r.keypoints, r.valid, FINGERTIP_INDICES, mask, local,
+            grip=grip_frames(pose, mask, round(GRIP_LEAD_S * seq.fps)),
+            distal=distal_segments(r.geometry), surface=surface_grid,
+        )  # fmt: skip
     # The mocap and the servo targets run ahead of their tracks by the weld's and the servos' lags
     # (``SimConfig.wrist_lead_s`` / ``finger_lead_s``), as in the raw replay (``stepping.substep_controls``);
     # the pivot moves with the wrist so the hand turns about its centre.
@@ -198,6 +210,23 @@ def prepare(
         )
     return Prepared(seq, options, interval, references, scene, layout, spaces, obj, hands, provenance, pivot_kind,
                     mano_dir, mirror_left)
+
+
+def grip_frames(object_pose: FloatArray, contact_mask: BoolArray, lead: int = 0) -> BoolArray:
+    """(T,) frames a hand must hold the object (``losses.grasp_reach``): from ``lead`` frames before the recorded
+    object moves from its start (``rest_pose.moved_frame``: 5 mm or 10 degrees, when it has already started)
+    on, where the recorded hand touches it (a fingertip within ``contact_targets``' threshold), so a hand that
+    lets go or puts the object down in the recording is not held to it."""
+    moved = np.arange(object_pose.shape[0]) >= moved_frame(object_pose) - lead
+    return np.asarray(moved & contact_mask.any(axis=1))
+
+
+def distal_segments(geometry: HandGeometry) -> DistalSegments:
+    """The fingers' distal capsules as ``worker.simulation.hand_mjcf`` builds them, in keypoint terms."""
+    lengths, radii = geometry.lengths[:, 2], geometry.radii[:, 2]
+    end = np.maximum(lengths - radii, 0.3 * lengths) / lengths
+    base = np.asarray(FINGER_BASE_KEYPOINT)
+    return DistalSegments(tuple(int(b) for b in base + 2), tuple(int(b) for b in base + 3), end, radii.copy())
 
 
 def pivot_track(kind: str, keypoints: FloatArray, joint_weights: FloatArray) -> FloatArray | None:
