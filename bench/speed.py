@@ -37,6 +37,8 @@ BEFORE_19_SIM: dict[str, Any] = {"noslip_iterations": 10, "impratio": 1.0, "cont
                                  "jacobian": "auto", "table_fit_s": 0.5, "table_shelf": False,
                                  "hold_until_m": 0.0}
 BEFORE_19_CMA: dict[str, Any] = {"stall_generations": 0}
+#: Loss terms added since (issue #15's grasp_reach), off as they were then.
+BEFORE_19_WEIGHTS: dict[str, float] = {"grasp_reach": 0.0}
 
 
 @dataclass(frozen=True)
@@ -53,7 +55,7 @@ class Variant:
 def _on_before_19(sim: dict[str, Any], cma: dict[str, Any], what: str) -> Variant:
     """An experiment as it was measured: main before issue #19 with these settings changed, so it means the same
     whatever the product's defaults become."""
-    return Variant({**BEFORE_19_SIM, **sim}, {**BEFORE_19_CMA, **cma}, what)
+    return Variant({**BEFORE_19_SIM, **sim}, {**BEFORE_19_CMA, **cma}, what, dict(BEFORE_19_WEIGHTS))
 
 
 NOSLIP0_IMP10: dict[str, Any] = {"noslip_iterations": 0, "impratio": 10.0}
