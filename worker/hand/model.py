@@ -132,6 +132,13 @@ class HandGeometry:
         """(6,3) palm keypoints (PALM_KEYPOINTS order) in the wrist frame."""
         return np.vstack([np.zeros(3), self.bases])
 
+    def distal_capsule_ends(self) -> FloatArray:
+        """(5,) how far each distal capsule's axis runs from its DIP joint: a radius short of the fingertip
+        keypoint, so the capsule *ends* at the keypoint (MANO tips lie on the skin surface), and never under 0.3
+        of the segment (a short, thick fingertip)."""
+        lengths, radii = self.lengths[:, 2], self.radii[:, 2]
+        return np.asarray(np.maximum(lengths - radii, 0.3 * lengths), dtype=np.float64)
+
 
 def _mirror(side: Side) -> FloatArray:
     """Left hands are right hands mirrored through the wrist frame's xz plane (y -> -y)."""

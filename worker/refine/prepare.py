@@ -223,10 +223,10 @@ def grip_frames(object_pose: FloatArray, contact_mask: BoolArray, lead: int = 0)
 
 def distal_segments(geometry: HandGeometry) -> DistalSegments:
     """The fingers' distal capsules as ``worker.simulation.hand_mjcf`` builds them, in keypoint terms."""
-    lengths, radii = geometry.lengths[:, 2], geometry.radii[:, 2]
-    end = np.maximum(lengths - radii, 0.3 * lengths) / lengths
+    end = geometry.distal_capsule_ends() / geometry.lengths[:, 2]
     base = np.asarray(FINGER_BASE_KEYPOINT)
-    return DistalSegments(tuple(int(b) for b in base + 2), tuple(int(b) for b in base + 3), end, radii.copy())
+    return DistalSegments(tuple(int(b) for b in base + 2), tuple(int(b) for b in base + 3), end,
+                          geometry.radii[:, 2].copy())
 
 
 def pivot_track(kind: str, keypoints: FloatArray, joint_weights: FloatArray) -> FloatArray | None:

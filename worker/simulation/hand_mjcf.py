@@ -90,6 +90,7 @@ def hand_worldbody_xml(geometry: HandGeometry, config: SimConfig, wrist_pos: Flo
     box = f'<geom name="{side}_palm" type="box" size="{fmt(half)}" pos="{fmt(centre)}" {geom_common}/>'
     lines.append("  " + (_part_geom(geometry, "palm", geom_common) or box))
     lines.append(f'  <site name="{side}_kp0" pos="0 0 0" size="{0.004 * s:.4g}"/>')
+    distal_ends = geometry.distal_capsule_ends()
     for f in range(5):
         base_kp = FINGER_BASE_KEYPOINT[f]
         indent = "  "
@@ -109,8 +110,7 @@ def hand_worldbody_xml(geometry: HandGeometry, config: SimConfig, wrist_pos: Flo
                     f'damping="{config.hinge_damping:g}"/>'
                 )
             length, radius = float(geometry.lengths[f, j]), float(geometry.radii[f, j])
-            # The distal capsule ends *at* the fingertip keypoint (MANO tips lie on the skin surface).
-            end = max(length - radius, 0.3 * length) if j == 2 else length
+            end = float(distal_ends[f]) if j == 2 else length  # HandGeometry.distal_capsule_ends
             hull = _part_geom(geometry, f"{FINGERS[f]}{j + 1}", geom_common)
             lines.append(
                 f"{indent}  "
