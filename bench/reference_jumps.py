@@ -25,7 +25,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from common.geometry import FloatArray, quat_conj, quat_mul  # noqa: E402
+from common.geometry import FloatArray, quat_axis_angle, quat_conj, quat_mul  # noqa: E402
 
 #: Frame-to-frame rotations (deg) the report counts; the last but one is the one it splits the sample by.
 THRESHOLDS_DEG = (20.0, 30.0, 45.0, 60.0)
@@ -47,12 +47,8 @@ class PoseJump:
 def frame_rotation_steps(quat: FloatArray) -> tuple[FloatArray, FloatArray]:
     """(T-1,) rotation angle in degrees between consecutive (w, x, y, z) quaternions, and (T-1, 3) its unit axis
     in the object's own frame (q_t^-1 q_t+1: the step as the object sees it)."""
-    dq = quat_mul(quat_conj(quat[:-1]), quat[1:])
-    dq = np.where(dq[:, :1] < 0, -dq, dq)  # q and -q are one rotation: take the short way
-    sin_half = np.linalg.norm(dq[:, 1:], axis=1)
-    angle = np.degrees(2.0 * np.arctan2(sin_half, dq[:, 0]))
-    axis = dq[:, 1:] / np.maximum(sin_half, 1e-12)[:, None]
-    return angle, axis
+    axis, angle = quat_axis_angle(quat_mul(quat_conj(quat[:-1]), quat[1:]))
+    return np.degrees(angle), axis
 
 
 def principal_axes(vertices: FloatArray) -> FloatArray:

@@ -120,3 +120,14 @@ def rotation_angle(quat_a: FloatArray, quat_b: FloatArray) -> FloatArray:
 def rotation_error_deg(quat_a: FloatArray, quat_b: FloatArray) -> FloatArray:
     """Geodesic angle (deg) between wxyz quaternions (...,4)."""
     return np.asarray(np.degrees(rotation_angle(quat_a, quat_b)))
+
+
+def quat_axis_angle(quat: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Unit rotation axis (..., 3) and angle (...,) in radians of wxyz quaternions (..., 4), the short way (q and
+    -q are one rotation). The arctan2 form stays accurate near 0 where ``rotation_angle``'s arccos does not; the
+    axis of a zero rotation is zero."""
+    q = np.where(quat[..., :1] < 0, -quat, quat)
+    sin_half = np.linalg.norm(q[..., 1:], axis=-1)
+    angle = 2 * np.arctan2(sin_half, q[..., 0])
+    axis = q[..., 1:] / np.maximum(sin_half, 1e-12)[..., None]
+    return np.asarray(axis), np.asarray(angle)

@@ -62,7 +62,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from common.geometry import FloatArray, quat_conj, quat_mul, quat_rotate, rotation_angle
+from common.geometry import FloatArray, quat_axis_angle, quat_conj, quat_mul, quat_rotate, rotation_angle
 from common.job_options import LOSS_NAMES
 
 BoolArray = npt.NDArray[np.bool_]
@@ -123,10 +123,7 @@ def finite_difference_velocity(pos: FloatArray, quat: FloatArray, fps: float) ->
     # Angular velocity from q(t+1) q(t-1)^-1 over 2 dt (one-sided at the ends).
     nxt = np.r_[np.arange(1, t), t - 1]
     prv = np.r_[0, np.arange(0, t - 1)]
-    dq = quat_mul(quat[nxt], quat_conj(quat[prv]))
-    dq = np.where(dq[:, :1] < 0, -dq, dq)
-    angle = 2 * np.arctan2(np.linalg.norm(dq[:, 1:], axis=1), dq[:, 0])
-    axis = dq[:, 1:] / np.maximum(np.linalg.norm(dq[:, 1:], axis=1, keepdims=True), 1e-12)
+    axis, angle = quat_axis_angle(quat_mul(quat[nxt], quat_conj(quat[prv])))
     span = (nxt - prv) / fps
     ang = axis * (angle / span)[:, None]
     return np.concatenate([lin, ang], axis=1)
