@@ -61,7 +61,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="a loss weight (worker.refine.losses.DEFAULT_WEIGHTS) other than the product's, e.g. "
                    "--weight grasp_reach=1; repeatable")
     args = p.parse_args(argv)
-    args.loss_weights = {k: float(v) for k, v in parse_overrides(args.weight, p, "--weight", weight_defaults()).items()}
+    args.loss_weights = parse_overrides(args.weight, p, "--weight", weight_defaults())  # floats, as the defaults
     args.sim_overrides = parse_overrides(args.sim, p, "--sim", sim_defaults())
     args.cma_overrides = parse_overrides(args.cma, p, "--cma", cma_defaults())
     if args.out is None:
