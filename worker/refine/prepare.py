@@ -13,6 +13,7 @@ import numpy as np
 from common.errors import ConfigurationError
 from common.geometry import FloatArray
 from common.job_options import JobOptions
+from common.primitive_surface import object_surface_points
 from common.sequence import FINGERTIP_INDICES, Sequence
 from worker.hand.mano.pose import mano_pca_basis
 from worker.hand.model import FINGER_BASE_KEYPOINT, JOINT_LIMITS, MIRROR_SIGNS, HandGeometry
@@ -176,7 +177,7 @@ def prepare(
         raise ValueError(f"rotation_pivot must be one of {', '.join(PIVOTS)}, got {pivot_kind!r}")
     pose = seq.object_pose_world()
     obj = ObjectTargets(pose[:, :3], pose[:, 3:], finite_difference_velocity(pose[:, :3], pose[:, 3:], seq.fps))
-    samples = _surface_samples(seq)
+    samples = _surface_samples(seq, config.primitive_surface_spacing_m)
     surface = SurfaceDistance(samples)
     surface_grid = DistanceGrid(samples)
     hands: dict[str, HandKeypointTargets] = {}
@@ -236,9 +237,10 @@ def pivot_track(kind: str, keypoints: FloatArray, joint_weights: FloatArray) -> 
     return np.asarray(np.einsum("tjk,j->tk", keypoints, joint_weights), dtype=np.float64)
 
 
-def _surface_samples(seq: Sequence) -> FloatArray:
-    """Object-frame surface points: vertices, edge midpoints and face centroids (dense enough for 1 cm)."""
-    verts = seq.object.surface_vertices()
+def _surface_samples(seq: Sequence, primitive_spacing: float) -> FloatArray:
+    """Object-frame surface points: a mesh's vertices, edge midpoints and face centroids (dense enough for 1 cm);
+    a primitive's from ``object_surface_points``."""
+    verts = object_surface_points(seq.object, primitive_spacing)
     faces = seq.object.mesh_faces
     if faces is None:
         return verts

@@ -29,6 +29,7 @@ import mujoco
 import numpy as np
 
 from common.geometry import FloatArray, IntArray
+from common.primitive_surface import object_surface_points
 from common.sequence import Sequence
 from worker.hand.model import HINGE_NAMES
 from worker.hand.reference import HandReference
@@ -189,7 +190,8 @@ def build_scene(
     if not references:
         raise ValueError("references must hold at least one HandReference")
     keypoints = [r.keypoints for r in references]
-    poses, surface = seq.object_pose_world(), seq.object.surface_vertices()
+    poses = seq.object_pose_world()
+    surface = object_surface_points(seq.object, config.primitive_surface_spacing_m)
     start = rest_pose(poses, surface, keypoints, config.rest_approach_m)
     release = resting_frames(poses, surface, keypoints, config.hold_until_m)  # 0 when there is no hold
     pose0, table = fit_table(seq, config, start, cache_dir=cache_dir)
