@@ -60,6 +60,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--weight", action="append", default=[], metavar="NAME=VALUE",
                    help="a loss weight (worker.refine.losses.DEFAULT_WEIGHTS) other than the product's, e.g. "
                    "--weight grasp_reach=1; repeatable")
+    p.add_argument("--as-primitive", action="store_true",
+                   help="replace each sequence's mesh by its tightest enclosing box or cylinder "
+                   "(bench/primitive_standin.py): the primitive-object path on real motions; the sample must hold "
+                   "objects that fit one, e.g. bench/samples/dev120_primitive.txt")
     args = p.parse_args(argv)
     args.loss_weights = parse_overrides(args.weight, p, "--weight", weight_defaults())  # floats, as the defaults
     args.sim_overrides = parse_overrides(args.sim, p, "--sim", sim_defaults())
@@ -130,9 +134,11 @@ def run_one(path: Path, args: argparse.Namespace, cache: Path, awkward: list[str
     from worker.simulation.config import SimConfig
 
     weights: dict[str, float] = getattr(args, "loss_weights", None) or {}
+    as_primitive = bool(getattr(args, "as_primitive", False))
     key = (f"{path.stem}__p{args.popsize}_g{args.max_generations}_s{args.seed}_t{args.threads}"
            f"{restarts_tag(args)}{override_tag(args.sim_overrides)}{override_tag(args.cma_overrides)}"
-           f"{override_tag({f'w-{k}': v for k, v in weights.items()})}_c{code_digest()}.json")
+           f"{override_tag({f'w-{k}': v for k, v in weights.items()})}{'_prim' if as_primitive else ''}"
+           f"_c{code_digest()}.json")
     hit = cache / key
     if hit.is_file() and not args.fresh:
         out: dict[str, Any] = json.loads(hit.read_text())
@@ -144,6 +150,14 @@ def run_one(path: Path, args: argparse.Namespace, cache: Path, awkward: list[str
             out["table"] = fit_table(load_dexycb_npz(path), SimConfig())[1].to_dict()
         return out
     seq = load_dexycb_npz(path)
+    if as_primitive:
+        from bench.primitive_standin import MAX_VOLUME_RATIO, primitive_sequence
+
+        standin = primitive_sequence(seq)
+        if standin is None:
+            raise SystemExit(f"{path.name}: {seq.object.name} fits no box or cylinder within {MAX_VOLUME_RATIO} x "
+                             "its convex hull's volume (--as-primitive)")
+        seq = standin
     options = JobOptions(seed=args.seed, popsize=args.popsize, max_generations=args.max_generations,
                          loss_weights=weights,
                          **({} if getattr(args, "restarts", None) is None else {"restarts": args.restarts}))
@@ -251,6 +265,8 @@ def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) 
         + ("" if getattr(args, "restarts", None) is None else f"; restarts: {args.restarts}")
         + ("" if not getattr(args, "loss_weights", None) else "; loss weights: "
            + ", ".join(f"`{k}={v}`" for k, v in sorted(args.loss_weights.items())))
+        + ("; **objects replaced by their enclosing box or cylinder** (`--as-primitive`, bench/primitive_standin.py)"
+           if getattr(args, "as_primitive", False) else "")
         + ".",
         "",
         *metrics_table(rows),
