@@ -1,12 +1,12 @@
-"""Points covering a primitive object's surface (``ObjectSpec.surface_vertices`` for primitives).
+"""Points covering a primitive object's surface (``object_surface_points``; a mesh keeps its own vertices).
 
 The refinement measures hand-to-object distances against surface points (``worker.refine.prepare``: contact
 targets, the grasp-reach table) and finds the hand's approach by them (``worker.simulation.rest_pose``). A mesh
 gives its vertices, edge midpoints and face centroids; a primitive's tessellation alone would give a box's 8
 corners and a cylinder's two rims, so a fingertip on the middle of a face would read the distance to a corner. Here
 every face is covered by a grid at most ``SPACING_M`` apart (coarser for a very large primitive, so a few
-``MAX_POINTS`` points at most), plus the corners and rims themselves, so the lowest point of the surface (the table
-is laid there) is exact.
+``MAX_POINTS`` points at most), plus the tessellation's vertices themselves, so the lowest point of the surface
+(the table is laid there) is the same as before.
 """
 
 from __future__ import annotations

@@ -91,7 +91,7 @@ def test_unknown_primitive_is_refused() -> None:
         primitive_surface_points("cone", np.array([0.1]))
 
 
-def test_the_refinement_and_the_scene_read_the_configured_points() -> None:
+def test_the_refinement_reads_the_configured_points() -> None:
     from worker.example.sequences import short_example_sequence
     from worker.refine.prepare import _surface_samples
 
