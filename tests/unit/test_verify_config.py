@@ -43,6 +43,22 @@ def test_a_result_that_predates_impratio_reads_it_as_one() -> None:
     assert report.failures == [] and stored["impratio"] == 1.0
 
 
+def test_a_result_made_before_primitive_surface_points_verifies_with_a_note() -> None:
+    """Recorded as 0 while that was the default (a primitive known by its vertices): replayed as made, a note."""
+    report = VerifyReport()
+    stored, _, _ = _config(_stored(primitive_surface_spacing_m=0.0), report, allow_config=False)
+    assert report.failures == [] and report.config_changes == []
+    assert any("before primitive surface points" in note for note in report.config_notes)
+    assert stored["primitive_surface_spacing_m"] == 0.0
+
+
+def test_another_primitive_spacing_is_a_non_default_config() -> None:
+    report = VerifyReport()
+    _config(_stored(primitive_surface_spacing_m=0.01), report, allow_config=False)
+    assert [c[0] for c in report.config_changes] == ["sim.primitive_surface_spacing_m"]
+    assert report.failures and "--allow-config" in report.failures[0]
+
+
 def test_a_mix_of_old_and_new_physics_is_a_non_default_config() -> None:
     report = VerifyReport()
     _config(_stored(noslip_iterations=10), report, allow_config=False)  # old noslip, new impratio and solimp
@@ -50,7 +66,8 @@ def test_a_mix_of_old_and_new_physics_is_a_non_default_config() -> None:
     assert report.failures and "--allow-config" in report.failures[0]
 
 
-@pytest.mark.parametrize(("name", "then"), [("jacobian", "auto"), ("table_fit_s", 0.5), ("table_shelf", False)])
+@pytest.mark.parametrize(("name", "then"), [("jacobian", "auto"), ("table_fit_s", 0.5), ("table_shelf", False),
+                                          ("primitive_surface_spacing_m", 0.0)])
 def test_a_result_that_predates_a_setting_reads_it_as_it_was_then(name: str, then: Any) -> None:
     """Results made before issue #19's sparse Jacobian ran MuJoCo's automatic choice, before the support fix of
     issue #15 a 0.5 s table fit without the shelf; they verify with a note and replay as they were made."""

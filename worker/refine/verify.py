@@ -51,9 +51,12 @@ __all__ = ["CROSS_HOST", "Tolerances", "VerifyReport", "check_result", "verify_r
 OLDER_DEFAULTS: dict[str, Any] = OLDER_SIM_DEFAULTS
 OLDER_PIVOT = "wrist"
 #: Complete sets of physics defaults the product had before: a result made with one of them whole is checked
-#: against that set (a note, not a failure); a mix of old and new values is a non-default config.
+#: against that set (a note, not a failure); a mix of old and new values is a non-default config. The first set
+#: a result matches is the one it is read with.
 EARLIER_DEFAULTS: dict[str, dict[str, Any]] = {
     "before issue #19": {"noslip_iterations": 10, "impratio": 1.0, "contact_solimp": (0.9, 0.99, 0.001)},
+    # A primitive known by its tessellation's vertices (recorded from 391fb14 on, the default until the flip).
+    "before primitive surface points (issue #15)": {"primitive_surface_spacing_m": 0.0},
 }
 
 
