@@ -64,6 +64,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="replace each sequence's mesh by its tightest enclosing box or cylinder "
                    "(bench/primitive_standin.py): the primitive-object path on real motions; the sample must hold "
                    "objects that fit one, e.g. bench/samples/dev120_primitive.txt")
+    p.add_argument("--free-wrist-translation", action="store_true",
+                   help="also optimise a 3-D wrist translation offset (JobOptions.free_wrist_translation; the "
+                   "product's default parameterisation is 10 pose coefficients + wrist rotation)")
     args = p.parse_args(argv)
     args.loss_weights = parse_overrides(args.weight, p, "--weight", weight_defaults())  # floats, as the defaults
     args.sim_overrides = parse_overrides(args.sim, p, "--sim", sim_defaults())
@@ -135,10 +138,11 @@ def run_one(path: Path, args: argparse.Namespace, cache: Path, awkward: list[str
 
     weights: dict[str, float] = getattr(args, "loss_weights", None) or {}
     as_primitive = bool(getattr(args, "as_primitive", False))
+    free_translation = bool(getattr(args, "free_wrist_translation", False))
     key = (f"{path.stem}__p{args.popsize}_g{args.max_generations}_s{args.seed}_t{args.threads}"
            f"{restarts_tag(args)}{override_tag(args.sim_overrides)}{override_tag(args.cma_overrides)}"
            f"{override_tag({f'w-{k}': v for k, v in weights.items()})}{'_prim' if as_primitive else ''}"
-           f"_c{code_digest()}.json")
+           f"{'_ftrans' if free_translation else ''}_c{code_digest()}.json")
     hit = cache / key
     if hit.is_file() and not args.fresh:
         out: dict[str, Any] = json.loads(hit.read_text())
@@ -159,7 +163,7 @@ def run_one(path: Path, args: argparse.Namespace, cache: Path, awkward: list[str
                              "its convex hull's volume (--as-primitive)")
         seq = standin
     options = JobOptions(seed=args.seed, popsize=args.popsize, max_generations=args.max_generations,
-                         loss_weights=weights,
+                         loss_weights=weights, free_wrist_translation=free_translation,
                          **({} if getattr(args, "restarts", None) is None else {"restarts": args.restarts}))
     t0 = time.perf_counter()
     config = SimConfig(**args.sim_overrides)
@@ -267,6 +271,8 @@ def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) 
            + ", ".join(f"`{k}={v}`" for k, v in sorted(args.loss_weights.items())))
         + ("; **objects replaced by their enclosing box or cylinder** (`--as-primitive`, bench/primitive_standin.py)"
            if getattr(args, "as_primitive", False) else "")
+        + ("; **free wrist translation** (`--free-wrist-translation`: 16 coordinates per keyframe, not the product's "
+           "default)" if getattr(args, "free_wrist_translation", False) else "")
         + ".",
         "",
         *metrics_table(rows),
