@@ -105,7 +105,7 @@ class SimConfig:
     #: this far apart (``common.primitive_surface``); 0: its tessellation's vertices alone (a box's 8 corners, a
     #: cylinder's two rims), so a fingertip on a face reads the distance to a corner. Meshes are not affected.
     #: 0.005 refined real motions with primitive stand-ins far better than the vertices (30 dev120 sequences,
-    #: paper's protocol: SR 25 -> 28 of 30, E_t 1.79 -> 0.71 cm, E_r 5.56 -> 3.18 deg; bench/results/
+    #: paper's protocol: SR 25 -> 28 of 30, E_t 1.80 -> 0.72 cm, E_r 5.61 -> 3.14 deg; bench/results/
     #: refine_dev120_primitive.md against _vertices.md). On the known-answer box (tests/integration/
     #: test_refine_known_answer.py) it changes how far the controls come back by no more than the seed does (medians
     #: over 11 seeds: hinge targets 0.83 -> 0.79, wrist position 0.73 -> 0.69, rotation 0.77 -> 0.81 of the start
