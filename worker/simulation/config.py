@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 from typing import Any
 
+from common.primitive_surface import SPACING_M
+
 #: contype / conaffinity bits: the hand collides with the object only, the object with hand and table.
 HAND_BIT, OBJECT_BIT, TABLE_BIT = 1, 2, 4
 
@@ -116,7 +118,7 @@ class SimConfig:
     #: grip frame at all (0 and 0; with the points 121 targets on 43 frames, 34 grip frames): its contact terms were
     #: off, and now it is refined with the whole loss, as a mesh is, whose terms also raise the windows' losses
     #: above the escalation level.
-    primitive_surface_spacing_m: float = 0.005
+    primitive_surface_spacing_m: float = SPACING_M  # 0.005
 
     def lead_frames(self, substeps_per_frame: int) -> tuple[float, float]:
         """(``wrist_lead_s``, ``finger_lead_s``) in video frames of ``substeps_per_frame`` physics steps."""
