@@ -31,6 +31,8 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench.provenance import provenance_line  # noqa: E402
+
 TARGETS = {"SR": 85.0, "E_t": 0.6, "E_r": 2.5, "E_j": 1.3, "E_ft": 1.6, "median_wall_s": 60.0, "sim_share": 85.0}
 #: Issue #15's targets on the paper's protocol (frames 10 onward) on dev120; penetration in mm.
 TRUST_TARGETS = {"SR": 95.0, "E_t": 0.5, "E_r": 2.0, "E_j": 1.2, "E_ft": 1.5, "pen_mean": 0.5, "pen_max": 2.0}
@@ -275,6 +277,8 @@ def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) 
            "default)" if getattr(args, "free_wrist_translation", False) else "")
         + ".",
         "",
+        args.provenance,
+        "",
         *metrics_table(rows),
         *by_side(rows),
         "",
@@ -391,6 +395,8 @@ def main(argv: list[str] | None = None) -> int:
     cache = ROOT / "var" / "bench" / "refine"
     args.started = datetime.now(UTC).strftime("%Y-%m-%d %H:%M")
     args.load_before = os.getloadavg()
+    # Stated at the start: a commit made while the run goes on must not be credited with its figures.
+    args.provenance = provenance_line(code_digest())
     rows = []
     for i, (name, awkward) in enumerate(todo, 1):
         row = run_one(data / "dexycb" / "dev" / name, args, cache, awkward)

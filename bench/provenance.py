@@ -1,0 +1,72 @@
+"""What a benchmark's figures were made with, beyond the code: the commit, the CPU and the numeric packages.
+
+The refinement is a chaotic optimisation: a last-bit difference in one simulated step can send CMA-ES down
+another path, so per-sequence figures are reproducible only where all of these match (see
+bench/results/refine_dev120.md). ``provenance_line`` states them in one sentence for a report's header.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata as md
+import subprocess
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: Packages whose arithmetic (or whose output feeding the physics) a refinement's figures depend on.
+NUMERIC_PACKAGES = ("mujoco", "numpy", "scipy", "cma", "coacd", "trimesh")
+
+
+def git_commit(root: Path = ROOT) -> str:
+    """Short commit of the checkout, with a mark when ``common``/``worker`` differ from it; "unknown" outside git."""
+    try:
+        head = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True,
+                              text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--", "common", "worker"],
+                               capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return head + (" with uncommitted changes in common/ or worker/" if dirty else "")
+
+
+def cpu_model() -> str:
+    """The CPU's model name from /proc/cpuinfo (Linux), else what ``platform`` knows."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    import platform
+
+    return platform.processor() or platform.machine()
+
+
+def numpy_simd() -> str:
+    """The SIMD extensions numpy dispatches to on this CPU beyond its baseline (e.g. ``X86_V3 X86_V4``):
+    numpy's vectorised kernels differ in their last bits between these, so two CPUs can differ here."""
+    import importlib
+
+    try:
+        umath = importlib.import_module("numpy._core._multiarray_umath")  # private, hence the guard
+        found = [name for name in umath.__cpu_dispatch__ if umath.__cpu_features__.get(name)]
+    except (ImportError, AttributeError):
+        return "unknown"
+    return " ".join(found) or "baseline only"
+
+
+def package_versions() -> dict[str, str]:
+    out = {}
+    for name in NUMERIC_PACKAGES:
+        try:
+            out[name] = md.version(name)
+        except md.PackageNotFoundError:
+            out[name] = "absent"
+    return out
+
+
+def provenance_line(code_digest: str) -> str:
+    """One sentence for a report header: commit, code digest, CPU, numpy's SIMD dispatch and package versions."""
+    versions = ", ".join(f"{k} {v}" for k, v in package_versions().items())
+    return (f"Made by commit {git_commit()} (common/ + worker/ digest {code_digest}) on {cpu_model()} "
+            f"(numpy SIMD dispatch: {numpy_simd()}); {versions}.")
