@@ -62,6 +62,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--weight", action="append", default=[], metavar="NAME=VALUE",
                    help="a loss weight (worker.refine.losses.DEFAULT_WEIGHTS) other than the product's, e.g. "
                    "--weight grasp_reach=1; repeatable")
+    p.add_argument("--coacd", action="append", default=[], metavar="NAME=VALUE",
+                   help="a convex-decomposition setting (worker.simulation.convex_cache.COACD_PARAMS) other than the "
+                   "product's, for collision-geometry experiments, e.g. --coacd threshold=0.04 --coacd "
+                   "max_convex_hull=32; repeatable")
     p.add_argument("--as-primitive", action="store_true",
                    help="replace each sequence's mesh by its tightest enclosing box or cylinder "
                    "(bench/primitive_standin.py): the primitive-object path on real motions; the sample must hold "
@@ -73,6 +77,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     args.loss_weights = parse_overrides(args.weight, p, "--weight", weight_defaults())  # floats, as the defaults
     args.sim_overrides = parse_overrides(args.sim, p, "--sim", sim_defaults())
     args.cma_overrides = parse_overrides(args.cma, p, "--cma", cma_defaults())
+    args.coacd_overrides = parse_overrides(args.coacd, p, "--coacd", coacd_defaults())
     if args.out is None:
         name = "refine_dev.md" if args.sample == "dev40" else f"refine_{args.sample}.md"
         args.out = ROOT / "bench" / "results" / name
@@ -97,6 +102,20 @@ def cma_defaults() -> dict[str, Any]:
     from worker.refine.windowed import CmaSettings
 
     return {k: v for k, v in dataclasses.asdict(CmaSettings()).items() if k != "seed"}
+
+
+def coacd_defaults() -> dict[str, Any]:
+    from worker.simulation.convex_cache import COACD_PARAMS
+
+    return dict(COACD_PARAMS)
+
+
+def apply_coacd_overrides(overrides: dict[str, Any]) -> None:
+    """Set the decomposition settings for this process: ``convex_parts`` reads ``COACD_PARAMS`` at each call, and
+    its cache key holds them, so parts made with other settings are never read back for these."""
+    from worker.simulation.convex_cache import COACD_PARAMS
+
+    COACD_PARAMS.update(overrides)
 
 
 def restarts_tag(args: argparse.Namespace) -> str:
@@ -143,7 +162,9 @@ def run_one(path: Path, args: argparse.Namespace, cache: Path, awkward: list[str
     free_translation = bool(getattr(args, "free_wrist_translation", False))
     key = (f"{path.stem}__p{args.popsize}_g{args.max_generations}_s{args.seed}_t{args.threads}"
            f"{restarts_tag(args)}{override_tag(args.sim_overrides)}{override_tag(args.cma_overrides)}"
-           f"{override_tag({f'w-{k}': v for k, v in weights.items()})}{'_prim' if as_primitive else ''}"
+           f"{override_tag({f'w-{k}': v for k, v in weights.items()})}"
+           f"{override_tag({f'coacd-{k}': v for k, v in getattr(args, 'coacd_overrides', {}).items()})}"
+           f"{'_prim' if as_primitive else ''}"
            f"{'_ftrans' if free_translation else ''}_c{code_digest()}.json")
     hit = cache / key
     if hit.is_file() and not args.fresh:
@@ -271,6 +292,8 @@ def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) 
         + ("" if getattr(args, "restarts", None) is None else f"; restarts: {args.restarts}")
         + ("" if not getattr(args, "loss_weights", None) else "; loss weights: "
            + ", ".join(f"`{k}={v}`" for k, v in sorted(args.loss_weights.items())))
+        + ("" if not getattr(args, "coacd_overrides", None) else "; **convex decomposition**: "
+           + ", ".join(f"`{k}={v}`" for k, v in sorted(args.coacd_overrides.items())))
         + ("; **objects replaced by their enclosing box or cylinder** (`--as-primitive`, bench/primitive_standin.py)"
            if getattr(args, "as_primitive", False) else "")
         + ("; **free wrist translation** (`--free-wrist-translation`: 16 coordinates per keyframe, not the product's "
@@ -385,6 +408,7 @@ def main(argv: list[str] | None = None) -> int:
     from common.dexycb import shared_data_dir
 
     args = parse_args(argv)
+    apply_coacd_overrides(args.coacd_overrides)
     data = shared_data_dir()
     if data is None:
         print("bench/refine.py: ../shared/data is not present", file=sys.stderr)

@@ -59,3 +59,23 @@ def test_the_later_attempts_can_be_run_on_their_own() -> None:
     args = parse_args(["--seed", "3000009", "--restarts", "1"])
     assert [attempt_seed(args.seed, k) for k in range(args.restarts + 1)] == [attempt_seed(0, 3), attempt_seed(0, 4)]
     assert restarts_tag(args) == "_r1" and restarts_tag(parse_args([])) == ""
+
+
+def test_coacd_overrides_reach_the_decomposition_and_its_cache_key(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``--coacd threshold=0.04``: typed like the default, applied to the settings ``convex_parts`` reads, and the
+    convex cache's key changes with them (parts made with other settings are never read back)."""
+    import numpy as np
+
+    from bench.refine import apply_coacd_overrides, parse_args
+    from worker.simulation import convex_cache
+
+    monkeypatch.setattr(convex_cache, "COACD_PARAMS", dict(convex_cache.COACD_PARAMS))
+    args = parse_args(["--coacd", "threshold=0.04", "--coacd", "max_convex_hull=32"])
+    assert args.coacd_overrides == {"threshold": 0.04, "max_convex_hull": 32}
+    vertices, faces = np.eye(3), np.array([[0, 1, 2]])
+    before = convex_cache.cache_key(vertices, faces)
+    apply_coacd_overrides(args.coacd_overrides)
+    assert convex_cache.COACD_PARAMS["threshold"] == 0.04 and convex_cache.COACD_PARAMS["max_convex_hull"] == 32
+    assert convex_cache.cache_key(vertices, faces) != before
+    with pytest.raises(SystemExit):
+        parse_args(["--coacd", "no_such=1"])
