@@ -7,6 +7,7 @@ bench/results/refine_dev120.md). ``provenance_line`` states them in one sentence
 
 from __future__ import annotations
 
+import importlib
 import importlib.metadata as md
 import subprocess
 from pathlib import Path
@@ -45,8 +46,6 @@ def cpu_model() -> str:
 def numpy_simd() -> str:
     """The SIMD extensions numpy dispatches to on this CPU beyond its baseline (e.g. ``X86_V3 X86_V4``):
     numpy's vectorised kernels differ in their last bits between these, so two CPUs can differ here."""
-    import importlib
-
     try:
         umath = importlib.import_module("numpy._core._multiarray_umath")  # private, hence the guard
         found = [name for name in umath.__cpu_dispatch__ if umath.__cpu_features__.get(name)]
