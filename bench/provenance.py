@@ -7,12 +7,14 @@ bench/results/refine_dev120.md). ``provenance_line`` states them in one sentence
 
 from __future__ import annotations
 
-import importlib
 import importlib.metadata as md
 import subprocess
 from pathlib import Path
 
+from common.cpu_kind import cpu_model, numpy_simd
+
 ROOT = Path(__file__).resolve().parents[1]
+__all__ = ["NUMERIC_PACKAGES", "cpu_model", "git_commit", "numpy_simd", "package_versions", "provenance_line"]
 
 #: Packages whose arithmetic (or whose output feeding the physics) a refinement's figures depend on.
 NUMERIC_PACKAGES = ("mujoco", "numpy", "scipy", "cma", "coacd", "trimesh")
@@ -28,30 +30,6 @@ def git_commit(root: Path = ROOT) -> str:
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
     return head + (" with uncommitted changes in common/ or worker/" if dirty else "")
-
-
-def cpu_model() -> str:
-    """The CPU's model name from /proc/cpuinfo (Linux), else what ``platform`` knows."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    import platform
-
-    return platform.processor() or platform.machine()
-
-
-def numpy_simd() -> str:
-    """The SIMD extensions numpy dispatches to on this CPU beyond its baseline (e.g. ``X86_V3 X86_V4``):
-    numpy's vectorised kernels differ in their last bits between these, so two CPUs can differ here."""
-    try:
-        umath = importlib.import_module("numpy._core._multiarray_umath")  # private, hence the guard
-        found = [name for name in umath.__cpu_dispatch__ if umath.__cpu_features__.get(name)]
-    except (ImportError, AttributeError):
-        return "unknown"
-    return " ".join(found) or "baseline only"
 
 
 def package_versions() -> dict[str, str]:

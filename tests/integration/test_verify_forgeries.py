@@ -58,6 +58,25 @@ def test_the_honest_result_verifies_bit_for_bit(honest: tuple[dict[str, np.ndarr
     assert len(report.digest) == 64
 
 
+def test_the_result_names_its_environment_and_verify_says_where_it_differs(
+    honest: tuple[dict[str, np.ndarray], dict[str, Any]],
+) -> None:
+    """The summary records the numeric packages and the CPU kind (model, NumPy's SIMD dispatch) the figures depend
+    on; a result made elsewhere still verifies (the tolerances decide), and the report says what differed."""
+    from common.cpu_kind import cpu_model, numpy_simd
+
+    arrays, summary = honest
+    recorded = summary["versions"]
+    assert recorded["cpu"] == cpu_model() and recorded["numpy_simd"] == numpy_simd()
+    assert recorded["scipy"] and recorded["numpy"] == np.__version__ and recorded["cma"]
+    assert not any("made elsewhere" in n for n in check_result(_forged(arrays, summary)).config_notes)
+    elsewhere = {**summary, "versions": {**recorded, "numpy_simd": "AVX2 (another host)", "scipy": "0.0"}}
+    report = check_result(_forged(arrays, elsewhere))
+    assert report.failures == []
+    (note,) = [n for n in report.config_notes if n.startswith("made elsewhere")]
+    assert f"numpy_simd AVX2 (another host) -> {numpy_simd()}" in note and "scipy 0.0 -> " in note
+
+
 def test_the_derivation_depends_on_neither_replay_threads_nor_a_handed_over_retargeting(
     honest: tuple[dict[str, np.ndarray], dict[str, Any]],
 ) -> None:

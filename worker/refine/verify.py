@@ -39,6 +39,7 @@ from common.sequence import Sequence
 from common.sequence_io import sequence_to_npz_bytes
 from worker.refine.derive import derive_result
 from worker.refine.prepare import MIRROR_LEFT_HAND, ROTATION_PIVOT
+from worker.refine.result import versions
 from worker.refine.verify_arrays import ArrayChecker, check_stored_metrics
 from worker.refine.verify_report import CROSS_HOST, Tolerances, VerifyReport
 from worker.refine.verify_summary import check_summary
@@ -113,6 +114,7 @@ def check_result(
     check_summary(report, summary, derived, attempt_kf, tol)
     check_stored_metrics(report, arrays, summary, sides)
     report.frames = int(derived.prep.num_frames)
+    _environment_notes(summary.get("versions") or {}, report)
     # The digest covers every stored array the derivation makes (the same set on any host, whichever comparison
     # each got) and the summary parts compared; the rest (the optimisation's loss history) is named, unchecked.
     derived_keys = sorted(set(derived.arrays) & set(arrays))
@@ -167,6 +169,17 @@ def _config(config: dict[str, Any], report: VerifyReport, allow_config: bool) ->
             report.failures.append(f"config {name}: {value!r} differs from the default {default!r} "
                                    "(--allow-config accepts a non-default physics config)")
     return stored, str(pivot), left == "mirrored"
+
+
+def _environment_notes(stored: dict[str, Any], report: VerifyReport) -> None:
+    """Name what differs between the environment that made the result and this one (package versions, CPU kind):
+    where the replay is not bit-identical, that is why (a note, not a failure: the tolerances decide)."""
+    here = versions()
+    changed = [f"{k} {stored[k]} -> {here[k]}" for k in sorted(set(stored) & set(here)) if str(stored[k]) != here[k]]
+    if changed:
+        report.config_notes.append("made elsewhere (result -> here): " + "; ".join(changed))
+    elif not report.exact and {"cpu", "numpy_simd"} <= set(stored):
+        report.config_notes.append("the replay is not bit-identical although the result records this environment")
 
 
 def _differs(a: Any, b: Any) -> bool:

@@ -20,6 +20,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from common.cpu_kind import cpu_model, numpy_simd
 from common.result_format import write_result_npz
 from common.sequence import Sequence
 from worker.hand.mano.pose import reference_mano_arrays
@@ -62,12 +63,20 @@ class ReplayResult:
 
 
 def versions() -> dict[str, str]:
-    out = {"python": platform.python_version(), "mujoco": mujoco.__version__, "numpy": np.__version__}
-    try:
-        out["hoi-refine"] = md.version("hoi-refine")
-    except md.PackageNotFoundError:  # pragma: no cover - running from a source tree without install
-        out["hoi-refine"] = "unknown"
+    """Package versions, and the CPU kind (model, NumPy's SIMD dispatch): with the same code, versions and CPU kind
+    a refinement gives the same figures bit for bit; on another CPU kind some sequences differ
+    (``common.cpu_kind``), which these let a reader tell apart from a change of code."""
+    out = {"python": platform.python_version(), "mujoco": mujoco.__version__, "numpy": np.__version__,
+           "scipy": _installed("scipy"), "cpu": cpu_model(), "numpy_simd": numpy_simd()}
+    out["hoi-refine"] = _installed("hoi-refine")
     return out
+
+
+def _installed(name: str) -> str:
+    try:
+        return md.version(name)
+    except md.PackageNotFoundError:  # pragma: no cover - running from a source tree without install
+        return "unknown"
 
 
 def raw_replay(
