@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from common.geometry import quat_rotate
 from common.job_options import JobOptions
 from common.sequence import Sequence
 from tests.integration.test_scene_physics import _box_sequence, _replay
@@ -88,3 +89,38 @@ def test_a_refinement_with_the_hold_verifies_and_older_results_replay_without_it
     # The bare table is not the product's default (``--allow-config``); the hold is.
     assert verify_result(out.to_npz_bytes(), allow_config=True)["max_pos_diff_m"] == 0.0
     assert OLDER_SIM_DEFAULTS["hold_until_m"] == 0.0  # results that do not record it had no hold
+
+
+def _box_on_its_edge(approach_at: int, moves_at: int) -> Sequence:
+    """A 6 cm box recorded standing on one edge, 35 degrees over (it leaned on something the scene does not have:
+    no table holds it so); the hand's lowest keypoint comes down to 15 mm above the box's highest corner by frame
+    ``approach_at``, and the recorded box moves 2 cm sideways from frame ``moves_at``."""
+    tilt = np.radians(35.0)
+    seq = _box_sequence(frames=FRAMES, tilt_deg=35.0, z=0.03 * (np.cos(tilt) + np.sin(tilt)) + 0.001)
+    corners = np.array([[x, y, z] for x in (-0.03, 0.03) for y in (-0.03, 0.03) for z in (-0.03, 0.03)])
+    top = quat_rotate(np.broadcast_to(seq.object_pose[0, 3:], (8, 4)), corners)[:, 2].argmax()
+    above = quat_rotate(seq.object_pose[0, 3:], corners[top]) + seq.object_pose[0, :3] + [0.0, 0.0, 0.015]
+    kp = seq.hands[0].keypoints
+    lowest = kp[np.arange(FRAMES), kp[:, :, 2].argmin(axis=1)]  # (T, 3)
+    share = np.clip(np.arange(FRAMES) / approach_at, 0.0, 1.0)[:, None]
+    kp += (share * (above - lowest))[:, None, :]
+    seq.object_pose[moves_at:, 0] += 0.02
+    return seq.validate()
+
+
+@pytest.mark.parametrize("unsupported_drift", [SimConfig().unsupported_drift, 0.0])
+def test_an_object_no_table_can_hold_is_held_until_the_recording_moves_it(unsupported_drift: float) -> None:
+    """Released as the hand comes near (the rule for an object the scene supports), a box standing on its edge
+    falls before any grasp can form; since no table the fit tries holds it, it is held until the recorded box
+    moves instead."""
+    seq = _box_on_its_edge(approach_at=4, moves_at=9)
+    _, scene, rec = _replay(seq, SimConfig(unsupported_drift=unsupported_drift))
+    release, z = scene.object_release_frame, rec.object_pose[:, 2]
+    assert SimConfig().unsupported_drift > 0 and scene.table_drift > 20  # it fell flat in the fit
+    assert scene.hold_summary() == {"release_frame": release, "until_recording_moves": unsupported_drift > 0}
+    if unsupported_drift > 0:
+        assert release == 9
+        assert np.ptp(z[:10]) < 1e-4  # where it starts (snapped onto the table), until the recording moves it
+    else:
+        assert release == 4
+        assert z[9] < z[0] - 0.01  # fallen onto a face by then

@@ -118,6 +118,18 @@ def test_rewritten_summary_metrics_fail(honest: tuple[dict[str, np.ndarray], dic
     _fails_naming(_forged(arrays, pen), "metrics.refined.penetration_max_mm")
 
 
+def test_a_rewritten_object_hold_fails(honest: tuple[dict[str, np.ndarray], dict[str, Any]]) -> None:
+    """When the hold ended, and why, is part of what the preparation decided: checked like the table."""
+    arrays, summary = honest
+    assert set(summary["object_hold"]) == {"release_frame", "until_recording_moves"}
+    hold = summary["object_hold"]
+    forged = {**summary, "object_hold": {**hold, "until_recording_moves": not hold["until_recording_moves"],
+                                         "release_frame": hold["release_frame"] + 5}}
+    _fails_naming(_forged(arrays, forged), "object_hold.release_frame", "object_hold.until_recording_moves")
+    without = {k: v for k, v in summary.items() if k != "object_hold"}  # made before it was recorded
+    assert check_result(_forged(arrays, without)).failures == []
+
+
 def test_replaced_per_frame_metrics_and_keypoints_fail(honest: tuple[dict[str, np.ndarray], dict[str, Any]]) -> None:
     arrays, summary = honest
     for key in ("metrics_refined_e_t_cm", "metrics_raw_e_j_cm", "metrics_refined_penetration_mm"):

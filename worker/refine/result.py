@@ -98,6 +98,7 @@ def build_summary(
             ],
         },
         "table": prep.scene.table.to_dict(),
+        "object_hold": prep.scene.hold_summary(),
         "attempts": attempts or [],
         "num_contacts": int(num_contacts),
         "timings": timings,

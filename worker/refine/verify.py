@@ -211,5 +211,7 @@ def _digest(arrays: dict[str, np.ndarray], summary: dict[str, Any], keys: list[s
         h.update(a.tobytes())
     parts = {k: summary.get(k) for k in ("metrics", "attempts", "config", "options", "seed", "sides", "frames",
                                          "fps", "sequence", "table", "num_contacts")}
+    if "object_hold" in summary:  # recorded since the hold of unsupported objects; older digests stay as they were
+        parts["object_hold"] = summary["object_hold"]
     h.update(json.dumps(parts, sort_keys=True).encode())
     return h.hexdigest()

@@ -45,13 +45,14 @@ def check_summary(
     # What the preparation decided (the table under the object) and the simple facts about the sequence.
     prep = derived.prep
     facts = {"sequence": prep.seq.name, "fps": float(prep.seq.fps), "frames": int(prep.num_frames),
-             "table": prep.scene.table.to_dict()}
+             "table": prep.scene.table.to_dict(), "object_hold": prep.scene.hold_summary()}
     if tol is None:
         facts["num_contacts"] = len(derived.final.contacts["contact_frame"])
     for key, value in facts.items():
         if key in summary:
             _compare_dict(report, key, summary[key], value, tol)
-    report.checked.extend(["summary.metrics", "summary.attempts", "summary.config", "summary.table"])
+    report.checked.extend(["summary.metrics", "summary.attempts", "summary.config", "summary.table"]
+                          + (["summary.object_hold"] if "object_hold" in summary else []))
 
 
 def _compare_dict(report: VerifyReport, path: str, stored: Any, fresh: Any, tol: Tolerances | None) -> None:

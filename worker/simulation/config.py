@@ -103,6 +103,16 @@ class SimConfig:
     #: reaches the object while it is still welded (tests/support/synthetic_push.py). Every motion of the object
     #: is still made by simulated contact.
     hold_until_m: float = 0.02
+    #: Unless no table holds the object as recorded: when the table the fit chooses (``table_fit``) still lets the
+    #: object drift more than this from its rest pose in ``table_fit_s`` (degrees + millimetres), it leaned on
+    #: something the scene does not have (a scissors standing 12 cm tall, a clamp on its end, a box on its edge)
+    #: and, released as the hand came near, fell before the grasp formed. It is then held until the recorded object
+    #: moves (``rest_pose.moved_frame``). 10: the object drifts farther in the fit than the noise of a resting
+    #: recording (``rest_pose.MAX_SHIFT_M``, ``MAX_TURN_DEG``); a slower drift does little in the ~0.3 s between the
+    #: hand coming near and the recording moving the object, and holding a marker that drifted 8.2 on its shelf
+    #: until then lost its grasp (the hand closed on an object that could not yet respond). dev120's drifts: six
+    #: sequences at 16-126, that marker at 8.2, every other at most 1.4. 0: the hand's approach alone releases it.
+    unsupported_drift: float = 10.0
     #: A primitive object's surface, for the approach above and the refinement's contact terms, sampled at most
     #: this far apart (``common.primitive_surface``); 0: its tessellation's vertices alone (a box's 8 corners, a
     #: cylinder's two rims), so a fingertip on a face reads the distance to a corner. Meshes are not affected.
@@ -141,4 +151,5 @@ class SimConfig:
 #: object's surface known by its tessellation's vertices only (until issue #15's primitive surface points).
 OLDER_SIM_DEFAULTS: dict[str, Any] = {"wrist_lead_s": 0.0, "finger_lead_s": 0.0, "rest_approach_m": 0.0,
                                       "impratio": 1.0, "jacobian": "auto", "table_fit_s": 0.5, "table_shelf": False,
-                                      "hold_until_m": 0.0, "primitive_surface_spacing_m": 0.0}
+                                      "hold_until_m": 0.0, "primitive_surface_spacing_m": 0.0,
+                                      "unsupported_drift": 0.0}

@@ -155,6 +155,7 @@ def replay_summary(result: ReplayResult) -> dict[str, Any]:
         "hand_model": {r.side: "MANO" if r.from_mano else "built-in" for r in result.references},
         "object_collision": result.scene.object_collision,
         "table": result.scene.table.to_dict(),
+        "object_hold": result.scene.hold_summary(),
         "num_contacts": len(result.contacts["contact_frame"]),
     }
 

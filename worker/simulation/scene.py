@@ -14,7 +14,7 @@ so callers never look names up in loops:
   pose, ``worker.simulation.rest_pose``) and ``table`` the plane under it (``worker.simulation.table_fit``);
 * ``object_hold_eq``: the weld ``object_hold`` that holds the object at ``object_init_pose`` (inactive in the
   model; -1 when there is none) and ``object_release_frame``: it is active on the steps before that frame
-  (``SimConfig.hold_until_m``; ``hold_active``).
+  (``SimConfig.hold_until_m``, ``SimConfig.unsupported_drift``; ``hold_active``).
 
 Collisions: hand geoms collide with object geoms only, object geoms with hand and table (contype/conaffinity
 bits in ``sim_config``). Sensors make ``mujoco.rollout`` recordings self-sufficient.
@@ -24,6 +24,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import mujoco
 import numpy as np
@@ -43,7 +44,7 @@ from worker.simulation.hand_mjcf import (
     hand_worldbody_xml,
 )
 from worker.simulation.object_model import OBJECT_BODY, OBJECT_HOLD, OBJECT_JOINT, object_hold_xml, object_mjcf
-from worker.simulation.rest_pose import rest_pose, resting_frames
+from worker.simulation.rest_pose import moved_frame, rest_pose, resting_frames
 from worker.simulation.support_plane import SupportPlane
 from worker.simulation.table_fit import fit_table, option_xml, table_geom_xml
 
@@ -93,6 +94,8 @@ class Scene:
     body_side: dict[int, str] = field(default_factory=dict)
     object_hold_eq: int = -1
     object_release_frame: int = 0
+    #: How far the object drifts on its table when simulated alone (``table_fit.TableFit.drift``).
+    table_drift: float = 0.0
 
     @property
     def sides(self) -> tuple[str, ...]:
@@ -100,6 +103,14 @@ class Scene:
 
     def make_data(self) -> mujoco.MjData:
         return mujoco.MjData(self.model)
+
+    def hold_summary(self) -> dict[str, Any]:
+        """The result's ``object_hold``: the frame the hold ends (0: none) and whether it lasts until the recording
+        moves the object because no table holds it (``SimConfig.unsupported_drift``). Not the drift itself: a
+        simulated quantity whose last bits differ between hosts, where these two facts do not."""
+        release = self.object_release_frame if self.object_hold_eq >= 0 else 0
+        unsupported = bool(release) and 0 < self.config.unsupported_drift < self.table_drift
+        return {"release_frame": int(release), "until_recording_moves": unsupported}
 
     def hold_active(self, steps: np.ndarray) -> np.ndarray:
         """Whether the object is held on each of these physics steps (``held_steps``; never without a hold)."""
@@ -194,7 +205,11 @@ def build_scene(
     surface = object_surface_points(seq.object, config.primitive_surface_spacing_m)
     start = rest_pose(poses, surface, keypoints, config.rest_approach_m)
     release = resting_frames(poses, surface, keypoints, config.hold_until_m)  # 0 when there is no hold
-    pose0, table = fit_table(seq, config, start, cache_dir=cache_dir)
+    pose0, table, drift = fit_table(seq, config, start, cache_dir=cache_dir)
+    if release > 0 and 0 < config.unsupported_drift < drift:
+        # No table holds the object as recorded (it leaned on something not simulated): released when the hand
+        # comes near, it falls before the grasp forms, so it is held until the recording moves it.
+        release = max(release, moved_frame(poses))
     xml, collision, ngeom = scene_xml(seq, references, config, (pose0, table), cache_dir=cache_dir, hold=release > 0)
     model = mujoco.MjModel.from_xml_string(xml)
     hold_eq = int(mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_EQUALITY, OBJECT_HOLD)) if release > 0 else -1
@@ -248,5 +263,6 @@ def build_scene(
         body_side=body_side,
         object_hold_eq=hold_eq,
         object_release_frame=release,
+        table_drift=drift,
     )
 

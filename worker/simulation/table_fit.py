@@ -14,6 +14,7 @@ deterministic and costs a few hundred physics steps of one free body per candida
 from __future__ import annotations
 
 from pathlib import Path
+from typing import NamedTuple
 
 import mujoco
 import numpy as np
@@ -58,9 +59,20 @@ def level_start_pose(recorded: FloatArray, vertices_world: FloatArray, config: S
     return pose
 
 
+class TableFit(NamedTuple):
+    """The fit's choice: the object's frame-0 world pose, the table under it, and how far the object drifts from
+    its rest pose on that table when simulated alone for ``SimConfig.table_fit_s`` (degrees + millimetres). A large
+    drift means no table holds the object as recorded: it leaned on
+    something the scene does not have."""
+
+    pose: FloatArray
+    plane: SupportPlane
+    drift: float
+
+
 def fit_table(
     seq: Sequence, config: SimConfig, rest_pose: FloatArray | None = None, *, cache_dir: Path | None = None
-) -> tuple[FloatArray, SupportPlane]:
+) -> TableFit:
     """Frame-0 world pose of the object and the table plane under it (see the module docstring).
 
     ``rest_pose`` (7,): the object's pose at rest estimated over the frames before a hand comes near
@@ -74,11 +86,10 @@ def fit_table(
     starts = [frame0] if np.array_equal(target, frame0) else [frame0, target]
     surface = seq.object.surface_vertices()  # primitives are tessellated on each call
     candidates = [c for start in starts for c in _start_candidates(seq, config, surface, start)]
-    if len(candidates) == 1:
-        return candidates[0]
+    # Simulated even when there is one candidate: its drift says whether the scene can hold the object at all.
     scores = _drift_scores(seq, config, target, candidates, cache_dir)
     best = int(np.argmin(scores))
-    return candidates[best]
+    return TableFit(*candidates[best], scores[best])
 
 
 def _start_candidates(
