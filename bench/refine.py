@@ -264,6 +264,16 @@ def _sum(rows: list[dict[str, Any]], key: str) -> float:
     return float(sum(r["timings"].get(key, 0.0) for r in rows))
 
 
+def held_until_moved_line(rows: list[dict[str, Any]]) -> str:
+    """The sequences whose object no table holds as recorded, so it was held until the recording moved it
+    (``SimConfig.unsupported_drift``); results made before the hold recorded it say nothing."""
+    held = [r for r in rows if r.get("object_hold", {}).get("until_recording_moves")]
+    names = ", ".join(f"{r['sequence'].split('__')[-1]} ({r.get('object', '?')})" for r in held)
+    return (f"* object held until the recording moved it (no table holds it as recorded: leaning on something not "
+            f"simulated; worker/simulation/config.py `unsupported_drift`): {len(held)} of {len(rows)}"
+            + (f": {names}" if names else ""))
+
+
 def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) -> str:
     import platform
 
@@ -326,6 +336,7 @@ def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) 
         f"* table laid under the start pose (worker/simulation: table_fit, rest_pose): tilted in {len(tilted)} of "
         f"{len(rows)} sequences (median {statistics.median([r['table']['tilt_deg'] for r in tilted] or [0]):.1f} deg),"
         " level in the rest",
+        held_until_moved_line(rows),
         f"* where the time goes (sums over the sequences): batched CMA-ES rollouts {_sum(rows, 'rollout_s'):.0f} s "
         f"({_sum(rows, 'rollout_steps') / max(_sum(rows, 'rollout_s'), 1e-9):.0f} steps/s), Python-stepped "
         f"probes, commits and replays {_sum(rows, 'python_step_s'):.0f} s "

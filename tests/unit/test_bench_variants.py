@@ -79,3 +79,16 @@ def test_coacd_overrides_reach_the_decomposition_and_its_cache_key(monkeypatch: 
     assert convex_cache.cache_key(vertices, faces) != before
     with pytest.raises(SystemExit):
         parse_args(["--coacd", "no_such=1"])
+
+
+def test_the_report_names_the_objects_held_until_the_recording_moved_them() -> None:
+    from bench.refine import held_until_moved_line
+
+    rows = [{"sequence": "20200709-subject-01__20200709_152240", "object": "037_scissors",
+             "object_hold": {"release_frame": 34, "until_recording_moves": True}},
+            {"sequence": "s__b", "object": "002_master_chef_can",
+             "object_hold": {"release_frame": 20, "until_recording_moves": False}},
+            {"sequence": "s__c", "object": "003_cracker_box"}]  # made before the hold was recorded
+    line = held_until_moved_line(rows)
+    assert "1 of 3: 20200709_152240 (037_scissors)" in line and "cracker" not in line
+    assert held_until_moved_line(rows[1:]).endswith("0 of 2")
