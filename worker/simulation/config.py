@@ -113,6 +113,13 @@ class SimConfig:
     #: until then lost its grasp (the hand closed on an object that could not yet respond). dev120's drifts: six
     #: sequences at 16-126, that marker at 8.2, every other at most 1.4. 0: the hand's approach alone releases it.
     unsupported_drift: float = 10.0
+    #: Seconds before the recording moves such an object that its hold ends. ``moved_frame`` sees the object move
+    #: only once it is 5 mm or 10 degrees off, a frame or two into the lift; released there, the grasp had to take an
+    #: object at rest from a hand already lifting fast, and an extra-large clamp swung 40-70 degrees into the hand
+    #: (12.5 mm penetration). Two frames at 30 fps: on dev120's six such sequences the clamp then succeeded with
+    #: 0.35 mm mean penetration (6.2 before), and five of six succeeded either way (a pudding box with a 14 cm lift in
+    #: five frames failed instead).
+    unsupported_lead_s: float = 2.0 / 30.0
     #: A primitive object's surface, for the approach above and the refinement's contact terms, sampled at most
     #: this far apart (``common.primitive_surface``); 0: its tessellation's vertices alone (a box's 8 corners, a
     #: cylinder's two rims), so a fingertip on a face reads the distance to a corner. Meshes are not affected.
@@ -152,4 +159,4 @@ class SimConfig:
 OLDER_SIM_DEFAULTS: dict[str, Any] = {"wrist_lead_s": 0.0, "finger_lead_s": 0.0, "rest_approach_m": 0.0,
                                       "impratio": 1.0, "jacobian": "auto", "table_fit_s": 0.5, "table_shelf": False,
                                       "hold_until_m": 0.0, "primitive_surface_spacing_m": 0.0,
-                                      "unsupported_drift": 0.0}
+                                      "unsupported_drift": 0.0, "unsupported_lead_s": 0.0}

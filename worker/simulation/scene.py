@@ -208,8 +208,9 @@ def build_scene(
     pose0, table, drift = fit_table(seq, config, start, cache_dir=cache_dir)
     if release > 0 and 0 < config.unsupported_drift < drift:
         # No table holds the object as recorded (it leaned on something not simulated): released when the hand
-        # comes near, it falls before the grasp forms, so it is held until the recording moves it.
-        release = max(release, moved_frame(poses))
+        # comes near, it falls before the grasp forms, so it is held until the recording moves it, less the lead.
+        lead = round(config.unsupported_lead_s * seq.fps)
+        release = max(release, moved_frame(poses) - lead)
     xml, collision, ngeom = scene_xml(seq, references, config, (pose0, table), cache_dir=cache_dir, hold=release > 0)
     model = mujoco.MjModel.from_xml_string(xml)
     hold_eq = int(mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_EQUALITY, OBJECT_HOLD)) if release > 0 else -1
