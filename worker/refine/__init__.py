@@ -17,6 +17,7 @@ Modules, in pipeline order:
 * ``derive``     ``derive_result``: the result's replays, metrics and arrays from its inputs (the worker and
                  ``verify`` call the same function);
 * ``result``     the result summary (and the visual tools' rebuild of a result's problem);
+* ``environment`` what a result records of the environment that made it (packages, CPU kind);
 * ``verify``     ``verify_result`` / ``check_result`` (with ``verify_arrays``, ``verify_summary``,
                  ``verify_report``): recompute and compare everything a result claims.
 """

@@ -24,7 +24,6 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-import cma
 import numpy as np
 
 from common.errors import ResultMismatchError, UnsupportedFormatError
@@ -33,20 +32,15 @@ from common.job_options import JobOptions
 from common.result_format import read_arrays, read_summary
 from common.sequence import Sequence
 from common.sequence_io import sequence_from_npz_bytes
+from worker.refine.environment import versions
 from worker.refine.prepare import Prepared, prepare
 from worker.refine.windowed import CmaSettings, WindowLog
 from worker.simulation.config import OLDER_SIM_DEFAULTS, SimConfig
-from worker.simulation.replay import versions as replay_versions
 
 RESULT_KIND = "refine"
 #: The visual tools' tolerance on a re-simulated object trajectory (m): on the same build it reproduces bit for
 #: bit (``verify`` has its own, cross-host tolerances: ``worker.refine.verify_report``).
 VERIFY_TOLERANCE_M = 1e-6
-
-
-def versions() -> dict[str, str]:
-    """The raw replay's package versions plus the optimiser's."""
-    return {**replay_versions(), "cma": str(cma.__version__).split()[0]}
 
 
 def build_summary(

@@ -38,8 +38,8 @@ from common.result_format import read_arrays, read_summary
 from common.sequence import Sequence
 from common.sequence_io import sequence_to_npz_bytes
 from worker.refine.derive import derive_result
+from worker.refine.environment import versions
 from worker.refine.prepare import MIRROR_LEFT_HAND, ROTATION_PIVOT
-from worker.refine.result import versions
 from worker.refine.verify_arrays import ArrayChecker, check_stored_metrics
 from worker.refine.verify_report import CROSS_HOST, Tolerances, VerifyReport
 from worker.refine.verify_summary import check_summary
