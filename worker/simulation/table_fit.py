@@ -62,8 +62,7 @@ def level_start_pose(recorded: FloatArray, vertices_world: FloatArray, config: S
 class TableFit(NamedTuple):
     """The fit's choice: the object's frame-0 world pose, the table under it, and how far the object drifts from
     its rest pose on that table when simulated alone for ``SimConfig.table_fit_s`` (degrees + millimetres). A large
-    drift means no table holds the object as recorded: it leaned on
-    something the scene does not have."""
+    drift means no table holds the object as recorded: it leaned on something the scene does not have."""
 
     pose: FloatArray
     plane: SupportPlane
