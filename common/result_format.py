@@ -4,7 +4,8 @@ Written by the worker (``replay`` and ``refine``), stored by the queue, read by 
 result has (F = frames, N = contacts over all frames):
 
 * ``summary_json``: JSON text — metrics (``metrics.raw`` / ``metrics.refined``), config, seed, versions (the
-  numeric packages and the CPU kind, ``common.cpu_kind``, that the figures depend on), and the deterministic ``timings`` counters (simulated steps, candidate evaluations, rollouts). Read it with
+  numeric packages and the CPU kind, ``common.cpu_kind``, that the figures depend on), and the deterministic
+  ``timings`` counters (simulated steps, candidate evaluations, rollouts). Read it with
   ``read_summary``, which also merges in ``timings_json``.
 * ``timings_json`` (absent when written without the wall clock): JSON text — the run-dependent ``timings``
   figures (``is_wall_clock``: seconds ``*_s``, ``sim_share``, ``steps_per_second``, ``threads``).
