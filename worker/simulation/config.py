@@ -137,6 +137,10 @@ class SimConfig:
     #: above the escalation level.
     primitive_surface_spacing_m: float = SPACING_M  # 0.005
 
+    def unsupported(self, table_drift: float) -> bool:
+        """Whether an object that drifts this far on its fitted table is one no table holds (``unsupported_drift``)."""
+        return 0 < self.unsupported_drift < table_drift
+
     def lead_frames(self, substeps_per_frame: int) -> tuple[float, float]:
         """(``wrist_lead_s``, ``finger_lead_s``) in video frames of ``substeps_per_frame`` physics steps."""
         frame_s = substeps_per_frame * self.timestep

@@ -108,14 +108,18 @@ class Scene:
         """The result's ``object_hold``: the frame the hold ends (0: none) and whether it lasts until the recording
         moves the object because no table holds it (``SimConfig.unsupported_drift``). Not the drift itself: a
         simulated quantity whose last bits differ between hosts, where these two facts do not."""
-        release = self.object_release_frame if self.object_hold_eq >= 0 else 0
-        unsupported = bool(release) and 0 < self.config.unsupported_drift < self.table_drift
-        return {"release_frame": int(release), "until_recording_moves": unsupported}
+        release = self.hold_release_frame
+        unsupported = release > 0 and self.config.unsupported(self.table_drift)
+        return {"release_frame": release, "until_recording_moves": unsupported}
+
+    @property
+    def hold_release_frame(self) -> int:
+        """The frame the object's hold ends (0 without a hold)."""
+        return int(self.object_release_frame) if self.object_hold_eq >= 0 else 0
 
     def hold_active(self, steps: np.ndarray) -> np.ndarray:
         """Whether the object is held on each of these physics steps (``held_steps``; never without a hold)."""
-        release = self.object_release_frame if self.object_hold_eq >= 0 else 0
-        return held_steps(steps, release, self.substeps_per_frame)
+        return held_steps(steps, self.hold_release_frame, self.substeps_per_frame)
 
 
 def held_steps(steps: np.ndarray, release_frame: int, substeps_per_frame: int) -> np.ndarray:
@@ -206,7 +210,7 @@ def build_scene(
     start = rest_pose(poses, surface, keypoints, config.rest_approach_m)
     release = resting_frames(poses, surface, keypoints, config.hold_until_m)  # 0 when there is no hold
     pose0, table, drift = fit_table(seq, config, start, cache_dir=cache_dir)
-    if release > 0 and 0 < config.unsupported_drift < drift:
+    if release > 0 and config.unsupported(drift):
         # No table holds the object as recorded (it leaned on something not simulated): released when the hand
         # comes near, it falls before the grasp forms, so it is held until the recording moves it, less the lead.
         lead = round(config.unsupported_lead_s * seq.fps)
