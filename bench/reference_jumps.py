@@ -70,21 +70,30 @@ def largest_jump(pose: FloatArray, vertices: FloatArray) -> PoseJump:
     return PoseJump(float(angle[k]), k, AXES[a], float(cosines[a]), float(translation.max()))
 
 
-def read_outcomes(report: Path) -> dict[str, bool]:
-    """Sequence stem -> refined success, from the per-sequence table of a ``bench/refine.py`` report."""
+def read_sequence_rows(report: Path) -> dict[str, dict[str, str]]:
+    """Sequence stem -> {column: cell} from the per-sequence table of a ``bench/refine.py`` report."""
     lines = report.read_text().splitlines()
     header = next((i for i, line in enumerate(lines) if line.startswith("| sequence |")), None)
     if header is None:
         raise SystemExit(f"{report}: no per-sequence table (a bench/refine.py report has one)")
     columns = [c.strip() for c in lines[header].strip("|").split("|")]
-    ok_column = next(c for c in columns if c.startswith("refined ok"))
-    outcomes = {}
+    rows = {}
     for line in lines[header + 2:]:
         if not line.startswith("|"):
             break
         row = dict(zip(columns, (c.strip() for c in line.strip("|").split("|")), strict=False))
-        outcomes[row["sequence"]] = row[ok_column].startswith("yes")
-    return outcomes
+        rows[row["sequence"]] = row
+    return rows
+
+
+def refined_ok(row: dict[str, str]) -> bool:
+    """The refined success of one per-sequence row (its column reads "yes (...)" or "no (...)")."""
+    return next(v for k, v in row.items() if k.startswith("refined ok")).startswith("yes")
+
+
+def read_outcomes(report: Path) -> dict[str, bool]:
+    """Sequence stem -> refined success, from the per-sequence table of a ``bench/refine.py`` report."""
+    return {stem: refined_ok(row) for stem, row in read_sequence_rows(report).items()}
 
 
 def render(args: argparse.Namespace, rows: list[tuple[str, str, bool, PoseJump]]) -> str:

@@ -34,6 +34,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench.reference_jumps import read_sequence_rows, refined_ok  # noqa: E402
 from common.geometry import FloatArray, quat_conj, quat_rotate, rotation_error_deg  # noqa: E402
 from common.primitive_surface import object_surface_points  # noqa: E402
 from common.sequence import FINGERTIP_INDICES, Sequence  # noqa: E402
@@ -101,19 +102,8 @@ def reference_lead(seq: Sequence) -> Lead:
 
 def read_errors(report: Path) -> dict[str, tuple[bool, float, float]]:
     """Sequence stem -> (refined success, E_t 10+ cm, E_r 10+ deg) from a ``bench/refine.py`` report."""
-    lines = report.read_text().splitlines()
-    header = next((i for i, line in enumerate(lines) if line.startswith("| sequence |")), None)
-    if header is None:
-        raise SystemExit(f"{report}: no per-sequence table (a bench/refine.py report has one)")
-    columns = [c.strip() for c in lines[header].strip("|").split("|")]
-    ok_column = next(c for c in columns if c.startswith("refined ok"))
-    out = {}
-    for line in lines[header + 2:]:
-        if not line.startswith("|"):
-            break
-        row = dict(zip(columns, (c.strip() for c in line.strip("|").split("|")), strict=False))
-        out[row["sequence"]] = (row[ok_column].startswith("yes"), float(row["E_t 10+"]), float(row["E_r 10+"]))
-    return out
+    return {stem: (refined_ok(row), float(row["E_t 10+"]), float(row["E_r 10+"]))
+            for stem, row in read_sequence_rows(report).items()}
 
 
 def render(args: argparse.Namespace, rows: list[tuple[str, str, Lead, tuple[bool, float, float]]]) -> str:
