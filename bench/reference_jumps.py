@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Container
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -26,6 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from common.geometry import FloatArray, quat_axis_angle, quat_conj, quat_mul  # noqa: E402
+from common.sequence import Sequence  # noqa: E402
 
 #: Frame-to-frame rotations (deg) the report counts; the last but one is the one it splits the sample by.
 THRESHOLDS_DEG = (20.0, 30.0, 45.0, 60.0)
@@ -130,36 +132,55 @@ def render(args: argparse.Namespace, rows: list[tuple[str, str, bool, PoseJump]]
     return "\n".join(lines) + "\n"
 
 
-def main(argv: list[str] | None = None) -> int:
-    from bench.samples.draw import read_sample
-    from common.dexycb import load_dexycb_npz, shared_data_dir
-
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def parse_report_args(argv: list[str] | None, description: str, default_out: str) -> argparse.Namespace:
+    """``--sample``, ``--report`` (default: that sample's ``bench/refine.py`` report) and ``--out``, shared by the
+    scripts that read a sample's recordings beside its refine report."""
+    p = argparse.ArgumentParser(description=description)
     p.add_argument("--sample", default="dev120", help="sample list in bench/samples (default dev120)")
     p.add_argument("--report", type=Path, default=None,
                    help="bench/refine.py report of that sample (default bench/results/refine_<sample>.md)")
-    p.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "reference_jumps.md")
+    p.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / default_out)
     args = p.parse_args(argv)
     if args.report is None:
         args.report = ROOT / "bench" / "results" / ("refine_dev.md" if args.sample == "dev40"
                                                     else f"refine_{args.sample}.md")
+    return args
+
+
+def load_sample(args: argparse.Namespace, reported: Container[str], script: str) -> list[tuple[str, Sequence]] | None:
+    """(stem, sequence) for each recording of ``args.sample``, each of which the report must have a row for
+    (``reported``); None, with a message, when ../shared/data is not present."""
+    from bench.samples.draw import read_sample
+    from common.dexycb import load_dexycb_npz, shared_data_dir
+
     data = shared_data_dir()
     if data is None:
-        print("bench/reference_jumps.py: ../shared/data is not present", file=sys.stderr)
-        return 2
-    outcomes = read_outcomes(args.report)
-    rows = []
+        print(f"{script}: ../shared/data is not present", file=sys.stderr)
+        return None
+    out = []
     for name, _ in read_sample(ROOT / "bench" / "samples" / f"{args.sample}.txt"):
         stem = name.removesuffix(".npz")
-        if stem not in outcomes:
+        if stem not in reported:
             raise SystemExit(f"{args.report} has no row for {stem}: run bench/refine.py --sample {args.sample}")
-        seq = load_dexycb_npz(data / "dexycb" / "dev" / name)
-        rows.append((stem, seq.object.name, outcomes[stem], largest_jump(seq.object_pose,
-                                                                         seq.object.surface_vertices())))
-    text = render(args, rows)
+        out.append((stem, load_dexycb_npz(data / "dexycb" / "dev" / name)))
+    return out
+
+
+def write_report(args: argparse.Namespace, text: str) -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(text)
     print(text)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_report_args(argv, __doc__.split("\n\n")[0], "reference_jumps.md")
+    outcomes = read_outcomes(args.report)
+    sample = load_sample(args, outcomes, "bench/reference_jumps.py")
+    if sample is None:
+        return 2
+    rows = [(stem, seq.object.name, outcomes[stem], largest_jump(seq.object_pose, seq.object.surface_vertices()))
+            for stem, seq in sample]
+    write_report(args, render(args, rows))
     return 0
 
 

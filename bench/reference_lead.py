@@ -34,7 +34,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.reference_jumps import read_sequence_rows, refined_ok  # noqa: E402
+from bench.reference_jumps import (  # noqa: E402
+    load_sample,
+    parse_report_args,
+    read_sequence_rows,
+    refined_ok,
+    write_report,
+)
 from common.geometry import FloatArray, quat_conj, quat_rotate, rotation_error_deg  # noqa: E402
 from common.primitive_surface import object_surface_points  # noqa: E402
 from common.sequence import FINGERTIP_INDICES, Sequence  # noqa: E402
@@ -164,34 +170,13 @@ def render(args: argparse.Namespace, rows: list[tuple[str, str, Lead, tuple[bool
 
 
 def main(argv: list[str] | None = None) -> int:
-    from bench.samples.draw import read_sample
-    from common.dexycb import load_dexycb_npz, shared_data_dir
-
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--sample", default="dev120", help="sample list in bench/samples (default dev120)")
-    p.add_argument("--report", type=Path, default=None,
-                   help="bench/refine.py report of that sample (default bench/results/refine_<sample>.md)")
-    p.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "reference_lead.md")
-    args = p.parse_args(argv)
-    if args.report is None:
-        args.report = ROOT / "bench" / "results" / ("refine_dev.md" if args.sample == "dev40"
-                                                    else f"refine_{args.sample}.md")
-    data = shared_data_dir()
-    if data is None:
-        print("bench/reference_lead.py: ../shared/data is not present", file=sys.stderr)
-        return 2
+    args = parse_report_args(argv, __doc__.split("\n\n")[0], "reference_lead.md")
     errors = read_errors(args.report)
-    rows = []
-    for name, _ in read_sample(ROOT / "bench" / "samples" / f"{args.sample}.txt"):
-        stem = name.removesuffix(".npz")
-        if stem not in errors:
-            raise SystemExit(f"{args.report} has no row for {stem}: run bench/refine.py --sample {args.sample}")
-        seq = load_dexycb_npz(data / "dexycb" / "dev" / name)
-        rows.append((stem, seq.object.name, reference_lead(seq), errors[stem]))
-    text = render(args, rows)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text)
-    print(text)
+    sample = load_sample(args, errors, "bench/reference_lead.py")
+    if sample is None:
+        return 2
+    write_report(args, render(args, [(stem, seq.object.name, reference_lead(seq), errors[stem])
+                                     for stem, seq in sample]))
     return 0
 
 
