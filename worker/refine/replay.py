@@ -25,13 +25,6 @@ from worker.simulation.metrics import ContactFrames
 #: the optimiser see whether a grasp holds one interval longer (on DexYCB dev it turned a dropped lift into a
 #: success and lowered E_t elsewhere, for 28% more simulated steps; see bench/results/refine_dev.md).
 LOOKAHEAD = 2
-#: The object's rotation error does not count on those lookahead frames (factor 0; its position, velocity and
-#: excursion terms do). There the candidate's wrist turn is held as it is at keyframe j + 1, which the next
-#: windows will change as the object turns, so charging the turn for the rotation error it leaves there pulls keyframe
-#: j towards a compromise with frames it does not shape; whether the grasp holds the object up is what the
-#: lookahead is for. On every third dev120 sequence (40, `bench/results/dev120_experiments.md`, fourth session) a
-#: one-interval lookahead gave E_r better on 27 and E_t worse on 25 of 39 sequences; this gave both better on most.
-LOOKAHEAD_ROTATION_WEIGHT = 0.0
 
 @dataclass
 class ReplayRecord:
@@ -111,5 +104,4 @@ def window_problem(prep: Prepared, evaluator: ParallelEvaluator, start: SimState
                    ) -> SimWindowProblem:
     """The window problem of a prepared sequence (``weights`` empty: the job's own)."""
     return SimWindowProblem(prep.layout, prep.spaces, prep.obj_targets, prep.hand_targets,
-                            weights or resolve_weights(prep.options.loss_weights), evaluator, start, LOOKAHEAD,
-                            LOOKAHEAD_ROTATION_WEIGHT)
+                            weights or resolve_weights(prep.options.loss_weights), evaluator, start, LOOKAHEAD)
