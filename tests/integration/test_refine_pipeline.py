@@ -23,6 +23,7 @@ from worker.refine.evaluator import ParallelEvaluator
 from worker.refine.losses import ROT_SCALE
 from worker.refine.prepare import prepare, settled_start
 from worker.refine.problem import SimWindowProblem
+from worker.refine.replay import LOOKAHEAD_ROTATION_WEIGHT
 from worker.refine.result import verify_result
 from worker.refine.run import RefineOutcome, refine_sequence
 
@@ -166,7 +167,7 @@ def test_two_hands_get_independent_keyframes_in_one_simulation() -> None:
     assert verify_result(outcome.to_npz_bytes())["max_pos_diff_m"] == 0.0
 
 
-def test_a_failed_refinement_is_restarted_with_another_seed_and_the_best_attempt_kept() -> None:
+def test_a_failed_refinement_is_tried_again_the_other_way_and_the_best_attempt_kept() -> None:
     seq, _ = recovery_case(offset_x=-0.06)  # the hand starts 2.5 cm off: a 4 x 1 budget cannot fix it
     tiny = {"seed": 0, "popsize": 4, "max_generations": 1}
     once = refine_sequence(seq, JobOptions(**tiny, restarts=0), threads=1)
@@ -175,9 +176,12 @@ def test_a_failed_refinement_is_restarted_with_another_seed_and_the_best_attempt
     assert not only["success"]
     first, second = twice.summary["attempts"]
     assert first == only  # the first attempt is the plain run
-    assert second["seed"] != first["seed"]
+    # The second attempt: the same seed, the lookahead's rotation error charged in full (``attempt_plan``).
+    assert (second["seed"], second["lookahead_rotation_weight"]) == (first["seed"], 1.0)
+    assert first["lookahead_rotation_weight"] == LOOKAHEAD_ROTATION_WEIGHT
     best = min((first, second), key=lambda a: a["E_t"] + a["E_r"] / np.degrees(ROT_SCALE))
     assert twice.summary["metrics"]["refined"]["E_t"] == best["E_t"]  # the result is the best attempt's replay
+    assert twice.summary["config"]["lookahead_rotation_weight"] == best["lookahead_rotation_weight"]
     assert twice.summary["timings"]["evaluations"] == first["evaluations"] + second["evaluations"]
     assert verify_result(twice.to_npz_bytes())["max_pos_diff_m"] == 0.0
     # Both attempts' keyframes are stored, so the first attempt's failure is re-simulated too (issue #15 item 3).

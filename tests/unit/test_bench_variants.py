@@ -51,13 +51,13 @@ def test_every_variant_names_real_settings() -> None:
 
 
 def test_the_later_attempts_can_be_run_on_their_own() -> None:
-    """``bench/refine.py --seed 3000009 --restarts 1`` runs exactly the 4th and 5th attempts of seed 0 (its help
-    says so): attempt k's seed is the job's seed + k x 1000003."""
+    """``bench/refine.py --seed 1000003 --restarts 1`` runs the 3rd and 4th attempts of seed 0 (its help says so):
+    attempts go in pairs, pair i with the job's seed + i x 1000003."""
     from bench.refine import parse_args, restarts_tag
-    from worker.refine.run import attempt_seed
+    from worker.refine.run import attempt_plan
 
-    args = parse_args(["--seed", "3000009", "--restarts", "1"])
-    assert [attempt_seed(args.seed, k) for k in range(args.restarts + 1)] == [attempt_seed(0, 3), attempt_seed(0, 4)]
+    args = parse_args(["--seed", "1000003", "--restarts", "1"])
+    assert [attempt_plan(args.seed, k) for k in range(args.restarts + 1)] == [attempt_plan(0, 2), attempt_plan(0, 3)]
     assert restarts_tag(args) == "_r1" and restarts_tag(parse_args([])) == ""
 
 

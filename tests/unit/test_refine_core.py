@@ -207,6 +207,26 @@ def _final_object_error(problem: SimWindowProblem, ev: ParallelEvaluator, kf: di
     return float(np.linalg.norm(rec.obj_pos[0] - problem.obj.pos[1:], axis=-1).max())
 
 
+def test_lookahead_frames_weigh_the_object_rotation_by_the_lookahead_factor() -> None:
+    # Window j simulates up to keyframe j + lookahead; the frames past keyframe j + 1 are the lookahead, where the
+    # rotation error counts by ``lookahead_rotation_weight``; a whole-sequence record (no window) weighs all alike.
+    layout, space, start = tiny_setup()
+    with ParallelEvaluator(layout.model, 1) as ev:
+        problem = SimWindowProblem(layout, {"right": space}, _dummy_obj(), _dummy_hand(), resolve_weights({}), ev,
+                                   start, lookahead=2, lookahead_rotation_weight=0.25)
+        kf = {"right": space.zero_keyframes()}
+        j = 2
+        f0, f1 = problem.window(j)
+        assert (f0, f1) == (0, 4 * space.interval)
+        control, offs = problem.build_control(kf, f0, f1)
+        states, sensors = ev.rollout(start, control)
+        rec = problem._record(f0, f1, states, sensors, offs, j)
+        assert rec.rotation_weight is not None
+        frames = np.arange(f0 + 1, f1 + 1)
+        np.testing.assert_array_equal(rec.rotation_weight, np.where(frames > 3 * space.interval, 0.25, 1.0))
+        assert problem._record(f0, f1, states, sensors, offs).rotation_weight is None
+
+
 def test_probe_is_the_one_candidate_evaluation_and_sees_the_push() -> None:
     # The probe records only the frame steps and checks contacts with one array lookup per step; its loss must be
     # the batched rollout's for the same keyframes, and it must see the paddle touch the box it pushes.

@@ -232,13 +232,17 @@ class WindowRecord:
     #: (C, F) True where the object is off its rest height in the rollout (the frames the penetration term
     #: counts, ``PENETRATION_LIFT_M``); None: every frame counts.
     lifted: npt.NDArray[np.bool_] | None = None
+    #: (F,) factor on the rotation part of ``object_pose`` per frame (``SimWindowProblem.lookahead_rotation_weight``
+    #: on the frames a window simulates past the keyframe after the optimised one); None: 1 on every frame.
+    rotation_weight: FloatArray | None = None
 
 
 def object_terms(rec: WindowRecord, ref: ObjectTargets) -> dict[str, FloatArray]:
     f = rec.frames
     geo = rotation_angle(rec.obj_quat, ref.quat[f][None])
     dpos = np.linalg.norm(rec.obj_pos - ref.pos[f][None], axis=-1)
-    pose = POSE_ETA * geo / ROT_SCALE + (1 - POSE_ETA) * dpos / POS_SCALE
+    rot = geo if rec.rotation_weight is None else geo * rec.rotation_weight[None]
+    pose = POSE_ETA * rot / ROT_SCALE + (1 - POSE_ETA) * dpos / POS_SCALE
     dv = rec.obj_vel - ref.vel[f][None]
     vel = np.linalg.norm(dv[..., :3], axis=-1) / LINVEL_SCALE + np.linalg.norm(dv[..., 3:], axis=-1) / ANGVEL_SCALE
     excursion = (np.maximum(dpos - EXCURSION_POS, 0.0) / EXCURSION_POS_SCALE) ** 2 + (

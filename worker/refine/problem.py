@@ -166,12 +166,16 @@ class SimWindowProblem:
         evaluator: ParallelEvaluator,
         initial: SimState,
         lookahead: int = 1,
+        lookahead_rotation_weight: float = 1.0,
     ) -> None:
         self.layout, self.spaces, self.obj, self.hand_targets = layout, spaces, obj, hands
         self.weights, self.evaluator, self.initial = weights, evaluator, initial
         self.sides = tuple(spaces)
         self.first_window = 1  # keyframe 0 stays zero: the settled frame-0 state is the reference's
         self.lookahead = lookahead
+        # Factor on the object's rotation error over the frames past keyframe j + 1 (``keyframe_window``'s
+        # lookahead beyond DESIGN §1.6's window), where keyframe j's candidate is held (``replay.LOOKAHEAD``).
+        self.lookahead_rotation_weight = lookahead_rotation_weight
         first = spaces[self.sides[0]]
         self.n_keyframes = first.n_keyframes
         self.interval, self.substeps, self.num_frames = first.interval, first.substeps, first.num_frames
@@ -204,7 +208,7 @@ class SimWindowProblem:
         f0, f1 = self.window(j)
         control, offsets = self.build_control(keyframes, f0, f1, j, candidates)
         states, sensors = self.evaluator.rollout(state, control)
-        rec = self._record(f0, f1, states, sensors, offsets)
+        rec = self._record(f0, f1, states, sensors, offsets, j)
         per_hand, _ = window_losses(rec, self.obj, self.hand_targets, self.weights)
         return per_hand
 
@@ -224,7 +228,7 @@ class SimWindowProblem:
         # The same rollout as a one-candidate evaluation, stepped in Python to see contacts; only the steps that
         # ``_record`` reads are copied out.
         states, sensors = self._step_recording(state, control[0], hook, self._recorded_steps(f0, f1))
-        rec = self._record(f0, f1, states[None], sensors[None], offsets)
+        rec = self._record(f0, f1, states[None], sensors[None], offsets, j)
         per_hand, _ = window_losses(rec, self.obj, self.hand_targets, self.weights)
         return {s: float(v[0]) for s, v in per_hand.items()}, touched
 
@@ -309,9 +313,11 @@ class SimWindowProblem:
         return (frames - f0) * self.substeps - 1, (frames - f0) * self.substeps
 
     def _record(
-        self, f0: int, f1: int, states: FloatArray, sensors: FloatArray, offsets: dict[str, FloatArray]
+        self, f0: int, f1: int, states: FloatArray, sensors: FloatArray, offsets: dict[str, FloatArray],
+        j: int | None = None,
     ) -> WindowRecord:
-        """Decode frames f0+1..f1 from per-substep states/sensors of a window rollout."""
+        """Decode frames f0+1..f1 from per-substep states/sensors of the rollout of window j (None: a rollout
+        that holds no candidate, every frame weighed alike)."""
         frames = np.arange(f0 + 1, f1 + 1)
         after, at = self._frame_steps(f0, f1)
         sens = sensors[:, at]
@@ -327,4 +333,7 @@ class SimWindowProblem:
             offsets=offsets,
             penetration={side: h.penetration(sens) for side, h in self.layout.hands.items()},
             lifted=obj_pos[..., 2] > self._rest_z + PENETRATION_LIFT_M,
+            rotation_weight=None if j is None else np.where(
+                frames > (j + 1) * self.interval, self.lookahead_rotation_weight, 1.0
+            ),
         )

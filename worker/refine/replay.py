@@ -25,6 +25,14 @@ from worker.simulation.metrics import ContactFrames
 #: the optimiser see whether a grasp holds one interval longer (on DexYCB dev it turned a dropped lift into a
 #: success and lowered E_t elsewhere, for 28% more simulated steps; see bench/results/refine_dev.md).
 LOOKAHEAD = 2
+#: The factor on the object's rotation error over those lookahead frames in a refinement's first attempt (its
+#: position, velocity and excursion terms count in full): 0. There the candidate's wrist turn is held as it is at
+#: keyframe j + 1, which the next windows will change as the object turns, so charging every degree it leaves
+#: there pulls keyframe j towards a compromise with frames it does not shape; whether the grasp holds the object
+#: up is what the lookahead is for. On all 120 dev120 sequences it made E_t better on 79 and E_r on 74, but a few
+#: grasps turned out or dropped (``bench/results/dev120_experiments.md``, fourth session), which is why the next
+#: attempt charges the lookahead in full (``worker.refine.run.attempt_plan``).
+LOOKAHEAD_ROTATION_WEIGHT = 0.0
 
 @dataclass
 class ReplayRecord:
@@ -100,8 +108,9 @@ def replay_all(prep: Prepared, start: SimState, jobs: list[ReplayJob], threads: 
     return [rec for rec, _ in done], sum(steps for _, steps in done)
 
 
-def window_problem(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, weights: dict[str, float]
-                   ) -> SimWindowProblem:
+def window_problem(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, weights: dict[str, float],
+                   lookahead_rotation_weight: float = LOOKAHEAD_ROTATION_WEIGHT) -> SimWindowProblem:
     """The window problem of a prepared sequence (``weights`` empty: the job's own)."""
     return SimWindowProblem(prep.layout, prep.spaces, prep.obj_targets, prep.hand_targets,
-                            weights or resolve_weights(prep.options.loss_weights), evaluator, start, LOOKAHEAD)
+                            weights or resolve_weights(prep.options.loss_weights), evaluator, start, LOOKAHEAD,
+                            lookahead_rotation_weight)

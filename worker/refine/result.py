@@ -11,11 +11,11 @@ Arrays (``common.result_format`` keys plus; all but the loss history made by ``w
 sequence in the native NPZ format, so ``verify`` needs nothing else. Summary JSON: kind, sequence, fps, frames,
 metrics.raw / metrics.refined (both protocols, plausibility, first-attempt success), options, config (simulation
 settings, keyframe interval, CMA-ES settings, loss weights), seed, versions, table (the plane under the frame-0
-object: point, normal, tilt_deg), attempts (seed, success, E_t, E_r on both protocols, evaluations of each
-CMA-ES run; the result is the best), windows (count, skipped, escalated, stopped early, per window loss), timings (the
-deterministic counters; the wall-clock figures are stored in the ``timings_json`` member, see
-``common.result_format``, and ``read_summary`` merges them back). ``prepare_from_result`` and
-``compare_object_trajectory`` serve the visual tools' replays.
+object: point, normal, tilt_deg), attempts (seed, lookahead rotation factor, success, E_t, E_r on both
+protocols, evaluations of each CMA-ES run; the result is the best), windows (count, skipped, escalated, stopped
+early, per window loss), timings (the deterministic counters; the wall-clock figures are stored in the
+``timings_json`` member, see ``common.result_format``, and ``read_summary`` merges them back).
+``prepare_from_result`` and ``compare_object_trajectory`` serve the visual tools' replays.
 """
 
 from __future__ import annotations
@@ -53,6 +53,7 @@ def build_summary(
     timings: dict[str, Any],
     num_contacts: int = 0,
     attempts: list[dict[str, Any]] | None = None,
+    lookahead_rotation_weight: float | None = None,
 ) -> dict[str, Any]:
     cfg = prep.scene.config.to_dict()
     return {
@@ -70,6 +71,9 @@ def build_summary(
             "keyframes": int(prep.spaces[next(iter(prep.spaces))].n_keyframes),
             "cma": asdict(settings),
             "loss_weights": weights,
+            # The kept attempt's factor on the object's rotation error over a window's lookahead frames
+            # (``worker.refine.run.attempt_plan``); absent from results made before it existed (1).
+            "lookahead_rotation_weight": lookahead_rotation_weight,
             "free_wrist_translation": bool(prep.options.free_wrist_translation),
             "rotation_pivot": prep.rotation_pivot,
             # "mirrored": a left hand's coordinates mirror a right hand's (``prepare.prepare(mirror_left=...)``);

@@ -1,6 +1,6 @@
 """``refine_sequence``: the whole refinement of one sequence (DESIGN §1 steps 3-7, issue #3).
 
-Sliding-window CMA-ES (restarted with another seed while the result fails) -> ``derive.derive_result``: from
+Sliding-window CMA-ES (attempted again while the result fails, ``attempt_plan``) -> ``derive.derive_result``: from
 the embedded sequence bytes, in a fresh model and MjData, the raw replay (zero offsets) and the from-scratch
 replay (``replay``) of the best controls from frame 0, with contacts and metrics. The result is that replay, never
 a stitching of window rollouts, and ``verify`` repeats the very same function. Deterministic: the same sequence, options
@@ -28,7 +28,7 @@ from worker.refine.derive import add_attempt_metrics, attempt_figures, derive_re
 from worker.refine.evaluator import ParallelEvaluator
 from worker.refine.losses import ROT_SCALE, resolve_weights
 from worker.refine.prepare import DEFAULT_MAX_GENERATIONS, DEFAULT_POPSIZE, prepare, settled_start
-from worker.refine.replay import ReplayRecord, replay, window_problem
+from worker.refine.replay import LOOKAHEAD_ROTATION_WEIGHT, ReplayRecord, replay, window_problem
 from worker.refine.result import build_summary
 from worker.refine.windowed import CmaSettings, RefineProgress, WindowLog, optimise_windows
 from worker.simulation.config import SimConfig
@@ -45,6 +45,13 @@ ESCALATE_LOSS_PER_FRAME = 2.5
 #: stalled window cost 0.1 cm E_t and 0.3 deg E_r on dev40; gated at 1 per frame it did not).
 STALL_LOSS_PER_FRAME = 1.0
 STALL_GENERATIONS = 3
+#: A first attempt that succeeds with an object error (``object_error``) above this gets a second attempt all the
+#: same (``attempt_plan``: the same seed, the lookahead's rotation error charged in full); the better of the two is
+#: the result. 0.67 cm + 2.97 deg is the published method's mean object error on DexYCB, so a sequence refined worse
+#: than that average is tried the other way too. The two ways fail on different sequences: on dev120 the first
+#: attempt's way improves most sequences and loses a few grasps the other keeps (``dev120_experiments.md``, fifth
+#: session).
+RETRY_OBJECT_ERROR = 0.67 + 2.97 / float(np.degrees(ROT_SCALE))
 
 
 @dataclass
@@ -75,6 +82,25 @@ def attempt_seed(seed: int, attempt: int) -> int:
     return seed if attempt == 0 else (seed + attempt * 1_000_003) % (2**31 - 1)
 
 
+def attempt_plan(seed: int, attempt: int) -> tuple[int, float]:
+    """The CMA-ES seed and the factor on the object's rotation error over a window's lookahead frames
+    (``SimWindowProblem.lookahead_rotation_weight``) of attempt ``attempt`` (0: the first). Attempts go in pairs
+    on one seed (``attempt_seed`` of the pair's index): first without that rotation error
+    (``replay.LOOKAHEAD_ROTATION_WEIGHT``), then with it in full."""
+    return attempt_seed(seed, attempt // 2), (LOOKAHEAD_ROTATION_WEIGHT if attempt % 2 == 0 else 1.0)
+
+
+def attempts_done(best: dict[str, Any], attempt: int) -> bool:
+    """Whether no further attempt is needed after attempt ``attempt`` (0: the first), ``best`` being the metrics
+    of the best so far: it succeeded, and unless a first attempt's, whatever its object error."""
+    return bool(best["success"]) and (attempt > 0 or object_error(best) <= RETRY_OBJECT_ERROR)
+
+
+def object_error(m: dict[str, Any]) -> float:
+    """A replay's mean object error in the units of the object_pose loss: cm + deg / (ROT_SCALE in deg)."""
+    return float(m["E_t"] + m["E_r"] / np.degrees(ROT_SCALE))
+
+
 def refine_sequence(
     seq: Sequence,
     options: JobOptions,
@@ -95,10 +121,11 @@ def refine_sequence(
     result made with them verifies only with ``--allow-config``). ``cma_overrides``: ``CmaSettings`` fields other
     than the product's (benchmarks only; the result records the settings used).
 
-    When the refined replay fails the success criterion and ``options.restarts`` allows, the whole window loop
-    runs again from zero offsets with another seed (``attempt_seed``): the greedy sliding window cannot undo a
-    committed keyframe, and a grasp lost in one window is often kept by another random stream. The best attempt
-    (success first, then the lower mean object error) is the result; every attempt is listed in the summary.
+    When the refined replay fails the success criterion, or the first one succeeds with an object error above
+    ``RETRY_OBJECT_ERROR``, and ``options.restarts`` allows, the whole window loop runs again from zero offsets
+    the next way of ``attempt_plan`` (the other lookahead loss, then another seed): the greedy sliding window cannot
+    undo a committed keyframe, and a grasp lost in one run is often kept by another loss or random stream. The best
+    attempt (success first, then the lower mean object error) is the result; every attempt is listed in the summary.
     """
     t0 = time.perf_counter()
     # The result embeds the sequence as these bytes and is derived from them (``derive``); the optimisation runs
@@ -113,31 +140,33 @@ def refine_sequence(
 
     def rank(m: dict[str, Any]) -> tuple[bool, float]:
         # Success first; then the object error in the units of the object_pose loss (1 cm ~ ROT_SCALE).
-        return bool(m["success"]), -(m["E_t"] + m["E_r"] / np.degrees(ROT_SCALE))
+        return bool(m["success"]), -object_error(m)
 
     attempts: list[dict[str, Any]] = []
     tried: list[dict[str, FloatArray]] = []
     try:
         start, settle_steps = settled_start(prep, ev)
         weights = resolve_weights(options.loss_weights)
-        problem = window_problem(prep, ev, start, weights)
         best: _Attempt | None = None
         for attempt in range(options.restarts + 1):
-            settings = replace(cma_settings(options, prep.interval), **(cma_overrides or {}),
-                               seed=attempt_seed(options.seed, attempt))
+            seed, rotation_weight = attempt_plan(options.seed, attempt)
+            problem = window_problem(prep, ev, start, weights, rotation_weight)
+            settings = replace(cma_settings(options, prep.interval), **(cma_overrides or {}), seed=seed)
             report = None if progress is None else _with_attempt(progress, attempt + 1)
             keyframes, logs = optimise_windows(problem, settings, progress=report, should_stop=should_stop)
-            this = _Attempt(keyframes, logs, replay(prep, ev, start, keyframes, record_contacts=False), settings)
+            this = _Attempt(keyframes, logs, replay(prep, ev, start, keyframes, record_contacts=False), settings,
+                            rotation_weight)
             m = this.metrics = replay_metrics(prep, this.final)
             tried.append(keyframes)
-            attempts.append({**attempt_figures(m), "seed": settings.seed,
+            attempts.append({**attempt_figures(m), "seed": settings.seed, "lookahead_rotation_weight": rotation_weight,
                              "evaluations": int(sum(w.evaluations for w in logs))})
             if best is None or rank(m) > rank(best.metrics):
                 best = this
-            if m["success"]:
+            if attempts_done(best.metrics, attempt):
                 break
         assert best is not None
         keyframes, logs, settings = best.keyframes, best.logs, best.settings
+        kept_rotation_weight = best.lookahead_rotation_weight
         stats = ev.stats
     finally:
         if own:
@@ -184,6 +213,7 @@ def refine_sequence(
         },
         num_contacts=len(final.contacts["contact_frame"]),
         attempts=attempts,
+        lookahead_rotation_weight=kept_rotation_weight,
     )
     return RefineOutcome(arrays, summary, keyframes)
 
@@ -196,6 +226,7 @@ class _Attempt:
     logs: list[WindowLog]
     final: ReplayRecord
     settings: CmaSettings
+    lookahead_rotation_weight: float
     metrics: dict[str, Any] = field(default_factory=dict)
 
 

@@ -102,7 +102,7 @@ class RefineProgress:
     elapsed_s: float
     eta_s: float
     skipped: int = 0
-    attempt: int = 1  # 2, 3, ...: a restart with another seed after a failed attempt (refine_sequence)
+    attempt: int = 1  # 2, 3, ...: a further attempt after a failed or poor one (refine_sequence, attempt_plan)
 
 
 def optimise_windows(
