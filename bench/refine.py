@@ -48,9 +48,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--max-generations", type=int, default=None, help="CMA-ES generations per window")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--restarts", type=int, default=None,
-                   help="further attempts after a failed or poor first one (default: the product's). Attempts go in "
-                   "pairs (the lookahead's rotation error left out, then charged), pair i with seed + i x 1000003, so "
-                   "--seed 1000003 --restarts 1 runs the 3rd and 4th attempts")
+                   help="further attempts after a failed or poor first one (default: the product's). The first "
+                   "leaves the lookahead's rotation error out and runs with --seed; attempt k >= 1 charges it, with "
+                   "seed + (k - 1) x 1000003 (worker/refine/run.py attempt_plan)")
     p.add_argument("--out", type=Path, default=None,
                    help="report file (default bench/results/refine_dev.md for dev40, refine_<sample>.md otherwise)")
     p.add_argument("--fresh", action="store_true", help="ignore cached per-sequence results")

@@ -39,10 +39,10 @@ class JobOptions(BaseModel):
     )
     free_wrist_translation: bool = Field(default=False, description="Also optimise a 3-D wrist translation offset")
     restarts: int = Field(
-        default=2, ge=0, le=5,
+        default=3, ge=0, le=5,
         description="Further attempts when the result fails the success criterion (every frame within 3 cm / "
         "30 deg) or the first attempt's object error is above the published method's mean (0.67 cm + 2.97 deg): "
-        "the other lookahead loss, then another seed; the best attempt is kept",
+        "the lookahead's rotation error charged, with the job's seed then others; the best attempt is kept",
     )  # fmt: skip
     priority: int = Field(default=0, ge=-100, le=100, description="Higher runs first (queue only)")
     preview_video: bool = Field(

@@ -49,8 +49,8 @@ def add_job_option_arguments(parser: argparse.ArgumentParser, queue: bool = Fals
     g.add_argument(
         "--restarts", type=int, default=restarts,
         help="refine again when the result fails (every frame within 3 cm / 30 deg) or the first attempt's object "
-        "error is above the published method's mean (0.67 cm + 2.97 deg): the other lookahead loss, then another "
-        f"seed, up to N times, keeping the best (default {restarts}; 0 disables)",
+        "error is above the published method's mean (0.67 cm + 2.97 deg): with the lookahead's rotation error "
+        f"charged, the job's seed then others, up to N times, keeping the best (default {restarts}; 0 disables)",
     )  # fmt: skip
     if queue:
         g.add_argument("--priority", type=int, default=0, help="queue priority, -100..100 (higher runs first)")

@@ -176,7 +176,7 @@ def test_a_failed_refinement_is_tried_again_the_other_way_and_the_best_attempt_k
     assert not only["success"]
     first, second = twice.summary["attempts"]
     assert first == only  # the first attempt is the plain run
-    # The second attempt: the same seed, the lookahead's rotation error charged in full (``attempt_plan``).
+    # The second attempt: the job's seed, the lookahead's rotation error charged in full (``attempt_plan``).
     assert (second["seed"], second["lookahead_rotation_weight"]) == (first["seed"], 1.0)
     assert first["lookahead_rotation_weight"] == LOOKAHEAD_ROTATION_WEIGHT
     best = min((first, second), key=lambda a: a["E_t"] + a["E_r"] / np.degrees(ROT_SCALE))

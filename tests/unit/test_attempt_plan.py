@@ -8,14 +8,12 @@ from worker.refine.replay import LOOKAHEAD_ROTATION_WEIGHT
 from worker.refine.run import RETRY_OBJECT_ERROR, attempt_plan, attempt_seed, attempts_done, object_error
 
 
-def test_attempts_go_in_pairs_on_one_seed_first_without_the_lookahead_rotation() -> None:
-    plan = [attempt_plan(5, k) for k in range(5)]
-    assert plan == [
-        (5, LOOKAHEAD_ROTATION_WEIGHT), (5, 1.0),
-        (attempt_seed(5, 1), LOOKAHEAD_ROTATION_WEIGHT), (attempt_seed(5, 1), 1.0),
-        (attempt_seed(5, 2), LOOKAHEAD_ROTATION_WEIGHT),
-    ]
-    assert LOOKAHEAD_ROTATION_WEIGHT != 1.0  # the two of a pair differ
+def test_the_first_attempt_leaves_the_lookahead_rotation_out_and_the_later_ones_are_the_earlier_restarts() -> None:
+    plan = [attempt_plan(5, k) for k in range(4)]
+    # After the first, the attempts the product made before the lookahead rotation discount: full loss, the
+    # job's seed, then the restart seeds.
+    assert plan == [(5, LOOKAHEAD_ROTATION_WEIGHT), (5, 1.0), (attempt_seed(5, 1), 1.0), (attempt_seed(5, 2), 1.0)]
+    assert LOOKAHEAD_ROTATION_WEIGHT != 1.0
 
 
 def test_the_retry_level_is_the_published_mean_object_error() -> None:
