@@ -18,7 +18,14 @@ asserts on the median of several seeds. A single seed (the test's first form, se
 0.32-1.89 and 0.45-2.08 with a box known by its 8 corners (medians 0.83 / 0.73 / 0.77) and 0.44-1.03,
 0.39-0.99 and 0.40-1.31 with its faces sampled every 5 mm (medians 0.79 / 0.69 / 0.81,
 ``SimConfig.primitive_surface_spacing_m``); seeds 1 and 9 passed the old per-seed bounds (0.85 / 0.7 / 0.8 with
-the object within 0.5 cm / 1.5 deg) with the corners, no seed with the faces (2026-12-05)."""
+the object within 0.5 cm / 1.5 deg) with the corners, no seed with the faces (2026-12-05).
+
+Both losses a refinement's attempts use are tested (``worker.refine.run.attempt_plan``): the first attempt's,
+which leaves the object's rotation error out of a window's lookahead interval, and the later attempts' full loss.
+The first brings the object back as well but the wrist rotation less (median end/start ratios over seeds 1-7:
+hinge targets 0.76, wrist position 0.80, wrist rotation 0.97, against the bound 0.9 the full loss meets), as it
+is meant to: on those frames the wrist turn the window holds is not charged for the object's rotation. So the
+wrist-rotation bound is asserted for the full loss only."""
 
 from __future__ import annotations
 
@@ -34,7 +41,7 @@ from worker.refine.derive import replay_metrics
 from worker.refine.evaluator import ParallelEvaluator
 from worker.refine.losses import resolve_weights
 from worker.refine.prepare import Prepared, settled_start
-from worker.refine.replay import replay, window_problem
+from worker.refine.replay import LOOKAHEAD_ROTATION_WEIGHT, replay, window_problem
 from worker.refine.run import cma_settings
 from worker.refine.windowed import optimise_windows
 
@@ -45,6 +52,7 @@ SEEDS = (1, 2, 3, 4, 5, 6, 7)
 
 @dataclass
 class Case:
+    lookahead_rotation_weight: float  # the loss: the first attempt's or the later attempts' (1, full)
     prep: Prepared
     truth: np.ndarray  # (K, 13) the known keyframes
     truth_metrics: dict[str, Any]  # the known keyframes replayed
@@ -57,10 +65,12 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.asarray(np.degrees(2 * np.arccos(np.clip(np.abs(np.sum(a * b, axis=1)), 0.0, 1.0))))
 
 
-@pytest.fixture(scope="module")
-def case() -> Case:
+@pytest.fixture(scope="module", params=[LOOKAHEAD_ROTATION_WEIGHT, 1.0], ids=["first-attempt-loss", "full-loss"])
+def case(request: pytest.FixtureRequest) -> Case:
     """The refinement's window loop (``refine_sequence`` without restarts and without the result's derivation,
-    which would re-prepare the unperturbed sequence) on the perturbed problem, once per seed."""
+    which would re-prepare the unperturbed sequence) on the perturbed problem, once per seed, with one of the two
+    losses of the attempts."""
+    weight = float(request.param)
     _, prep, truth = known_answer_case(BUDGET)
     with ParallelEvaluator(prep.scene.model, 2) as ev:
         start, _ = settled_start(prep, ev)
@@ -70,11 +80,11 @@ def case() -> Case:
         refined, found = [], []
         for seed in SEEDS:
             options = BUDGET.model_copy(update={"seed": seed})
-            problem = window_problem(prep, ev, start, resolve_weights(options.loss_weights))
+            problem = window_problem(prep, ev, start, resolve_weights(options.loss_weights), weight)
             keyframes, _ = optimise_windows(problem, cma_settings(options, prep.interval))
             refined.append(replay_metrics(prep, replay(prep, ev, start, keyframes, record_contacts=False)))
             found.append(keyframes["right"])
-    return Case(prep, truth, truth_metrics, raw, refined, found)
+    return Case(weight, prep, truth, truth_metrics, raw, refined, found)
 
 
 @pytest.mark.slow
@@ -107,5 +117,8 @@ def test_refinement_from_a_perturbed_start_recovers_object_and_controls(case: Ca
     ratios = np.array([errors(k) / at_start for k in case.keyframes])  # (seeds, 3): end error / start error
     q, p, r = np.median(ratios, axis=0)
     # Hinge targets (rad RMS), wrist position (m; moved only through the rotation about the pivot), wrist rotation
-    # (deg): the median seed brings each at least a tenth of the way back.
-    assert q < 0.9 and p < 0.9 and r < 0.9, ratios.round(3).tolist()
+    # (deg): the median seed brings each at least a tenth of the way back; the wrist rotation with the full loss
+    # (the first attempt's leaves part of it unconstrained, see the module docstring).
+    assert q < 0.9 and p < 0.9, ratios.round(3).tolist()
+    if case.lookahead_rotation_weight == 1.0:
+        assert r < 0.9, ratios.round(3).tolist()
