@@ -61,6 +61,12 @@ def main(argv: list[str] | None = None) -> int:
     except HoiRefineError as exc:
         print(f"hoi-refine: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:
+        if exc.filename is None:  # not about a file the user named (a socket, a pipe): a bug, keep its traceback
+            raise
+        # A path given on the command line that is missing, a directory or unreadable: say so, not a traceback.
+        print(f"hoi-refine: error: {exc.filename}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("hoi-refine: interrupted", file=sys.stderr)
         return 130
