@@ -44,6 +44,11 @@ class JobOptions(BaseModel):
         "30 deg) or the first attempt's object error is above the published method's mean (0.67 cm + 2.97 deg): "
         "the lookahead's rotation error charged, with the job's seed then others; the best attempt is kept",
     )  # fmt: skip
+    polish: bool = Field(
+        default=True,
+        description="After the attempts, when the best one's object error is above half the published method's "
+        "mean, one more sweep over its windows in which each keyframe sees the later ones; kept only if better",
+    )
     priority: int = Field(default=0, ge=-100, le=100, description="Higher runs first (queue only)")
     preview_video: bool = Field(
         default=True,

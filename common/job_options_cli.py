@@ -52,6 +52,11 @@ def add_job_option_arguments(parser: argparse.ArgumentParser, queue: bool = Fals
         "error is above the published method's mean (0.67 cm + 2.97 deg): with the lookahead's rotation error "
         f"charged, the job's seed then others, up to N times, keeping the best (default {restarts}; 0 disables)",
     )  # fmt: skip
+    g.add_argument(
+        "--no-polish", dest="polish", action="store_false",
+        help="skip the polish sweep over the best attempt's windows (run when its object error is above half the "
+        "published method's mean; each keyframe optimised again with the later ones in view, kept only if better)",
+    )  # fmt: skip
     if queue:
         g.add_argument("--priority", type=int, default=0, help="queue priority, -100..100 (higher runs first)")
         g.add_argument(
@@ -71,6 +76,7 @@ def job_options_from_args(args: argparse.Namespace) -> JobOptions:
             loss_weights=args.weights,
             free_wrist_translation=args.free_wrist_translation,
             restarts=args.restarts,
+            polish=getattr(args, "polish", True),
             priority=getattr(args, "priority", 0),
             preview_video=getattr(args, "preview_video", True),
         )

@@ -111,6 +111,7 @@ def run_footer(summary: Mapping[str, Any]) -> str:
     ]
     attempts = summary.get("attempts", [])
     if len(attempts) > 1:
-        seeds = ", ".join(f"seed {a['seed']}: {'ok' if a['success'] else 'failed'}" for a in attempts)
+        seeds = ", ".join(f"{'polish, ' if a.get('polish') else ''}seed {a['seed']}: "
+                          f"{'ok' if a['success'] else 'failed'}" for a in attempts)
         lines.append(f"{len(attempts)} attempts ({seeds}); the result is the best")
     return "\n".join(lines)

@@ -28,7 +28,8 @@ class Bowl:
     def probe(self, j: int, state: Any, keyframes: dict[str, np.ndarray]) -> tuple[dict[str, float], bool]:
         return {"right": float(np.sum((keyframes["right"][j] - self.target) ** 2))}, True
 
-    def evaluate(self, j: int, state: Any, keyframes: dict[str, np.ndarray], candidates: dict[str, np.ndarray]
+    def evaluate(self, j: int, state: Any, keyframes: dict[str, np.ndarray], candidates: dict[str, np.ndarray],
+                 hold: bool = True
                  ) -> dict[str, np.ndarray]:
         return {"right": np.sum((candidates["right"] - self.target) ** 2, axis=1)}
 

@@ -27,7 +27,8 @@ class BowlProblem:
     def probe(self, j: int, state: Any, keyframes: dict[str, np.ndarray]) -> tuple[dict[str, float], bool]:
         return {"right": float(10 * np.sum((keyframes["right"][j] - TARGET) ** 2))}, True
 
-    def evaluate(self, j: int, state: Any, keyframes: dict[str, np.ndarray], candidates: dict[str, np.ndarray]
+    def evaluate(self, j: int, state: Any, keyframes: dict[str, np.ndarray], candidates: dict[str, np.ndarray],
+                 hold: bool = True
                  ) -> dict[str, np.ndarray]:
         return {"right": 10 * np.sum((candidates["right"] - TARGET) ** 2, axis=1)}
 

@@ -139,12 +139,14 @@ class HandControlSpace:
         return (self.num_frames - 1) * self.substeps
 
     def offsets(self, keyframes: FloatArray, idx: IntArray, j: int | None = None,
-                candidates: FloatArray | None = None) -> FloatArray:
+                candidates: FloatArray | None = None, hold: bool = True) -> FloatArray:
         """Interpolated offsets (C, len(idx), dim) at reference samples ``idx`` (substep times idx / S).
 
         With ``j`` and ``candidates`` (C, dim), keyframe j *and every later keyframe* take each candidate in
         turn (one CMA-ES population): the offset is held beyond the keyframe being optimised, so the window's
-        tail is not pulled back to keyframes that are not optimised yet. Otherwise C = 1 with ``keyframes``.
+        tail is not pulled back to keyframes that are not optimised yet. ``hold=False`` replaces keyframe j alone
+        (the later keyframes are final ones of an earlier pass: ``windowed.optimise_windows``'s polish). Otherwise
+        C = 1 with ``keyframes``.
         """
         if keyframes.shape != (self.n_keyframes, self.dim):
             raise ValueError(f"keyframes must have shape {(self.n_keyframes, self.dim)}, got {keyframes.shape}")
@@ -153,6 +155,9 @@ class HandControlSpace:
             return (w @ keyframes)[None]
         if candidates.ndim != 2 or candidates.shape[1] != self.dim:
             raise ValueError(f"candidates must have shape (C, {self.dim}), got {candidates.shape}")
+        if not hold:
+            others = w @ keyframes - np.outer(w[:, j], keyframes[j])  # (n, dim): every keyframe but j
+            return others[None] + w[None, :, j, None] * candidates[:, None, :]
         base = w[:, :j] @ keyframes[:j]  # (n, dim)
         tail = w[:, j:].sum(axis=1)
         return base[None] + tail[None, :, None] * candidates[:, None, :]

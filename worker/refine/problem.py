@@ -203,10 +203,11 @@ class SimWindowProblem:
         return keyframe_window(j, self.n_keyframes, self.interval, self.num_frames, self.lookahead)
 
     def evaluate(
-        self, j: int, state: SimState, keyframes: dict[str, FloatArray], candidates: dict[str, FloatArray]
+        self, j: int, state: SimState, keyframes: dict[str, FloatArray], candidates: dict[str, FloatArray],
+        hold: bool = True,
     ) -> dict[str, FloatArray]:
         f0, f1 = self.window(j)
-        control, offsets = self.build_control(keyframes, f0, f1, j, candidates)
+        control, offsets = self.build_control(keyframes, f0, f1, j, candidates, hold=hold)
         states, sensors = self.evaluator.rollout(state, control)
         rec = self._record(f0, f1, states, sensors, offsets, j)
         per_hand, _ = window_losses(rec, self.obj, self.hand_targets, self.weights)
@@ -249,10 +250,12 @@ class SimWindowProblem:
         j: int | None = None,
         candidates: dict[str, FloatArray] | None = None,
         extra_step: bool = True,
+        hold: bool = True,
     ) -> tuple[FloatArray, dict[str, FloatArray]]:
         """Control vectors (C, n, ncontrol) for frames f0 -> f1 and the per-frame offsets (C, F + 1, dim).
 
-        ``extra_step`` adds one substep past f1 so the sensors of frame f1 get recorded (see evaluator).
+        ``extra_step`` adds one substep past f1 so the sensors of frame f1 get recorded (see evaluator); ``hold``
+        as in ``HandControlSpace.offsets``.
         """
         s0, s1 = f0 * self.substeps, f1 * self.substeps + (1 if extra_step else 0)
         n = s1 - s0
@@ -269,14 +272,14 @@ class SimWindowProblem:
         for side, space in self.spaces.items():
             h = self.layout.hands[side]
             cand = None if candidates is None else candidates[side]
-            offs = space.offsets(keyframes[side], idx, j, cand)
+            offs = space.offsets(keyframes[side], idx, j, cand, hold)
             q, p, r = space.controls(offs, idx)
             control[:, :, h.actuator_ids] = q
             control[:, :, pos_at + 3 * h.mocap_id : pos_at + 3 * h.mocap_id + 3] = p
             control[:, :, quat_at + 4 * h.mocap_id : quat_at + 4 * h.mocap_id + 4] = r
             # Offsets at frames f0 .. f1 for the control-consistency term (differences over f0+1 .. f1).
             fidx = np.arange(f0, f1 + 1) * self.substeps
-            frame_offsets[side] = space.offsets(keyframes[side], fidx, j, cand)
+            frame_offsets[side] = space.offsets(keyframes[side], fidx, j, cand, hold)
         return control, frame_offsets
 
     def _step_recording(

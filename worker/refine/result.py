@@ -2,7 +2,7 @@
 
 Arrays (``common.result_format`` keys plus; all but the loss history made by ``worker.refine.derive``):
 ``object_pose_ref`` (F,7); per side ``S_keyframes`` (N, 13|16) the optimised offsets,
-``S_attempt_keyframes`` (A, N, 13|16) every attempt's when there were restarts,
+``S_attempt_keyframes`` (A, N, 13|16) every attempt's when there were several (restarts, the polish),
 ``S_q_target``/``S_wrist_pos``/``S_wrist_quat`` the per-frame controls they give,
 ``S_keypoints_sim``/``S_keypoints_ref``/``S_valid``; ``raw_object_pose_sim`` (F,7) the raw replay;
 ``object_table_contact`` (F,) bool, the refined object touching the table;
@@ -11,7 +11,7 @@ Arrays (``common.result_format`` keys plus; all but the loss history made by ``w
 sequence in the native NPZ format, so ``verify`` needs nothing else. Summary JSON: kind, sequence, fps, frames,
 metrics.raw / metrics.refined (both protocols, plausibility, first-attempt success), options, config (simulation
 settings, keyframe interval, CMA-ES settings, loss weights), seed, versions, table (the plane under the frame-0
-object: point, normal, tilt_deg), attempts (seed, lookahead rotation factor, success, E_t, E_r on both
+object: point, normal, tilt_deg), attempts (seed, lookahead rotation factor, polish, success, E_t, E_r on both
 protocols, evaluations of each CMA-ES run; the result is the best), windows (count, skipped, escalated, stopped
 early, per window loss), timings (the deterministic counters; the wall-clock figures are stored in the
 ``timings_json`` member, see ``common.result_format``, and ``read_summary`` merges them back).

@@ -12,6 +12,12 @@ terms).
 A window is skipped (keyframe left at its current value) when the hand does not touch the object on the
 window's frames and the current loss is already below ``skip_loss``: nothing there to fix.
 
+A polish pass (``polish=True``) runs the windows again over the keyframes of a finished pass: each window starts
+its CMA-ES from that pass's keyframe j and replaces keyframe j alone, so its lookahead frames are driven by the
+later keyframes as that pass left them instead of by the held candidate. The first pass chose keyframe j before
+any later keyframe existed; the polish lets it see them (one more greedy sweep; the caller keeps whichever
+whole-sequence replay is better).
+
 A window whose best loss is still above ``escalate_loss`` after the CMA-ES run gets a second, larger one
 (``escalate_factor`` x the population, a wider initial step, its own random stream) started from the best
 found: the greedy sliding window cannot undo a committed keyframe, so a grasp lost here is lost for good, and
@@ -48,9 +54,11 @@ class WindowProblem(Protocol):
         """Per-hand loss of the window with the current keyframes, and whether any hand touches the object."""
 
     def evaluate(
-        self, j: int, state: Any, keyframes: dict[str, FloatArray], candidates: dict[str, FloatArray]
+        self, j: int, state: Any, keyframes: dict[str, FloatArray], candidates: dict[str, FloatArray],
+        hold: bool = True,
     ) -> dict[str, FloatArray]:
-        """Per-hand losses (C,) with keyframe j of each hand replaced by its candidates (C, dim)."""
+        """Per-hand losses (C,) with keyframe j of each hand replaced by its candidates (C, dim), and (``hold``)
+        every later keyframe too."""
 
     def commit(self, j: int, state: Any, keyframes: dict[str, FloatArray]) -> Any:
         """The state at the start of window j + 1, simulated from ``state`` (start of window j)."""
@@ -111,8 +119,12 @@ def optimise_windows(
     keyframes: dict[str, FloatArray] | None = None,
     progress: Callable[[RefineProgress], None] | None = None,
     should_stop: Callable[[], bool] | None = None,
+    polish: bool = False,
 ) -> tuple[dict[str, FloatArray], list[WindowLog]]:
-    """Run every window in order; returns the final keyframes per hand and one log per window."""
+    """Run every window in order; returns the final keyframes per hand and one log per window. ``polish``: a
+    pass over ``keyframes`` (required then) that changes one keyframe per window, see the module docstring."""
+    if polish and keyframes is None:
+        raise ValueError("a polish pass needs the keyframes of a finished pass")
     kf = {s: np.zeros((problem.n_keyframes, problem.dim(s))) for s in problem.sides}
     if keyframes is not None:
         kf = {s: keyframes[s].copy() for s in problem.sides}
@@ -135,8 +147,9 @@ def optimise_windows(
 
     for j in range(problem.first_window, n_win):
         _check_stop(should_stop)
-        for side in problem.sides:  # hold the last optimised offset over the keyframes not optimised yet
-            kf[side][j:] = kf[side][j - 1] if j > 0 else kf[side][j]
+        if not polish:
+            for side in problem.sides:  # hold the last optimised offset over the keyframes not optimised yet
+                kf[side][j:] = kf[side][j - 1] if j > 0 else kf[side][j]
         base, touched = problem.probe(j, state, kf)
         evaluations += 1
         base_total = float(sum(base.values()))
@@ -144,12 +157,15 @@ def optimise_windows(
         if not touched and base_total < settings.skip_loss:
             log.skipped = True
         else:
-            best = _optimise_one(problem, settings, j, state, kf, base, log, should_stop, report)
+            # The polish draws from random streams of its own (2), apart from the first pass's (0, 1).
+            stream = 2 if polish else 0
+            best = _optimise_one(problem, settings, j, state, kf, base, log, should_stop, report, stream, polish)
             evaluations += log.evaluations - 1
             if log.best_loss > settings.escalate_loss:
                 log.escalated = True
                 before = log.evaluations
-                _optimise_one(problem, _escalated(settings), j, state, kf, best, log, should_stop, report, attempt=1)
+                _optimise_one(problem, _escalated(settings), j, state, kf, best, log, should_stop, report, stream + 1,
+                              polish)
                 evaluations += log.evaluations - before
         logs.append(log)
         report(j, log.best_loss, finished=True)
@@ -168,9 +184,11 @@ def _optimise_one(
     should_stop: Callable[[], bool] | None,
     report: Callable[..., None],
     attempt: int = 0,
+    polish: bool = False,
 ) -> dict[str, float]:
     """CMA-ES on keyframe j of every hand, started from ``kf`` (whose losses are ``base``); writes the best
-    keyframe into ``kf`` and adds to ``log``; returns each hand's best loss."""
+    keyframe into ``kf`` (and, unless ``polish``, every later one) and adds to ``log``; returns each hand's best
+    loss."""
     strategies: dict[str, Any] = {}
     for i, side in enumerate(problem.sides):
         opts = {
@@ -192,7 +210,7 @@ def _optimise_one(
     for _gen in range(settings.max_generations):
         _check_stop(should_stop)
         asked = {s: np.asarray(es.ask(), dtype=np.float64) for s, es in strategies.items()}
-        losses = problem.evaluate(j, state, kf, asked)
+        losses = problem.evaluate(j, state, kf, asked, hold=not polish)
         evals += settings.popsize
         for side, es in strategies.items():
             values = losses[side]
@@ -209,7 +227,7 @@ def _optimise_one(
             break
     # Hands were scored on paired rollouts; take each hand's best and confirm the pair jointly via commit.
     for side in problem.sides:
-        kf[side][j:] = best[side][1]
+        kf[side][j if polish else slice(j, None)] = best[side][1]
     log.best_loss = float(sum(b[0] for b in best.values()))
     log.evaluations += evals
     return {s: b[0] for s, b in best.items()}
