@@ -52,6 +52,16 @@ def test_replay_missing_file_is_a_clear_error(tmp_path: Path, capsys: pytest.Cap
     assert "nope.npz" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("command", ["verify", "plot", "export"])
+def test_a_result_that_is_missing_or_a_folder_is_a_clear_error(
+    command: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    for path in (tmp_path / "nope.npz", tmp_path):
+        assert main([command, str(path)]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"hoi-refine: error: {path}: ") and "Traceback" not in err
+
+
 @pytest.mark.slow
 def test_demo_raw(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["demo", "--raw"]) == 0
