@@ -25,7 +25,7 @@ from worker.refine.prepare import prepare, settled_start
 from worker.refine.problem import SimWindowProblem
 from worker.refine.replay import LOOKAHEAD_ROTATION_WEIGHT
 from worker.refine.result import verify_result
-from worker.refine.run import RefineOutcome, refine_sequence
+from worker.refine.run import POLISH_OBJECT_ERROR, RefineOutcome, object_error, refine_sequence
 
 # The budget that recovers the synthetic push (more than the product defaults: 6 windows, 2 s of video).
 RECOVERY = JobOptions(seed=7, popsize=12, max_generations=8, free_wrist_translation=True)
@@ -169,7 +169,7 @@ def test_two_hands_get_independent_keyframes_in_one_simulation() -> None:
 
 def test_a_failed_refinement_is_tried_again_the_other_way_and_the_best_attempt_kept() -> None:
     seq, _ = recovery_case(offset_x=-0.06)  # the hand starts 2.5 cm off: a 4 x 1 budget cannot fix it
-    tiny = {"seed": 0, "popsize": 4, "max_generations": 1}
+    tiny = {"seed": 0, "popsize": 4, "max_generations": 1, "polish": False}
     once = refine_sequence(seq, JobOptions(**tiny, restarts=0), threads=1)
     twice = refine_sequence(seq, JobOptions(**tiny, restarts=1), threads=1)
     (only,) = once.summary["attempts"]
@@ -190,6 +190,29 @@ def test_a_failed_refinement_is_tried_again_the_other_way_and_the_best_attempt_k
     claimed = {**twice.summary, "attempts": [{**first, "success": True}, second]}
     with pytest.raises(ResultMismatchError, match=r"attempts\[0\]\.success"):
         verify_result(RefineOutcome(twice.arrays, claimed).to_npz_bytes())
+
+
+def test_a_poor_result_gets_a_polish_sweep_kept_only_if_better() -> None:
+    seq, _ = recovery_case(offset_x=-0.06)
+    tiny = {"seed": 0, "popsize": 4, "max_generations": 1, "restarts": 0}
+    plain = refine_sequence(seq, JobOptions(**tiny, polish=False), threads=1)
+    polished = refine_sequence(seq, JobOptions(**tiny), threads=1)
+    (only,) = plain.summary["attempts"]
+    assert object_error(only) > POLISH_OBJECT_ERROR  # poor enough to be polished
+    first, polish = polished.summary["attempts"]
+    assert first == only and "polish" not in first
+    assert polish["polish"] is True and polish["seed"] == first["seed"] and polish["lookahead_rotation_weight"] == 1.0
+    ranked = max((first, polish), key=lambda a: (a["success"], -object_error(a)))
+    assert polished.summary["metrics"]["refined"]["E_t"] == ranked["E_t"]  # the better of the two is the result
+    assert polished.summary["timings"]["evaluations"] == first["evaluations"] + polish["evaluations"]
+    # The polish re-optimised the first pass's keyframes, one per window: both sets are stored and re-simulated.
+    stored = polished.arrays["right_attempt_keyframes"]
+    np.testing.assert_array_equal(stored[0], plain.arrays["right_keyframes"])
+    assert not np.array_equal(stored[1], stored[0])
+    assert verify_result(polished.to_npz_bytes())["max_pos_diff_m"] == 0.0
+    claimed = {**polished.summary, "attempts": [first, {**polish, "E_r": polish["E_r"] / 2}]}
+    with pytest.raises(ResultMismatchError, match=r"attempts\[1\]\.E_r"):
+        verify_result(RefineOutcome(polished.arrays, claimed).to_npz_bytes())
 
 
 def test_verify_re_simulates_with_the_rotation_pivot_the_result_was_made_with(
