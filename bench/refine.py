@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import functools
 import json
+import math
 import os
 import statistics
 import sys
@@ -51,6 +52,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="further attempts after a failed or poor first one (default: the product's). The first "
                    "leaves the lookahead's rotation error out and runs with --seed; attempt k >= 1 charges it, with "
                    "seed + (k - 1) x 1000003 (worker/refine/run.py attempt_plan)")
+    p.add_argument("--no-polish", dest="polish", action="store_false",
+                   help="no polish sweep after the attempts (worker/refine/run.py POLISH_OBJECT_ERROR)")
     p.add_argument("--out", type=Path, default=None,
                    help="report file (default bench/results/refine_dev.md for dev40, refine_<sample>.md otherwise)")
     p.add_argument("--fresh", action="store_true", help="ignore cached per-sequence results")
@@ -119,6 +122,33 @@ def apply_coacd_overrides(overrides: dict[str, Any]) -> None:
     COACD_PARAMS.update(overrides)
 
 
+def polish_line(rows: list[dict[str, Any]]) -> str:
+    """How many sequences got a polish sweep (``worker.refine.run.POLISH_OBJECT_ERROR``), how many kept it, and what
+    it did to the object errors of those (paper's protocol; the attempt before it against the result)."""
+    from worker.refine.run import object_error
+
+    polished = [r for r in rows if any(a.get("polish") for a in r.get("attempts", []))]
+    if not polished:
+        return "* polish sweeps: none run"
+    kept = []
+    for r in polished:
+        before = max((a for a in r["attempts"] if not a.get("polish")),
+                     key=lambda a: (a["success"], -object_error(a)))
+        if before["paper"] != {k: r["metrics"]["refined"]["paper"][k] for k in ("success", "E_t", "E_r")}:
+            kept.append((r, before))
+    if not kept:
+        return f"* polish sweeps: run on {len(polished)} of {len(rows)} sequences, kept on none"
+    t0, t1 = (statistics.fmean(x) for x in zip(*((b["paper"]["E_t"], r["metrics"]["refined"]["paper"]["E_t"])
+                                                  for r, b in kept), strict=True))
+    r0, r1 = (statistics.fmean(x) for x in zip(*((b["paper"]["E_r"], r["metrics"]["refined"]["paper"]["E_r"])
+                                                  for r, b in kept), strict=True))
+    gained = sum(bool(r["metrics"]["refined"]["success"]) and not b["success"] for r, b in kept)
+    return (f"* polish sweeps (a poor best attempt's windows run once more, each keyframe seeing the later ones; "
+            f"worker/refine/run.py): run on {len(polished)} of {len(rows)} sequences, kept on {len(kept)} (its "
+            f"replay ranked better); over those, paper's protocol: E_t {t0:.2f} -> {t1:.2f} cm, E_r {r0:.2f} -> "
+            f"{r1:.2f} deg, {gained} failure(s) turned success")
+
+
 def restarts_tag(args: argparse.Namespace) -> str:
     """The cache key's part for ``--restarts`` (none for the product's default, so earlier caches stay valid)."""
     restarts = getattr(args, "restarts", None)
@@ -166,7 +196,8 @@ def run_one(path: Path, args: argparse.Namespace, cache: Path, awkward: list[str
            f"{override_tag({f'w-{k}': v for k, v in weights.items()})}"
            f"{override_tag({f'coacd-{k}': v for k, v in getattr(args, 'coacd_overrides', {}).items()})}"
            f"{'_prim' if as_primitive else ''}"
-           f"{'_ftrans' if free_translation else ''}_c{code_digest()}.json")
+           f"{'_ftrans' if free_translation else ''}{'' if getattr(args, 'polish', True) else '_nopolish'}"
+           f"_c{code_digest()}.json")
     hit = cache / key
     if hit.is_file() and not args.fresh:
         out: dict[str, Any] = json.loads(hit.read_text())
@@ -188,6 +219,7 @@ def run_one(path: Path, args: argparse.Namespace, cache: Path, awkward: list[str
         seq = standin
     options = JobOptions(seed=args.seed, popsize=args.popsize, max_generations=args.max_generations,
                          loss_weights=weights, free_wrist_translation=free_translation,
+                         polish=getattr(args, "polish", True),
                          **({} if getattr(args, "restarts", None) is None else {"restarts": args.restarts}))
     t0 = time.perf_counter()
     config = SimConfig(**args.sim_overrides)
@@ -286,7 +318,10 @@ def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) 
     escalated = sum(r["windows"].get("escalated", 0) for r in rows)
     stopped = sum(r["windows"].get("stopped_early", 0) for r in rows)
     tilted = [r for r in rows if r.get("table", {}).get("tilt_deg", 0.0) > 0]
-    cma = rows[0]["config"]["cma"]
+    # A result whose polish sweep was kept records the polish's settings (it never escalates): the level is a first
+    # pass's.
+    cma = next((r["config"]["cma"] for r in rows if math.isfinite(r["config"]["cma"].get("escalate_loss", math.inf))),
+               rows[0]["config"]["cma"])
     lines = [
         "# Refinement on DexYCB dev (bench/refine.py)",
         "",
@@ -301,6 +336,7 @@ def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) 
         + "; CMA-ES: "
         + (", ".join(f"`{k}={v}`" for k, v in sorted(args.cma_overrides.items())) or "the product's defaults")
         + ("" if getattr(args, "restarts", None) is None else f"; restarts: {args.restarts}")
+        + ("" if getattr(args, "polish", True) else "; **no polish sweep**")
         + ("" if not getattr(args, "loss_weights", None) else "; loss weights: "
            + ", ".join(f"`{k}={v}`" for k, v in sorted(args.loss_weights.items())))
         + ("" if not getattr(args, "coacd_overrides", None) else "; **convex decomposition**: "
@@ -338,6 +374,7 @@ def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) 
         f"{len(rows)} sequences (median {statistics.median([r['table']['tilt_deg'] for r in tilted] or [0]):.1f} deg),"
         " level in the rest",
         held_until_moved_line(rows),
+        polish_line(rows),
         f"* where the time goes (sums over the sequences): batched CMA-ES rollouts {_sum(rows, 'rollout_s'):.0f} s "
         f"({_sum(rows, 'rollout_steps') / max(_sum(rows, 'rollout_s'), 1e-9):.0f} steps/s), Python-stepped "
         f"probes, commits and replays {_sum(rows, 'python_step_s'):.0f} s "

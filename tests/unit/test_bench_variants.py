@@ -90,3 +90,25 @@ def test_the_report_names_the_objects_held_until_the_recording_moved_them() -> N
     line = held_until_moved_line(rows)
     assert "1 of 3: 20200709_152240 (037_scissors)" in line and "cracker" not in line
     assert held_until_moved_line(rows[1:]).endswith("0 of 2")
+
+
+def test_the_report_counts_the_polish_sweeps_run_and_kept() -> None:
+    from bench.refine import parse_args, polish_line
+
+    def attempt(ok: bool, e_t: float, e_r: float, polish: bool = False) -> dict[str, object]:
+        a: dict[str, object] = {"success": ok, "E_t": e_t, "E_r": e_r,
+                                "paper": {"success": ok, "E_t": e_t, "E_r": e_r}}
+        return {**a, "polish": True} if polish else a
+
+    def row(attempts: list[dict[str, object]], kept: dict[str, object]) -> dict[str, object]:
+        return {"attempts": attempts, "metrics": {"refined": {"success": kept["success"], "paper": kept["paper"]}}}
+
+    first, better = attempt(False, 4.0, 20.0), attempt(True, 1.0, 3.0, polish=True)
+    plain = attempt(True, 0.2, 1.0)
+    worse_first, worse = attempt(True, 1.0, 4.0), attempt(True, 1.5, 5.0, polish=True)
+    rows = [row([first, better], better), row([plain], plain), row([worse_first, worse], worse_first)]
+    line = polish_line(rows)
+    assert "run on 2 of 3 sequences, kept on 1" in line
+    assert "E_t 4.00 -> 1.00 cm, E_r 20.00 -> 3.00 deg, 1 failure(s) turned success" in line
+    assert polish_line(rows[1:2]) == "* polish sweeps: none run"
+    assert parse_args(["--no-polish"]).polish is False and parse_args([]).polish is True
