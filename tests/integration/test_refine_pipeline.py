@@ -6,6 +6,7 @@ at 60 fps, and the CLI."""
 from __future__ import annotations
 
 import io
+import json
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -205,6 +206,9 @@ def test_a_poor_result_gets_a_polish_sweep_kept_only_if_better() -> None:
     ranked = max((first, polish), key=lambda a: (a["success"], -object_error(a)))
     assert polished.summary["metrics"]["refined"]["E_t"] == ranked["E_t"]  # the better of the two is the result
     assert polished.summary["timings"]["evaluations"] == first["evaluations"] + polish["evaluations"]
+    assert ranked is polish  # here the sweep is kept: the result records its settings, which never escalate ...
+    assert polished.summary["config"]["cma"]["escalate_loss"] is None
+    json.dumps(polished.summary, allow_nan=False)  # ... as null: the summary is standard JSON (PostgreSQL's json)
     # The polish re-optimised the first pass's keyframes, one per window: both sets are stored and re-simulated.
     stored = polished.arrays["right_attempt_keyframes"]
     np.testing.assert_array_equal(stored[0], plain.arrays["right_keyframes"])

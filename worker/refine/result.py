@@ -20,6 +20,7 @@ early, per window loss), timings (the deterministic counters; the wall-clock fig
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -69,7 +70,10 @@ def build_summary(
             "sim": {k: list(v) if isinstance(v, tuple) else v for k, v in cfg.items()},
             "keyframe_interval": int(prep.interval),
             "keyframes": int(prep.spaces[next(iter(prep.spaces))].n_keyframes),
-            "cma": asdict(settings),
+            # JSON has no infinity (PostgreSQL's json type and strict clients refuse it): an unbounded level,
+            # as a polish sweep's escalation, is null, "never".
+            "cma": {k: None if isinstance(v, float) and not math.isfinite(v) else v
+                    for k, v in asdict(settings).items()},
             "loss_weights": weights,
             # The kept attempt's factor on the object's rotation error over a window's lookahead frames
             # (``worker.refine.run.attempt_plan``); absent from results made before it existed (1).
