@@ -320,8 +320,9 @@ def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) 
     tilted = [r for r in rows if r.get("table", {}).get("tilt_deg", 0.0) > 0]
     # A result whose polish sweep was kept records the polish's settings (it never escalates): the level is a first
     # pass's.
-    cma = next((r["config"]["cma"] for r in rows if math.isfinite(r["config"]["cma"].get("escalate_loss", math.inf))),
-               rows[0]["config"]["cma"])
+    cma = rows[0]["config"]["cma"]
+    levels = [r["config"]["cma"].get("escalate_loss") for r in rows]  # None (or inf in older caches): never
+    escalate = next((x for x in levels if x is not None and math.isfinite(x)), None)
     lines = [
         "# Refinement on DexYCB dev (bench/refine.py)",
         "",
@@ -368,7 +369,7 @@ def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) 
         f"* share of wall time inside simulation: **{share:.1f} %** (target >= 85 %); "
         f"{steps_s:.0f} physics steps per second of simulation time with {args.threads} threads",
         f"* windows skipped (no hand-object contact and loss already low): {skipped} of {windows}; windows given a "
-        f"second, larger CMA-ES run (best loss still above {cma.get('escalate_loss', float('inf')):.0f}): "
+        f"second, larger CMA-ES run (best loss still above {'never' if escalate is None else f'{escalate:.0f}'}): "
         f"{escalated} of {windows}; CMA-ES runs stopped early (best loss stalled): {stopped}",
         f"* table laid under the start pose (worker/simulation: table_fit, rest_pose): tilted in {len(tilted)} of "
         f"{len(rows)} sequences (median {statistics.median([r['table']['tilt_deg'] for r in tilted] or [0]):.1f} deg),"
