@@ -125,15 +125,14 @@ def apply_coacd_overrides(overrides: dict[str, Any]) -> None:
 def polish_line(rows: list[dict[str, Any]]) -> str:
     """How many sequences got a polish sweep (``worker.refine.run.POLISH_OBJECT_ERROR``), how many kept it, and what
     it did to the object errors of those (paper's protocol; the attempt before it against the result)."""
-    from worker.refine.run import object_error
+    from worker.refine.run import attempt_rank
 
     polished = [r for r in rows if any(a.get("polish") for a in r.get("attempts", []))]
     if not polished:
         return "* polish sweeps: none run"
     kept = []
     for r in polished:
-        before = max((a for a in r["attempts"] if not a.get("polish")),
-                     key=lambda a: (a["success"], -object_error(a)))
+        before = max((a for a in r["attempts"] if not a.get("polish")), key=attempt_rank)
         if before["paper"] != {k: r["metrics"]["refined"]["paper"][k] for k in ("success", "E_t", "E_r")}:
             kept.append((r, before))
     if not kept:
@@ -318,10 +317,10 @@ def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) 
     escalated = sum(r["windows"].get("escalated", 0) for r in rows)
     stopped = sum(r["windows"].get("stopped_early", 0) for r in rows)
     tilted = [r for r in rows if r.get("table", {}).get("tilt_deg", 0.0) > 0]
-    # A result whose polish sweep was kept records the polish's settings (it never escalates): the level is a first
-    # pass's.
     cma = rows[0]["config"]["cma"]
-    levels = [r["config"]["cma"].get("escalate_loss") for r in rows]  # None (or inf in older caches): never
+    # A result whose polish sweep was kept records that sweep's settings, which never escalate (None; inf in older
+    # caches): the level reported is a first pass's.
+    levels = [r["config"]["cma"].get("escalate_loss") for r in rows]
     escalate = next((x for x in levels if x is not None and math.isfinite(x)), None)
     lines = [
         "# Refinement on DexYCB dev (bench/refine.py)",

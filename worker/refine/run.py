@@ -112,6 +112,12 @@ def attempts_done(best: dict[str, Any], attempt: int) -> bool:
     return bool(best["success"]) and (attempt > 0 or object_error(best) <= RETRY_OBJECT_ERROR)
 
 
+def attempt_rank(m: dict[str, Any]) -> tuple[bool, float]:
+    """How attempts are ranked (higher is better): success first; then the object error in the units of the
+    object_pose loss (1 cm ~ ROT_SCALE)."""
+    return bool(m["success"]), -object_error(m)
+
+
 def object_error(m: dict[str, Any]) -> float:
     """A replay's mean object error in the units of the object_pose loss: cm + deg / (ROT_SCALE in deg)."""
     return float(m["E_t"] + m["E_r"] / np.degrees(ROT_SCALE))
@@ -157,46 +163,43 @@ def refine_sequence(
     if not own:
         ev.ensure_model(prep.scene.model)
 
-    def rank(m: dict[str, Any]) -> tuple[bool, float]:
-        # Success first; then the object error in the units of the object_pose loss (1 cm ~ ROT_SCALE).
-        return bool(m["success"]), -object_error(m)
-
     attempts: list[dict[str, Any]] = []
     tried: list[dict[str, FloatArray]] = []
+
+    def run(settings: CmaSettings, rotation_weight: float, start_keyframes: dict[str, FloatArray] | None = None
+            ) -> _Attempt:
+        """One run of the window loop (a polish sweep when ``start_keyframes`` are given), its from-scratch replay
+        and metrics, listed among the attempts."""
+        polish = start_keyframes is not None
+        problem = window_problem(prep, ev, start, weights, rotation_weight)
+        report = None if progress is None else _with_attempt(progress, len(attempts) + 1)
+        keyframes, logs = optimise_windows(problem, settings, start_keyframes, progress=report,
+                                           should_stop=should_stop, polish=polish)
+        this = _Attempt(keyframes, logs, replay(prep, ev, start, keyframes, record_contacts=False), settings,
+                        rotation_weight)
+        m = this.metrics = replay_metrics(prep, this.final)
+        tried.append(keyframes)
+        attempts.append({**attempt_figures(m), "seed": settings.seed, "lookahead_rotation_weight": rotation_weight,
+                         **({"polish": True} if polish else {}), "evaluations": int(sum(w.evaluations for w in logs))})
+        return this
+
     try:
         start, settle_steps = settled_start(prep, ev)
         weights = resolve_weights(options.loss_weights)
         best: _Attempt | None = None
         for attempt in range(options.restarts + 1):
             seed, rotation_weight = attempt_plan(options.seed, attempt)
-            problem = window_problem(prep, ev, start, weights, rotation_weight)
-            settings = replace(cma_settings(options, prep.interval), **(cma_overrides or {}), seed=seed)
-            report = None if progress is None else _with_attempt(progress, attempt + 1)
-            keyframes, logs = optimise_windows(problem, settings, progress=report, should_stop=should_stop)
-            this = _Attempt(keyframes, logs, replay(prep, ev, start, keyframes, record_contacts=False), settings,
-                            rotation_weight)
-            m = this.metrics = replay_metrics(prep, this.final)
-            tried.append(keyframes)
-            attempts.append({**attempt_figures(m), "seed": settings.seed, "lookahead_rotation_weight": rotation_weight,
-                             "evaluations": int(sum(w.evaluations for w in logs))})
-            if best is None or rank(m) > rank(best.metrics):
+            this = run(replace(cma_settings(options, prep.interval), **(cma_overrides or {}), seed=seed),
+                       rotation_weight)
+            if best is None or attempt_rank(this.metrics) > attempt_rank(best.metrics):
                 best = this
             if attempts_done(best.metrics, attempt):
                 break
         assert best is not None
         if options.polish and object_error(best.metrics) > POLISH_OBJECT_ERROR:
             # The rotation error is charged in full: the lookahead's wrist turn is the later keyframes' own now.
-            problem = window_problem(prep, ev, start, weights, 1.0)
-            settings = polish_settings(best.settings)
-            report = None if progress is None else _with_attempt(progress, len(attempts) + 1)
-            keyframes, logs = optimise_windows(problem, settings, best.keyframes, progress=report,
-                                               should_stop=should_stop, polish=True)
-            this = _Attempt(keyframes, logs, replay(prep, ev, start, keyframes, record_contacts=False), settings, 1.0)
-            m = this.metrics = replay_metrics(prep, this.final)
-            tried.append(keyframes)
-            attempts.append({**attempt_figures(m), "seed": settings.seed, "lookahead_rotation_weight": 1.0,
-                             "polish": True, "evaluations": int(sum(w.evaluations for w in logs))})
-            if rank(m) > rank(best.metrics):
+            this = run(polish_settings(best.settings), 1.0, best.keyframes)
+            if attempt_rank(this.metrics) > attempt_rank(best.metrics):
                 best = this
         keyframes, logs, settings = best.keyframes, best.logs, best.settings
         kept_rotation_weight = best.lookahead_rotation_weight
