@@ -26,7 +26,7 @@ from worker.refine.prepare import prepare, settled_start
 from worker.refine.problem import SimWindowProblem
 from worker.refine.replay import LOOKAHEAD_ROTATION_WEIGHT
 from worker.refine.result import verify_result
-from worker.refine.run import POLISH_OBJECT_ERROR, RefineOutcome, object_error, refine_sequence
+from worker.refine.run import POLISH_OBJECT_ERROR, POLISH_SWEEPS, RefineOutcome, object_error, refine_sequence
 
 # The budget that recovers the synthetic push (more than the product defaults: 6 windows, 2 s of video).
 RECOVERY = JobOptions(seed=7, popsize=12, max_generations=8, free_wrist_translation=True)
@@ -193,28 +193,43 @@ def test_a_failed_refinement_is_tried_again_the_other_way_and_the_best_attempt_k
         verify_result(RefineOutcome(twice.arrays, claimed).to_npz_bytes())
 
 
-def test_a_poor_result_gets_a_polish_sweep_kept_only_if_better() -> None:
+def test_a_poor_result_gets_polish_sweeps_each_kept_only_if_better() -> None:
     seq, _ = recovery_case(offset_x=-0.06)
     tiny = {"seed": 0, "popsize": 4, "max_generations": 1, "restarts": 0}
     plain = refine_sequence(seq, JobOptions(**tiny, polish=False), threads=1)
     polished = refine_sequence(seq, JobOptions(**tiny), threads=1)
     (only,) = plain.summary["attempts"]
     assert object_error(only) > POLISH_OBJECT_ERROR  # poor enough to be polished
-    first, polish = polished.summary["attempts"]
+    first, *sweeps = polished.summary["attempts"]
     assert first == only and "polish" not in first
-    assert polish["polish"] is True and polish["seed"] == first["seed"] and polish["lookahead_rotation_weight"] == 1.0
-    ranked = max((first, polish), key=lambda a: (a["success"], -object_error(a)))
-    assert polished.summary["metrics"]["refined"]["E_t"] == ranked["E_t"]  # the better of the two is the result
-    assert polished.summary["timings"]["evaluations"] == first["evaluations"] + polish["evaluations"]
-    assert ranked is polish  # here the sweep is kept: the result records its settings, which never escalate ...
+    assert 1 <= len(sweeps) <= POLISH_SWEEPS
+    for polish in sweeps:
+        assert polish["polish"] is True and polish["seed"] == first["seed"]
+        assert polish["lookahead_rotation_weight"] == 1.0
+    # Each sweep starts from the best so far and runs only while the one before it was kept with the error still
+    # above the level; the sequence stops at the first sweep not kept, below the level, or at the cap.
+    best = first
+    for i, polish in enumerate(sweeps):
+        assert object_error(best) > POLISH_OBJECT_ERROR
+        kept = (polish["success"], -object_error(polish)) > (best["success"], -object_error(best))
+        if kept:
+            best = polish
+        if i < len(sweeps) - 1:
+            assert kept
+        else:
+            assert not kept or object_error(best) <= POLISH_OBJECT_ERROR or len(sweeps) == POLISH_SWEEPS
+    assert polished.summary["metrics"]["refined"]["E_t"] == best["E_t"]  # the best ranked is the result
+    assert polished.summary["timings"]["evaluations"] == sum(a["evaluations"] for a in (first, *sweeps))
+    assert best is not first  # here a sweep is kept: the result records its settings, which never escalate ...
     assert polished.summary["config"]["cma"]["escalate_loss"] is None
     json.dumps(polished.summary, allow_nan=False)  # ... as null: the summary is standard JSON (PostgreSQL's json)
-    # The polish re-optimised the first pass's keyframes, one per window: both sets are stored and re-simulated.
+    # The first sweep re-optimised the first pass's keyframes, one per window: all sets are stored and re-simulated.
     stored = polished.arrays["right_attempt_keyframes"]
+    assert stored.shape[0] == 1 + len(sweeps)
     np.testing.assert_array_equal(stored[0], plain.arrays["right_keyframes"])
     assert not np.array_equal(stored[1], stored[0])
     assert verify_result(polished.to_npz_bytes())["max_pos_diff_m"] == 0.0
-    claimed = {**polished.summary, "attempts": [first, {**polish, "E_r": polish["E_r"] / 2}]}
+    claimed = {**polished.summary, "attempts": [first, {**sweeps[0], "E_r": sweeps[0]["E_r"] / 2}, *sweeps[1:]]}
     with pytest.raises(ResultMismatchError, match=r"attempts\[1\]\.E_r"):
         verify_result(RefineOutcome(polished.arrays, claimed).to_npz_bytes())
 
