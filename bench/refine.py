@@ -142,10 +142,20 @@ def polish_line(rows: list[dict[str, Any]]) -> str:
     r0, r1 = (statistics.fmean(x) for x in zip(*((b["paper"]["E_r"], r["metrics"]["refined"]["paper"]["E_r"])
                                                   for r, b in kept), strict=True))
     gained = sum(bool(r["metrics"]["refined"]["success"]) and not b["success"] for r, b in kept)
-    return (f"* polish sweeps (a poor best attempt's windows run once more, each keyframe seeing the later ones; "
-            f"worker/refine/run.py): run on {len(polished)} of {len(rows)} sequences, kept on {len(kept)} (its "
-            f"replay ranked better); over those, paper's protocol: E_t {t0:.2f} -> {t1:.2f} cm, E_r {r0:.2f} -> "
-            f"{r1:.2f} deg, {gained} failure(s) turned success")
+    return (f"* polish sweeps (a poor best attempt's windows run once more, each keyframe seeing the later ones, "
+            f"repeated while kept; worker/refine/run.py): run on {len(polished)} of {len(rows)} sequences"
+            f"{further_sweeps(polished)}, kept on {len(kept)} (a sweep's replay ranked better); over those, paper's "
+            f"protocol: E_t {t0:.2f} -> {t1:.2f} cm, E_r {r0:.2f} -> {r1:.2f} deg, {gained} failure(s) turned "
+            f"success")
+
+
+def further_sweeps(polished: list[dict[str, Any]]) -> str:
+    """", a second sweep on N, a third on M" over the sequences that had a first (none when none had more)."""
+    counts = [sum(bool(a.get("polish")) for a in r["attempts"]) for r in polished]
+    ordinals = ["second", "third", "fourth", "fifth"]
+    parts = [f"a {ordinals[k - 2] if k - 2 < len(ordinals) else f'{k}th'} on {sum(c >= k for c in counts)}"
+             for k in range(2, max(counts) + 1)]
+    return "".join(f", {p}" for p in parts)
 
 
 def restarts_tag(args: argparse.Namespace) -> str:

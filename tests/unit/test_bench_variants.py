@@ -109,6 +109,9 @@ def test_the_report_counts_the_polish_sweeps_run_and_kept() -> None:
     rows = [row([first, better], better), row([plain], plain), row([worse_first, worse], worse_first)]
     line = polish_line(rows)
     assert "run on 2 of 3 sequences, kept on 1" in line
+    third = attempt(True, 0.9, 2.5, polish=True)
+    assert "run on 2 of 3 sequences, a second on 1, kept on 1" in polish_line(
+        [row([first, better, third], third), *rows[1:]])
     assert "E_t 4.00 -> 1.00 cm, E_r 20.00 -> 3.00 deg, 1 failure(s) turned success" in line
     assert polish_line(rows[1:2]) == "* polish sweeps: none run"
     assert parse_args(["--no-polish"]).polish is False and parse_args([]).polish is True
