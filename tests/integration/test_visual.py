@@ -225,3 +225,5 @@ def test_a_file_that_is_not_a_refinement_is_refused(tmp_path: Path) -> None:
         from worker.visual import load_result
 
         load_result(tmp_path / "missing.npz")
+    with pytest.raises(UnsupportedFormatError, match="is a folder, not a result file"):
+        load_result(tmp_path)

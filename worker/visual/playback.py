@@ -81,6 +81,8 @@ def load_result(path_or_blob: Any) -> bytes:
     if isinstance(path_or_blob, bytes | bytearray):
         return bytes(path_or_blob)
     path = Path(path_or_blob)
+    if path.is_dir():
+        raise UnsupportedFormatError(f"{path}: is a folder, not a result file (give one result .npz)")
     if not path.is_file():
         raise UnsupportedFormatError(f"{path}: no such result file")
     return path.read_bytes()
