@@ -203,6 +203,7 @@ def test_a_poor_result_gets_polish_sweeps_each_kept_only_if_better() -> None:
     first, *sweeps = polished.summary["attempts"]
     assert first == only and "polish" not in first
     assert 1 <= len(sweeps) <= POLISH_SWEEPS
+    assert f"at most {POLISH_SWEEPS} sweeps" in (JobOptions.model_fields["polish"].description or "")  # as documented
     for polish in sweeps:
         assert polish["polish"] is True and polish["seed"] == first["seed"]
         assert polish["lookahead_rotation_weight"] == 1.0
