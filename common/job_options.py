@@ -48,7 +48,7 @@ class JobOptions(BaseModel):
         default=True,
         description="After the attempts, when the best one's object error is above half the published method's "
         "mean, another sweep over its windows in which each keyframe sees the later ones; kept only if better, "
-        "and repeated from it while kept and still above that level (at most 5 sweeps)",
+        "and repeated from it while kept and still above that level (at most 10 sweeps)",
     )
     priority: int = Field(default=0, ge=-100, le=100, description="Higher runs first (queue only)")
     preview_video: bool = Field(

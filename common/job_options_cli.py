@@ -56,7 +56,7 @@ def add_job_option_arguments(parser: argparse.ArgumentParser, queue: bool = Fals
         "--no-polish", dest="polish", action="store_false",
         help="skip the polish sweeps over the best attempt's windows (run when its object error is above half the "
         "published method's mean; each keyframe optimised again with the later ones in view, kept only if better, "
-        "repeated while kept, at most 5)",
+        "repeated while kept, at most 10)",
     )  # fmt: skip
     if queue:
         g.add_argument("--priority", type=int, default=0, help="queue priority, -100..100 (higher runs first)")
