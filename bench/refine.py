@@ -153,8 +153,9 @@ def further_sweeps(polished: list[dict[str, Any]]) -> str:
     """", a second sweep on N, a third on M" over the sequences that had a first (none when none had more)."""
     counts = [sum(bool(a.get("polish")) for a in r["attempts"]) for r in polished]
     ordinals = ["second", "third", "fourth", "fifth", "sixth", "seventh", "eighth", "ninth", "tenth"]
-    parts = [f"a {ordinals[k - 2] if k - 2 < len(ordinals) else f'{k}th'} on {sum(c >= k for c in counts)}"
-             for k in range(2, max(counts) + 1)]
+    names = [ordinals[k - 2] if k - 2 < len(ordinals) else f"{k}th" for k in range(2, max(counts) + 1)]
+    parts = [f"{'an' if name[0] in 'ae' else 'a'} {name} on {sum(c >= k for c in counts)}"
+             for k, name in enumerate(names, start=2)]
     return "".join(f", {p}" for p in parts)
 
 
