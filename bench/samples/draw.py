@@ -15,6 +15,11 @@ They count towards their cell's 3. The third class, ``low_valid`` (hand annotate
 awkward sequence, by ``# awkward: <class>[,<class>]``; ``bench/refine.py`` reads those tags and reports the
 awkward sequences separately. The draw depends only on the data, dev40.txt and the seed: rerunning it gives
 the same file.
+
+The same tool draws other samples from what earlier ones left (``--exclude``, repeatable; ``--per-cell``):
+``holdout80.txt``, 2 per cell from the 340 sequences in neither dev40 nor dev120, a sample no setting was ever
+chosen on (dev120 was screened on from its second fidelity session on). dev120 took every ``on_object`` and
+``low_lift`` sequence of its cells, so the holdout has none of those. Its header holds the command that draws it.
 """
 
 from __future__ import annotations
@@ -78,8 +83,8 @@ def read_sample(path: Path) -> list[tuple[str, list[str]]]:
     return rows
 
 
-def draw(dev: Path, exclude: set[str], seed: int) -> list[tuple[str, str, str, list[str]]]:
-    """(file, object, side, classes) of the drawn sample, sorted by file name."""
+def draw(dev: Path, exclude: set[str], seed: int, per_cell: int = PER_CELL) -> list[tuple[str, str, str, list[str]]]:
+    """(file, object, side, classes) of the drawn sample (``per_cell`` per object and side), sorted by file name."""
     cells: dict[tuple[str, str], list[tuple[str, list[str]]]] = defaultdict(list)
     for path in sorted(dev.glob("*.npz")):
         if path.name in exclude:
@@ -92,8 +97,8 @@ def draw(dev: Path, exclude: set[str], seed: int) -> list[tuple[str, str, str, l
     for (obj, side), members in sorted(cells.items()):
         forced = [m for m in members if {"on_object", "low_lift"} & set(m[1])]
         rest = [m for m in members if m not in forced]
-        pick = rng.permutation(len(rest))[: max(PER_CELL - len(forced), 0)]
-        chosen = forced[:PER_CELL] + [rest[i] for i in sorted(pick)]
+        pick = rng.permutation(len(rest))[: max(per_cell - len(forced), 0)]
+        chosen = forced[:per_cell] + [rest[i] for i in sorted(pick)]
         out += [(name, obj, side, tags) for name, tags in chosen]
     return sorted(out)
 
@@ -103,22 +108,33 @@ def main(argv: list[str] | None = None) -> int:
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--seed", type=int, default=15, help="random seed of the draw (default 15, the issue number)")
-    p.add_argument("--exclude", type=Path, default=ROOT / "bench" / "samples" / "dev40.txt",
-                   help="sample list whose sequences are left out (default dev40)")
+    p.add_argument("--exclude", type=Path, action="append",
+                   help="sample list whose sequences are left out; repeatable (default: dev40 alone)")
+    p.add_argument("--per-cell", type=int, default=PER_CELL,
+                   help=f"sequences per object and hand side (default {PER_CELL})")
     p.add_argument("--out", type=Path, default=ROOT / "bench" / "samples" / "dev120.txt")
     args = p.parse_args(argv)
+    if args.per_cell < 1:
+        p.error("--per-cell must be at least 1")
+    excluded: list[Path] = args.exclude or [ROOT / "bench" / "samples" / "dev40.txt"]
     data = shared_data_dir()
     if data is None:
         print("draw.py: ../shared/data is not present", file=sys.stderr)
         return 2
-    exclude = {name for name, _ in read_sample(args.exclude)}
-    rows = draw(data / "dexycb" / "dev", exclude, args.seed)
+    exclude = {name for path in excluded for name, _ in read_sample(path)}
+    rows = draw(data / "dexycb" / "dev", exclude, args.seed, args.per_cell)
     counts = {c: sum(c in r[3] for r in rows) for c in AWKWARD}
     sides = {s: sum(r[2] == s for r in rows) for s in ("right", "left")}
+    left_out = ", ".join(path.stem for path in excluded)
+    command = "python bench/samples/draw.py" + ("" if args.seed == 15 else f" --seed {args.seed}")
+    command += "".join(f" --exclude {_shown(path)}" for path in args.exclude or [])
+    command += "" if args.per_cell == PER_CELL else f" --per-cell {args.per_cell}"
+    command += "" if args.out == ROOT / "bench" / "samples" / "dev120.txt" else f" --out {_shown(args.out)}"
     header = [
-        f"# dev120: {len(rows)} DexYCB dev sequences not in dev40, drawn by bench/samples/draw.py --seed {args.seed}",
-        f"# (3 per object and hand side; right {sides['right']}, left {sides['left']}; {len({r[1] for r in rows})} "
-        "objects). Regenerate: python bench/samples/draw.py",
+        f"# {args.out.stem}: {len(rows)} DexYCB dev sequences not in {left_out}, drawn by bench/samples/draw.py "
+        f"--seed {args.seed}",
+        f"# ({args.per_cell} per object and hand side; right {sides['right']}, left {sides['left']}; "
+        f"{len({r[1] for r in rows})} objects). Regenerate: {command}",
         "# Awkward sequences are tagged and reported separately by bench/refine.py: "
         + ", ".join(f"{c} {n}" for c, n in counts.items()),
         "# (on_object: frame-0 object bottom > 3 cm above the table; low_lift: lift < 5 cm; low_valid: hand in < 80%"
@@ -128,6 +144,12 @@ def main(argv: list[str] | None = None) -> int:
     args.out.write_text("\n".join(header + body) + "\n")
     print(f"wrote {args.out}: {len(rows)} sequences, sides {sides}, awkward {counts}")
     return 0
+
+
+def _shown(path: Path) -> str:
+    """``path`` relative to the checkout where it lies inside it (for the regeneration command in the header)."""
+    resolved = path.resolve()
+    return str(resolved.relative_to(ROOT)) if resolved.is_relative_to(ROOT) else str(path)
 
 
 if __name__ == "__main__":

@@ -1,22 +1,26 @@
 """The dev120 reporting sample (bench/samples/dev120.txt, issue #15 item 6): its make-up, that it is what its
 committed draw gives, and that its awkward sequences (object on another object, lift < 5 cm, hand annotated in
-< 80% of frames) replay and refine without crashing. Skips without ../shared where the data is needed."""
+< 80% of frames) replay and refine without crashing; and the holdout80 sample drawn from what dev40 and dev120 left
+(never tuned on): that it is what the command in its header draws. Skips without ../shared where the data is
+needed."""
 
 from __future__ import annotations
 
+import shlex
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from bench.samples.draw import AWKWARD, awkward_classes, draw, read_sample
+from bench.samples.draw import AWKWARD, awkward_classes, draw, main, read_sample
 from common.dexycb import load_dexycb_npz
 from common.job_options import JobOptions
 
 ROOT = Path(__file__).resolve().parents[2]
 DEV120 = ROOT / "bench" / "samples" / "dev120.txt"
 DEV40 = ROOT / "bench" / "samples" / "dev40.txt"
+HOLDOUT80 = ROOT / "bench" / "samples" / "holdout80.txt"
 SEED = 15  # the seed named in dev120.txt's header
 
 # One of each awkward class (the lowest-valid, the highest start, a lift of 0.4 cm).
@@ -49,6 +53,30 @@ def test_dev120_is_its_committed_draw_with_tags_from_the_data(shared_data: Path)
     per_object = Counter(obj for _, obj, _, _ in drawn)
     assert len(per_object) == 20 and set(per_object.values()) == {6}
     assert Counter(side for _, _, side, _ in drawn) == {"right": 60, "left": 60}
+
+
+def test_holdout80_is_80_sequences_disjoint_from_dev40_and_dev120() -> None:
+    names = [n for n, _ in read_sample(HOLDOUT80)]
+    assert len(names) == len(set(names)) == 80
+    assert not set(names) & {n for sample in (DEV40, DEV120) for n, _ in read_sample(sample)}
+
+
+def test_holdout80_is_what_the_command_in_its_header_draws(shared_data: Path, tmp_path: Path) -> None:
+    header = HOLDOUT80.read_text().splitlines()[1]
+    command = shlex.split(header.partition("Regenerate: ")[2])
+    assert command[:2] == ["python", "bench/samples/draw.py"]
+    args = command[2:]
+    out = tmp_path / "holdout80.txt"
+    args[args.index("--out") + 1] = str(out)
+    assert main(args) == 0
+    assert read_sample(out) == read_sample(HOLDOUT80)
+    assert "right 40, left 40; 20 objects" in out.read_text()
+
+
+def test_draw_refuses_an_empty_cell_size(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(["--per-cell", "0"])
+    assert "--per-cell must be at least 1" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("name", [ON_OBJECT, LOW_LIFT, LOW_VALID])
