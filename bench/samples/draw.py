@@ -40,8 +40,10 @@ ON_OBJECT_M = 0.03
 LOW_LIFT_M = 0.05
 LOW_VALID_FRACTION = 0.8
 PER_CELL = 3
-#: dev120's seed, the issue number; the header's regeneration command names any other.
+#: dev120's seed, the issue number, and its file; the header's regeneration command names any other.
 DEFAULT_SEED = 15
+DEFAULT_OUT = ROOT / "bench" / "samples" / "dev120.txt"
+DEFAULT_EXCLUDE = ROOT / "bench" / "samples" / "dev40.txt"
 AWKWARD = ("on_object", "low_lift", "low_valid")
 
 
@@ -115,11 +117,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="sample list whose sequences are left out; repeatable (default: dev40 alone)")
     p.add_argument("--per-cell", type=int, default=PER_CELL,
                    help=f"sequences per object and hand side (default {PER_CELL})")
-    p.add_argument("--out", type=Path, default=ROOT / "bench" / "samples" / "dev120.txt")
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = p.parse_args(argv)
     if args.per_cell < 1:
         p.error("--per-cell must be at least 1")
-    excluded: list[Path] = args.exclude or [ROOT / "bench" / "samples" / "dev40.txt"]
+    excluded: list[Path] = args.exclude or [DEFAULT_EXCLUDE]
     data = shared_data_dir()
     if data is None:
         print("draw.py: ../shared/data is not present", file=sys.stderr)
@@ -132,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     command = "python bench/samples/draw.py" + ("" if args.seed == DEFAULT_SEED else f" --seed {args.seed}")
     command += "".join(f" --exclude {_shown(path)}" for path in args.exclude or [])
     command += "" if args.per_cell == PER_CELL else f" --per-cell {args.per_cell}"
-    command += "" if args.out == ROOT / "bench" / "samples" / "dev120.txt" else f" --out {_shown(args.out)}"
+    command += "" if args.out == DEFAULT_OUT else f" --out {_shown(args.out)}"
     header = [
         f"# {args.out.stem}: {len(rows)} DexYCB dev sequences not in {left_out}, drawn by bench/samples/draw.py "
         f"--seed {args.seed}",
