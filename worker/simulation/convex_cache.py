@@ -27,12 +27,10 @@ from common.geometry import FloatArray
 #: table fit and the scene build the same object, a refinement twice more for ``verify``.
 _MEMO: dict[str, tuple[tuple[FloatArray, ...], str]] = {}
 
-#: Quick CoACD settings (seconds, not minutes, on 300-800-vertex meshes), at most 32 parts. Threshold 0.04 with
-#: 32 parts rather than 0.08 with 16: the coarser parts filled openings fingers grip through (a pitcher's handle)
-#: and rounded a bottle's shoulders a pinch holds (see bench/results/dev120_experiments.md).
+#: Quick CoACD settings (seconds, not minutes, on 300-800-vertex meshes), at most 16 parts.
 COACD_PARAMS: dict[str, Any] = {
-    "threshold": 0.04,
-    "max_convex_hull": 32,
+    "threshold": 0.08,
+    "max_convex_hull": 16,
     "preprocess_mode": "off",
     "resolution": 1000,
     "mcts_iterations": 60,
