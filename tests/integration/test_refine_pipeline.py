@@ -46,9 +46,14 @@ def test_parameter_recovery_from_a_shifted_hand(recovered: tuple[Any, RefineOutc
     assert not raw["success"] and raw["max_E_t"] > 3.0
     assert refined["success"]
     assert refined["E_t"] < 0.5, refined
-    # The recovered offset is a forward translation of the wrist (the parameter that was perturbed).
-    forward = outcome.keyframes["right"][2:, -3]  # translation x, in units of 2 cm
-    assert np.median(forward) > 0.5
+    # The recovered offset is the perturbation undone: once the push is under way the simulated wrist runs the
+    # 3.5 cm ahead of the recorded (shifted) one. Checked on the wrist track, not on the keyframes' translation
+    # coefficients: CMA-ES spreads the same track over the spline's keyframes differently on different CPU kinds
+    # (their median was 0.34 units of 2 cm on an AMD EPYC, above 0.5 on an Intel Xeon; the track 3.8 cm ahead).
+    arrays = outcome.arrays
+    ahead_cm = 100 * (arrays["right_keypoints_sim"][:, 0, 0] - arrays["right_keypoints_ref"][:, 0, 0])
+    second_half = ahead_cm[len(ahead_cm) // 2 :]
+    assert abs(float(np.median(second_half)) - 3.5) < 1.0, np.round(ahead_cm, 2)
 
 
 def _members(blob: bytes) -> dict[str, bytes]:
