@@ -30,30 +30,32 @@ from worker.refine.run import POLISH_OBJECT_ERROR, POLISH_SWEEPS, RefineOutcome,
 
 # The budget that recovers the synthetic push (more than the product defaults: 6 windows, 2 s of video).
 RECOVERY = JobOptions(seed=7, popsize=12, max_generations=8, free_wrist_translation=True)
+#: How far the recovery case's hand is shifted back along its push (metres).
+SHIFT_M = 0.035
 
 
 @pytest.fixture(scope="module")
 def recovered() -> tuple[Any, RefineOutcome]:
-    seq, _ = recovery_case()
+    seq, _ = recovery_case(offset_x=-SHIFT_M)
     return seq, refine_sequence(seq, RECOVERY, threads=2)
 
 
 @pytest.mark.slow
 def test_parameter_recovery_from_a_shifted_hand(recovered: tuple[Any, RefineOutcome]) -> None:
-    # The hand was shifted 3.5 cm back along its push: replayed as is, the box lags by more than 3 cm.
+    # The hand was shifted SHIFT_M (3.5 cm) back along its push: replayed as is, the box lags by more than 3 cm.
     _, outcome = recovered
     raw, refined = outcome.summary["metrics"]["raw"], outcome.summary["metrics"]["refined"]
     assert not raw["success"] and raw["max_E_t"] > 3.0
     assert refined["success"]
     assert refined["E_t"] < 0.5, refined
     # The recovered offset is the perturbation undone: once the push is under way the simulated wrist runs the
-    # 3.5 cm ahead of the recorded (shifted) one. Checked on the wrist track, not on the keyframes' translation
+    # shift ahead of the recorded (shifted) one. Checked on the wrist track, not on the keyframes' translation
     # coefficients: CMA-ES spreads the same track over the spline's keyframes differently on different CPU kinds
     # (their median was 0.34 units of 2 cm on an AMD EPYC, above 0.5 on an Intel Xeon; the track 3.8 cm ahead).
     arrays = outcome.arrays
     ahead_cm = 100 * (arrays["right_keypoints_sim"][:, 0, 0] - arrays["right_keypoints_ref"][:, 0, 0])
     second_half = ahead_cm[len(ahead_cm) // 2 :]
-    assert abs(float(np.median(second_half)) - 3.5) < 1.0, np.round(ahead_cm, 2)
+    assert abs(float(np.median(second_half)) - 100 * SHIFT_M) < 1.0, np.round(ahead_cm, 2)
 
 
 def _members(blob: bytes) -> dict[str, bytes]:
