@@ -149,6 +149,31 @@ def polish_line(rows: list[dict[str, Any]]) -> str:
             f"success")
 
 
+def rescue_line(rows: list[dict[str, Any]]) -> str:
+    """How many sequences the rescue on finer convex parts ran on (``worker.refine.run.RESCUE``), on which it was
+    kept, and what it did to their object errors (paper's protocol; the best attempt on the product's parts against
+    the result)."""
+    from worker.refine.run import attempt_rank
+
+    def fine(a: dict[str, Any]) -> bool:
+        return a.get("convex_detail", "coarse") != "coarse"
+
+    rescued = [r for r in rows if any(fine(a) for a in r.get("attempts", []))]
+    if not rescued:
+        return "* rescue on finer convex parts (all attempts failed on a decomposed object): none run"
+    kept = [r for r in rescued if r["config"]["sim"].get("convex_detail", "coarse") != "coarse"]
+    pairs = [(max((a for a in r["attempts"] if not fine(a)), key=attempt_rank)["paper"],
+              r["metrics"]["refined"]["paper"]) for r in kept]
+    change = ""
+    if pairs:
+        t0, t1, r0, r1 = (statistics.fmean(p[i][k] for p in pairs) for k in ("E_t", "E_r") for i in (0, 1))
+        gained = sum(bool(after["success"]) for _, after in pairs)
+        change = (f"; over those, paper's protocol: E_t {t0:.2f} -> {t1:.2f} cm, E_r {r0:.2f} -> {r1:.2f} deg, "
+                  f"{gained} turned success ({', '.join(r['sequence'] for r in kept)})")
+    return (f"* rescue on finer convex parts (every attempt failed on a decomposed object; worker/refine/run.py "
+            f"RESCUE): run on {len(rescued)} of {len(rows)} sequences, kept on {len(kept)}{change}")
+
+
 def further_sweeps(polished: list[dict[str, Any]]) -> str:
     """", a second sweep on N, a third on M" over the sequences that had a first (none when none had more)."""
     counts = [sum(bool(a.get("polish")) for a in r["attempts"]) for r in polished]
@@ -386,6 +411,7 @@ def render(rows: list[dict[str, Any]], args: argparse.Namespace, n_sample: int) 
         " level in the rest",
         held_until_moved_line(rows),
         polish_line(rows),
+        rescue_line(rows),
         f"* where the time goes (sums over the sequences): batched CMA-ES rollouts {_sum(rows, 'rollout_s'):.0f} s "
         f"({_sum(rows, 'rollout_steps') / max(_sum(rows, 'rollout_s'), 1e-9):.0f} steps/s), Python-stepped "
         f"probes, commits and replays {_sum(rows, 'python_step_s'):.0f} s "

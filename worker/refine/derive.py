@@ -13,7 +13,7 @@ load; 1e-16 there grew to 0.066 mm in the contact-rich replay).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -58,9 +58,13 @@ def derive_result(
     mirror_left: bool | None = None,
     references: list[HandReference] | None = None,
     threads: int = 1,
+    attempt_details: list[str] | None = None,
 ) -> Derived:
     """See the module docstring. ``attempt_keyframes`` the keyframes of every attempt (restarts) in order, stored
-    so ``verify`` can check the first attempt's success too; ``cache_dir``, ``mano_dir`` and ``mirror_left`` (the
+    so ``verify`` can check the first attempt's success too; ``attempt_details`` the convex parts each ran on
+    (``SimConfig.convex_detail``; None: all on ``config``'s): an attempt made on other parts than the result
+    (``worker.refine.run.RESCUE``) is replayed on a preparation with those. ``cache_dir``, ``mano_dir`` and
+    ``mirror_left`` (the
     left hand's control convention, ``config.left_hand_controls``) as for ``prepare``. ``references``: the
     retargeting of these very bytes, when the caller made it already (``refine_sequence``; ``verify`` never passes
     it, so a retargeting that did not reproduce would fail there). ``threads``: replays run side by side
@@ -74,20 +78,43 @@ def derive_result(
             got = None if k is None else k.shape
             raise ValueError(f"{side}_keyframes must have shape ({space.n_keyframes}, {space.dim}), got {got}")
     attempts = attempt_keyframes or []
-    # Fresh MjData (Python-stepped): nothing simulated before can leak into the result.
-    with ParallelEvaluator(prep.scene.model, 1) as ev:
-        start, settle = settled_start(prep, ev)
+    details = attempt_details or [config.convex_detail] * len(attempts)
+    if len(details) != len(attempts):
+        raise ValueError(f"{len(attempts)} attempts' keyframes but {len(details)} attempts' convex parts")
+    own = [k for k, d in zip(attempts, details, strict=True) if d == config.convex_detail]
     zero = {side: sp.zero_keyframes() for side, sp in prep.spaces.items()}
-    jobs = [ReplayJob(zero), ReplayJob(keyframes), *(ReplayJob(k, record_contacts=False) for k in attempts)]
-    (raw, final, *tried), replay_steps = replay_all(prep, start, jobs, threads)
-    attempt_metrics = [scalar_metrics(replay_metrics(prep, rec)) for rec in tried]
-    steps = settle + replay_steps
+    (raw, final, *tried), steps = _replays(prep, [ReplayJob(zero), ReplayJob(keyframes), *_attempt_jobs(own)],
+                                           threads)
+    attempt_metrics: list[dict[str, Any] | None] = [None] * len(attempts)
+    for detail in dict.fromkeys(details):
+        mine = [i for i, d in enumerate(details) if d == detail]
+        on, records = prep, tried
+        if detail != config.convex_detail:  # a rescued result's attempts on the product's parts, or the other way
+            on = prepare(seq, options, replace(config, convex_detail=detail), rotation_pivot=rotation_pivot,
+                         cache_dir=cache_dir, mano_dir=mano_dir, mirror_left=mirror_left, references=prep.references)
+            records, more = _replays(on, _attempt_jobs([attempts[i] for i in mine]), threads)
+            steps += more
+        for i, rec in zip(mine, records, strict=True):
+            attempt_metrics[i] = scalar_metrics(replay_metrics(on, rec))
     metrics = {"raw": replay_metrics(prep, raw), "refined": replay_metrics(prep, final)}
     arrays = build_arrays(prep, sequence_bytes, keyframes, final, raw, metrics["raw"], metrics["refined"])
     for side in prep.spaces:
         if attempts:
             arrays[f"{side}_attempt_keyframes"] = np.stack([k[side] for k in attempts])
-    return Derived(prep, raw, final, metrics, attempt_metrics, arrays, steps)
+    return Derived(prep, raw, final, metrics, [m for m in attempt_metrics if m is not None], arrays, steps)
+
+
+def _attempt_jobs(keyframes: list[dict[str, FloatArray]]) -> list[ReplayJob]:
+    return [ReplayJob(k, record_contacts=False) for k in keyframes]
+
+
+def _replays(prep: Prepared, jobs: list[ReplayJob], threads: int) -> tuple[list[ReplayRecord], int]:
+    """``jobs`` replayed from ``prep``'s settled frame 0, and the physics steps (settle + replays). A fresh MjData
+    (Python-stepped): nothing simulated before can leak into the result."""
+    with ParallelEvaluator(prep.scene.model, 1) as ev:
+        start, settle = settled_start(prep, ev)
+    records, replay_steps = replay_all(prep, start, jobs, threads)
+    return list(records), settle + replay_steps
 
 
 def replay_metrics(prep: Prepared, rec: ReplayRecord) -> dict[str, Any]:

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import mujoco
 import mujoco.rollout
@@ -68,6 +68,10 @@ class EvalStats:
     rollout_seconds: float = 0.0
     python_seconds: float = 0.0
     python_steps: int = 0
+
+    def plus(self, other: EvalStats) -> EvalStats:
+        """The counts of both (a refinement that ran on two models, ``worker.refine.run.RESCUE``)."""
+        return EvalStats(**{f.name: getattr(self, f.name) + getattr(other, f.name) for f in fields(self)})
 
     def add_rollout(self, candidates: int, steps: int, seconds: float) -> None:
         """Count one batched rollout of ``candidates`` x ``steps`` steps that took ``seconds``."""

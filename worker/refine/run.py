@@ -26,13 +26,13 @@ from common.result_format import write_result_npz
 from common.sequence import Sequence
 from common.sequence_io import sequence_from_npz_bytes, sequence_to_npz_bytes
 from worker.refine.derive import add_attempt_metrics, attempt_figures, derive_result, replay_metrics
-from worker.refine.evaluator import ParallelEvaluator
+from worker.refine.evaluator import ParallelEvaluator, SimState
 from worker.refine.losses import ROT_SCALE, resolve_weights
-from worker.refine.prepare import DEFAULT_MAX_GENERATIONS, DEFAULT_POPSIZE, prepare, settled_start
+from worker.refine.prepare import DEFAULT_MAX_GENERATIONS, DEFAULT_POPSIZE, Prepared, prepare, settled_start
 from worker.refine.replay import LOOKAHEAD_ROTATION_WEIGHT, ReplayRecord, replay, window_problem
 from worker.refine.result import build_summary
 from worker.refine.windowed import CmaSettings, RefineProgress, WindowLog, optimise_windows
-from worker.simulation.config import SimConfig
+from worker.simulation.config import CONVEX_DETAILS, SimConfig
 from worker.simulation.metrics import scalar_metrics
 
 #: Skip a window when no hand touches the object and its loss per frame is below this (see windowed).
@@ -55,6 +55,14 @@ RETRY_OBJECT_ERROR = 0.67 + 2.97 / float(np.degrees(ROT_SCALE))
 #: The best attempt gets a polish sweep (``windowed.optimise_windows(polish=True)``) when its object error is above
 #: this, half the published mean: a sequence refined that well has little left for a sweep to find.
 POLISH_OBJECT_ERROR = RETRY_OBJECT_ERROR / 2
+#: The rescue of a refinement that failed on a decomposed object: the whole plan (attempts, then polish) again on
+#: finer convex parts (``SimConfig.convex_detail``), kept if it ranks higher (``attempt_rank``). A grasp the coarse
+#: parts cannot hold (their hull bridges a concavity the fingers close into) is often held on the finer ones, while
+#: as the only geometry the finer parts lost as many grasps as they saved (bench/results/
+#: refine_dev120_coacd_fine_part.md). Successes are never run again, so they are as before. Forecast from measured
+#: rows before it was built (``dev120_experiments.md``, eleventh session): dev120 E_t 0.515 -> 0.487 cm,
+#: E_r 2.016 -> 1.973 deg, 4 of the 5 failures kept on the finer parts, none of them turned into a success.
+RESCUE: dict[str, Any] = {"convex_detail": CONVEX_DETAILS[1]}
 #: The polish starts each window from a finished pass's keyframe, so it searches nearer it than a first pass
 #: (half the first step) and never escalates (the first pass already gave hard windows their larger run).
 POLISH_SIGMA_FACTOR = 0.5
@@ -132,6 +140,15 @@ def object_error(m: dict[str, Any]) -> float:
     return float(m["E_t"] + m["E_r"] / np.degrees(ROT_SCALE))
 
 
+def rescue_due(best: dict[str, Any], prep: Prepared, options: JobOptions) -> bool:
+    """Whether the plan runs again on the finer convex parts (``RESCUE``): every attempt and sweep failed
+    (``best``: the metrics of the best), the object is split into convex parts (a hull or a primitive has nothing
+    finer to give), the convex parts are the product's (a finer run is not repeated) and ``options.restarts``
+    allows more than one attempt (0 asks for a single run of the window loop)."""
+    return (not best["success"] and options.restarts > 0 and len(prep.scene.object_geom_ids) > 1
+            and prep.scene.config.convex_detail == CONVEX_DETAILS[0])
+
+
 def refine_sequence(
     seq: Sequence,
     options: JobOptions,
@@ -160,8 +177,9 @@ def refine_sequence(
     attempt's object error is above ``POLISH_OBJECT_ERROR``, a polish sweep over its keyframes (``windowed``): each
     window sees the later keyframes that attempt chose instead of holding its own candidate; its replay replaces the
     kept attempt only if it ranks better. While a sweep is kept and the error is still above the level, another
-    sweep starts from it (at most ``POLISH_SWEEPS``). The best is the result; every attempt and sweep is in the
-    summary.
+    sweep starts from it (at most ``POLISH_SWEEPS``). When even the best fails on an object split into convex
+    parts, the whole plan runs again on finer parts (``RESCUE``, ``rescue_due``) and is kept if it ranks higher. The
+    best is the result; every attempt and sweep is in the summary, with the convex parts it ran on.
     """
     t0 = time.perf_counter()
     # The result embeds the sequence as these bytes and is derived from them (``derive``); the optimisation runs
@@ -176,31 +194,32 @@ def refine_sequence(
 
     attempts: list[dict[str, Any]] = []
     tried: list[dict[str, FloatArray]] = []
+    weights = resolve_weights(options.loss_weights)
 
-    def run(settings: CmaSettings, rotation_weight: float, start_keyframes: dict[str, FloatArray] | None = None
-            ) -> _Attempt:
-        """One run of the window loop (a polish sweep when ``start_keyframes`` are given), its from-scratch replay
-        and metrics, listed among the attempts."""
+    def run(on: _Geometry, settings: CmaSettings, rotation_weight: float,
+            start_keyframes: dict[str, FloatArray] | None = None) -> _Attempt:
+        """One run of the window loop on ``on`` (a polish sweep when ``start_keyframes`` are given), its
+        from-scratch replay and metrics, listed among the attempts with the convex parts it ran on."""
         polish = start_keyframes is not None
-        problem = window_problem(prep, ev, start, weights, rotation_weight)
+        problem = window_problem(on.prep, ev, on.start, weights, rotation_weight)
         report = None if progress is None else _with_attempt(progress, len(attempts) + 1)
         keyframes, logs = optimise_windows(problem, settings, start_keyframes, progress=report,
                                            should_stop=should_stop, polish=polish)
-        this = _Attempt(keyframes, logs, replay(prep, ev, start, keyframes, record_contacts=False), settings,
-                        rotation_weight)
-        m = this.metrics = replay_metrics(prep, this.final)
+        this = _Attempt(keyframes, logs, replay(on.prep, ev, on.start, keyframes, record_contacts=False), settings,
+                        rotation_weight, on)
+        m = this.metrics = replay_metrics(on.prep, this.final)
         tried.append(keyframes)
         attempts.append({**attempt_figures(m), "seed": settings.seed, "lookahead_rotation_weight": rotation_weight,
-                         **({"polish": True} if polish else {}), "evaluations": int(sum(w.evaluations for w in logs))})
+                         **({"polish": True} if polish else {}), "evaluations": int(sum(w.evaluations for w in logs)),
+                         "convex_detail": on.prep.scene.config.convex_detail})
         return this
 
-    try:
-        start, settle_steps = settled_start(prep, ev)
-        weights = resolve_weights(options.loss_weights)
+    def plan(on: _Geometry) -> _Attempt:
+        """The attempts of ``attempt_plan`` until one is good enough, then the polish sweeps of the best."""
         best: _Attempt | None = None
         for attempt in range(options.restarts + 1):
             seed, rotation_weight = attempt_plan(options.seed, attempt)
-            this = run(replace(cma_settings(options, prep.interval), **(cma_overrides or {}), seed=seed),
+            this = run(on, replace(cma_settings(options, prep.interval), **(cma_overrides or {}), seed=seed),
                        rotation_weight)
             if best is None or attempt_rank(this.metrics) > attempt_rank(best.metrics):
                 best = this
@@ -212,13 +231,29 @@ def refine_sequence(
                 break
             # The rotation error is charged in full: the lookahead's wrist turn is the later keyframes' own now.
             # Each sweep starts from the best so far with half its step (``polish_settings``).
-            this = run(polish_settings(best.settings), 1.0, best.keyframes)
+            this = run(on, polish_settings(best.settings), 1.0, best.keyframes)
             if attempt_rank(this.metrics) <= attempt_rank(best.metrics):
                 break  # not kept: a sweep from the same keyframes and step would search the same ground
             best = this
+        return best
+
+    try:
+        start, settle_steps = settled_start(prep, ev)
+        best = plan(_Geometry(prep, start))
+        stats = ev.stats
+        if rescue_due(best.metrics, prep, options):
+            # The same plan on finer convex parts, from zero offsets: kept only if it ranks higher (``RESCUE``).
+            fine = prepare(sequence_from_npz_bytes(seq_bytes), options, replace(prep.scene.config, **RESCUE),
+                           cache_dir=cache_dir, mano_dir=mano_dir, references=prep.references)
+            ev.ensure_model(fine.scene.model)
+            fine_start, fine_settle = settled_start(fine, ev)
+            rescue = plan(_Geometry(fine, fine_start))
+            stats, settle_steps = stats.plus(ev.stats), settle_steps + fine_settle
+            if attempt_rank(rescue.metrics) > attempt_rank(best.metrics):
+                best = rescue
+        prep = best.on.prep
         keyframes, logs, settings = best.keyframes, best.logs, best.settings
         kept_rotation_weight = best.lookahead_rotation_weight
-        stats = ev.stats
     finally:
         if own:
             ev.close()
@@ -227,7 +262,8 @@ def refine_sequence(
     derived = derive_result(seq_bytes, options, prep.scene.config, prep.rotation_pivot, keyframes,
                             tried if len(tried) > 1 else None, cache_dir=cache_dir, mano_dir=mano_dir,
                             mirror_left=prep.mirror_left, references=prep.references,
-                            threads=threads)
+                            threads=threads,
+                            attempt_details=[a["convex_detail"] for a in attempts] if len(tried) > 1 else None)
     derive_s = time.perf_counter() - t_derive
     wall = time.perf_counter() - t0
     final = derived.final
@@ -269,15 +305,25 @@ def refine_sequence(
     return RefineOutcome(arrays, summary, keyframes)
 
 
+@dataclass(frozen=True)
+class _Geometry:
+    """A preparation the window loop runs on (the product's convex parts or the rescue's) and its settled start."""
+
+    prep: Prepared
+    start: SimState
+
+
 @dataclass
 class _Attempt:
-    """One run of the window loop: its keyframes, window logs, from-scratch replay and that replay's metrics."""
+    """One run of the window loop: its keyframes, window logs, from-scratch replay and that replay's metrics, and
+    the preparation it ran on."""
 
     keyframes: dict[str, FloatArray]
     logs: list[WindowLog]
     final: ReplayRecord
     settings: CmaSettings
     lookahead_rotation_weight: float
+    on: _Geometry
     metrics: dict[str, Any] = field(default_factory=dict)
 
 

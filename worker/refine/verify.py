@@ -43,7 +43,7 @@ from worker.refine.prepare import MIRROR_LEFT_HAND, ROTATION_PIVOT
 from worker.refine.verify_arrays import ArrayChecker, check_stored_metrics
 from worker.refine.verify_report import CROSS_HOST, Tolerances, VerifyReport
 from worker.refine.verify_summary import check_summary
-from worker.simulation.config import OLDER_SIM_DEFAULTS, SimConfig
+from worker.simulation.config import CONVEX_DETAILS, OLDER_SIM_DEFAULTS, SimConfig
 
 __all__ = ["CROSS_HOST", "Tolerances", "VerifyReport", "check_result", "verify_result"]
 
@@ -51,6 +51,9 @@ __all__ = ["CROSS_HOST", "Tolerances", "VerifyReport", "check_result", "verify_r
 #: about the wrist.
 OLDER_DEFAULTS: dict[str, Any] = OLDER_SIM_DEFAULTS
 OLDER_PIVOT = "wrist"
+#: Settings the refinement itself chooses per sequence among these values: not a non-default config as such
+#: (``_check_rescue`` checks when the finer convex parts are the product's).
+PRODUCT_CHOICES: dict[str, tuple[Any, ...]] = {"convex_detail": CONVEX_DETAILS}
 #: Complete sets of physics defaults the product had before: a result made with one of them whole is checked
 #: against that set (a note, not a failure); a mix of old and new values is a non-default config. The first set
 #: a result matches is the one it is read with.
@@ -98,12 +101,14 @@ def check_result(
                                           and not k.endswith("_attempt_keyframes")])
     keyframes = {s: arrays.get(f"{s}_keyframes") for s in sides}
     attempt_kf = _attempt_keyframes(arrays, sides)
+    details = _attempt_details(summary, attempt_kf, sim["convex_detail"])
     try:
         derived = derive_result(seq_bytes, options, SimConfig(**sim), pivot, keyframes,  # type: ignore[arg-type]
                                 attempt_kf, cache_dir=cache_dir, mano_dir=mano_dir, mirror_left=mirror_left,
-                                threads=threads)
+                                threads=threads, attempt_details=details)
     except ValueError as exc:
         raise ResultMismatchError(f"the stored controls do not fit the sequence: {exc}") from exc
+    _check_rescue(report, sim["convex_detail"], details, derived.attempt_metrics, allow_config)
     c = ArrayChecker(report, arrays, derived.arrays)
     c.compare_trajectory()
     tol = None if report.exact else CROSS_HOST
@@ -148,7 +153,7 @@ def _config(config: dict[str, Any], report: VerifyReport, allow_config: bool) ->
                                        + ", ".join(f"{k}={_plain(v)}" for k, v in earlier.items()))
             break
     for name, default in defaults.items():
-        if name in recorded and _differs(stored[name], default):
+        if name in recorded and _differs(stored[name], default) and stored[name] not in PRODUCT_CHOICES.get(name, ()):
             report.config_changes.append((f"sim.{name}", _plain(default), _plain(stored[name])))
     pivot = config.get("rotation_pivot")
     if pivot is None:
@@ -169,6 +174,38 @@ def _config(config: dict[str, Any], report: VerifyReport, allow_config: bool) ->
             report.failures.append(f"config {name}: {value!r} differs from the default {default!r} "
                                    "(--allow-config accepts a non-default physics config)")
     return stored, str(pivot), left == "mirrored"
+
+
+def _attempt_details(summary: dict[str, Any], attempt_kf: list[Any] | None, kept: str) -> list[str] | None:
+    """The convex parts each stored attempt ran on (``SimConfig.convex_detail``): as its summary entry records
+    (older results: all on the result's own)."""
+    entries = summary.get("attempts") or []
+    if attempt_kf is None or len(entries) != len(attempt_kf):
+        return None  # the attempt count is checked against the re-simulation (``check_summary``)
+    details = [str(a.get("convex_detail", kept)) if isinstance(a, dict) else kept for a in entries]
+    unknown = sorted(set(details) - set(CONVEX_DETAILS))
+    if unknown:
+        raise UnsupportedFormatError(f"attempts ran on convex parts this version does not know: {', '.join(unknown)}")
+    return details
+
+
+def _check_rescue(report: VerifyReport, kept: str, details: list[str] | None, attempt_metrics: list[dict[str, Any]],
+                  allow_config: bool) -> None:
+    """A result on the finer convex parts is the product's only as a rescue (``worker.refine.run.rescue_due``):
+    every attempt on the product's parts failed in the re-simulation. Otherwise it is a non-default config."""
+    if kept == CONVEX_DETAILS[0]:
+        return
+    product = [m for d, m in zip(details or [], attempt_metrics, strict=False) if d == CONVEX_DETAILS[0]]
+    if product and not any(m["success"] for m in product):
+        report.config_notes.append(f"convex_detail {kept!r}: the rescue after {len(product)} failed attempt(s) on "
+                                   f"the {CONVEX_DETAILS[0]} convex parts")
+        return
+    report.config_changes.append(("sim.convex_detail", CONVEX_DETAILS[0], kept))
+    why = "no attempt on them" if not product else "an attempt on them succeeded"
+    if not allow_config:
+        report.failures.append(f"config sim.convex_detail: {kept!r} is the product's only when every attempt on the "
+                               f"{CONVEX_DETAILS[0]!r} convex parts failed, and the result lists {why} "
+                               "(--allow-config accepts a non-default physics config)")
 
 
 def _environment_notes(stored: dict[str, Any], report: VerifyReport) -> None:

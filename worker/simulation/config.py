@@ -9,6 +9,8 @@ from common.primitive_surface import SPACING_M
 
 #: contype / conaffinity bits: the hand collides with the object only, the object with hand and table.
 HAND_BIT, OBJECT_BIT, TABLE_BIT = 1, 2, 4
+#: ``SimConfig.convex_detail``'s values, the product's first.
+CONVEX_DETAILS = ("coarse", "fine")
 
 
 @dataclass(frozen=True)
@@ -136,6 +138,17 @@ class SimConfig:
     #: off, and now it is refined with the whole loss, as a mesh is, whose terms also raise the windows' losses
     #: above the escalation level.
     primitive_surface_spacing_m: float = SPACING_M  # 0.005
+    #: How finely a non-convex mesh is split into convex collision parts (``convex_cache.CONVEX_DETAIL_PARAMS``):
+    #: ``coarse`` (CoACD threshold 0.08, at most 16 parts) or ``fine`` (0.04, at most 32). The product refines on
+    #: the coarse parts and uses the fine ones only as a rescue, when every attempt on the coarse ones failed
+    #: (``worker.refine.run``): as the only geometry the fine parts lost more grasps than they saved (dev120's
+    #: decomposed sequences: SR 82.8 -> 75.9 % on 29; bench/results/refine_dev120_coacd_fine_part.md), while the
+    #: sequences that fail on the coarse parts mostly did better on the fine ones (dev120_experiments.md).
+    convex_detail: str = "coarse"
+
+    def __post_init__(self) -> None:
+        if self.convex_detail not in CONVEX_DETAILS:
+            raise ValueError(f"convex_detail must be one of {', '.join(CONVEX_DETAILS)}, got {self.convex_detail!r}")
 
     def unsupported(self, table_drift: float) -> bool:
         """Whether an object that drifts this far on its fitted table is one no table holds (``unsupported_drift``)."""

@@ -1,8 +1,9 @@
 """MJCF of the manipulated object: a free body with the dataset mass and the mesh's inertia (DESIGN §1.4).
 
 Primitives become one MuJoCo primitive geom (MuJoCo computes the inertia from the shape and the mass). Meshes
-become their convex parts (``convex_cache``) as collision geoms; the inertia comes from the original
-watertight mesh (its convex hull when it is not watertight), scaled to the dataset mass.
+become their convex parts (``convex_cache``, as finely as ``SimConfig.convex_detail`` says) as collision geoms;
+the inertia comes from the original watertight mesh (its convex hull when it is not watertight), scaled to the
+dataset mass.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import numpy as np
 from common.geometry import FloatArray
 from common.sequence import ObjectSpec
 from worker.simulation.config import HAND_BIT, OBJECT_BIT, TABLE_BIT, SimConfig
-from worker.simulation.convex_cache import convex_parts
+from worker.simulation.convex_cache import CONVEX_DETAIL_PARAMS, convex_parts
 from worker.simulation.hand_mjcf import fmt
 
 OBJECT_BODY = "object"
@@ -81,7 +82,8 @@ def object_mjcf(
         return ObjectMjcf(assets="", body=f"{head}\n{geom}\n</body>", num_geoms=1, collision="primitive")
 
     assert obj.mesh_vertices is not None and obj.mesh_faces is not None
-    parts, how = convex_parts(obj.mesh_vertices, obj.mesh_faces, cache_dir=cache_dir)
+    parts, how = convex_parts(obj.mesh_vertices, obj.mesh_faces, cache_dir=cache_dir,
+                              params=CONVEX_DETAIL_PARAMS[config.convex_detail])
     com, inertia = mesh_inertia(obj.mesh_vertices, obj.mesh_faces, obj.mass_kg)
     full = [inertia[0, 0], inertia[1, 1], inertia[2, 2], inertia[0, 1], inertia[0, 2], inertia[1, 2]]
     assets, geoms = [], []
