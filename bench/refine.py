@@ -154,14 +154,17 @@ def rescue_line(rows: list[dict[str, Any]]) -> str:
     kept, and what it did to their object errors (paper's protocol; the best attempt on the product's parts against
     the result)."""
     from worker.refine.run import attempt_rank
+    from worker.simulation.config import CONVEX_DETAILS
 
-    def fine(a: dict[str, Any]) -> bool:
-        return a.get("convex_detail", "coarse") != "coarse"
+    product = CONVEX_DETAILS[0]
+
+    def fine(entry: dict[str, Any]) -> bool:  # an attempt, or a result's config.sim (older ones record none)
+        return entry.get("convex_detail", product) != product
 
     rescued = [r for r in rows if any(fine(a) for a in r.get("attempts", []))]
     if not rescued:
         return "* rescue on finer convex parts (all attempts failed on a decomposed object): none run"
-    kept = [r for r in rescued if r["config"]["sim"].get("convex_detail", "coarse") != "coarse"]
+    kept = [r for r in rescued if fine(r["config"]["sim"])]
     pairs = [(max((a for a in r["attempts"] if not fine(a)), key=attempt_rank)["paper"],
               r["metrics"]["refined"]["paper"]) for r in kept]
     change = ""
