@@ -20,6 +20,7 @@ LossName = Literal[
     "hand_velocity",
     "penetration",
     "grasp_reach",
+    "object_articulation",
 ]
 LOSS_NAMES: tuple[str, ...] = LossName.__args__  # type: ignore[attr-defined]
 
