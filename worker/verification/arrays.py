@@ -8,9 +8,9 @@ import numpy as np
 
 from common.geometry import quat_to_matrix, rotation_error_deg
 from common.result_format import CONTACT_KEYS
-from worker.refine.verify_report import CROSS_HOST, Tolerances, VerifyReport
 from worker.simulation.contacts import contact_frames
 from worker.simulation.metrics import compute_metrics, scalar_metrics
+from worker.verification.report import CROSS_HOST, Tolerances, VerifyReport
 
 
 class ArrayChecker:
