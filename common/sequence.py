@@ -190,13 +190,22 @@ class Sequence:
         if self.up is not None:
             rot = _rotation_taking(self.up / np.linalg.norm(self.up), np.array([0.0, 0.0, 1.0]))
         # Origin under the frame-0 object; table at its lowest frame-0 point (resting start).
-        verts0 = _transform_points(self.object.surface_vertices(), self.object_pose[0])
+        verts0 = _transform_points(self._frame0_vertices(), self.object_pose[0])
         world_verts0 = verts0 @ rot.T
         origin = rot @ self.object_pose[0, :3]
         out = np.eye(4)
         out[:3, :3] = rot
         out[:3, 3] = [-origin[0], -origin[1], -world_verts0[:, 2].min()]
         return out
+
+    def _frame0_vertices(self) -> FloatArray:
+        """The object's surface vertices in its base frame, every part posed at its frame-0 joint values."""
+        obj = self.object
+        if not obj.parts or self.articulation is None:
+            return obj.surface_vertices()
+        poses = obj.part_poses(np.array([0.0, 0, 0, 1, 0, 0, 0]), self.articulation[0])
+        return np.concatenate([_transform_points(shape.surface_vertices(), poses[k])
+                               for k, shape in enumerate(obj.part_shapes())])  # fmt: skip
 
     def object_pose_world(self) -> FloatArray:
         """(T, 7) object poses in the world frame, quaternions scalar first and sign-continuous."""

@@ -419,8 +419,10 @@ def _flat_head(value: list[Any], depth: int = 0) -> list[Any]:
 # ---------------------------------------------------------------------- files
 
 
-def load_sequence(path: Path | str, max_frames: int | None = None) -> Sequence:
-    """Read a sequence file, choosing the format by suffix (``.npz`` or ``.json``), or a DexYCB sequence folder."""
+def load_sequence(path: Path | str, max_frames: int | None = None, object_dir: Path | None = None) -> Sequence:
+    """Read a sequence file, choosing the format by suffix (``.npz`` or ``.json``; ``.npy``: an ARCTIC recording,
+    ``common.arctic``, whose object folder ``object_dir`` overrides the one its layout implies), or a DexYCB
+    sequence folder."""
     path = Path(path)
     if path.is_dir() or path.name == "meta.yml":
         # DexYCB native layout: <root>/<subject>/<sequence>/{meta.yml,pose.npz}
@@ -437,7 +439,13 @@ def load_sequence(path: Path | str, max_frames: int | None = None) -> Sequence:
         return seq
     if suffix == ".json":
         return sequence_from_json_bytes(path.read_bytes(), base_dir=path.parent, max_frames=max_frames)
-    raise UnsupportedFormatError(f"{path.name}: unknown sequence format {suffix!r} (expected .npz or .json)")
+    if suffix == ".npy":
+        from common.arctic import load_arctic
+
+        return load_arctic(path, object_dir=object_dir, max_frames=max_frames)
+    raise UnsupportedFormatError(
+        f"{path.name}: unknown sequence format {suffix!r} (expected .npz, .json or an ARCTIC .npy)"
+    )
 
 
 def save_sequence(seq: Sequence, path: Path | str) -> None:

@@ -117,7 +117,7 @@ def check_result(
     c.contacts(derived, tol)
     c.consistency(derived, sides)
     check_summary(report, summary, derived, attempt_kf, tol)
-    check_stored_metrics(report, arrays, summary, sides)
+    check_stored_metrics(report, arrays, summary, sides, tuple(j.kind for j in derived.prep.seq.object.joints))
     report.frames = int(derived.prep.num_frames)
     _environment_notes(summary.get("versions") or {}, report)
     # The digest covers every stored array the derivation makes (the same set on any host, whichever comparison
