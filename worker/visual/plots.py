@@ -119,7 +119,7 @@ def _forces(arrays: dict[str, np.ndarray], summary: dict[str, Any], fps: float, 
     """Contact force per finger over time; two hands side by side, each its own panel."""
     plt = _pyplot()
     frames = int(summary.get("frames") or len(arrays["object_pose_sim"]))
-    sides = [str(s) for s in summary.get("sides") or []]
+    sides = [s for s in ("right", "left") if f"{s}_keypoints_sim" in arrays]
     panels: list[str | None] = list(sides) if len(sides) == 2 else [None]
     fig, axes = plt.subplots(1, len(panels), figsize=(7 * len(panels), 3.5), squeeze=False, sharey=True)
     t = np.arange(frames) / fps
