@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import resource
 import statistics
 import sys
 import time
@@ -108,6 +109,8 @@ def run_one(path: Path, args: argparse.Namespace, cache: Path) -> dict[str, Any]
         "raw": _metrics(s["metrics"]["raw"]), "refined": _metrics(s["metrics"]["refined"]),
         "wall_s": wall, "steps": t.get("steps"), "steps_per_second": t.get("steps_per_second"),
         "attempts": len(s.get("attempts", [])) or 1, "two_hands": args.two_hands,
+        # The process's peak resident memory so far (it only grows): what a long sequence costs in memory.
+        "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }  # fmt: skip
     cache.mkdir(parents=True, exist_ok=True)
     key.write_text(json.dumps(row))
@@ -133,14 +136,14 @@ def _hand(r: dict[str, Any], which: str, proto: str, side: str, key: str) -> Any
 
 def table(rows: list[dict[str, Any]], proto: str) -> list[str]:
     head = ("| sequence | frames | | success | E_t cm | E_r deg | E_a deg | E_j R / L cm | E_ft R / L cm | "
-            "pen mean / max mm | wall s | steps/s |")
+            "pen mean / max mm | wall s (peak RSS) | steps/s |")
     lines = [head, "|" + "---|" * 12]
     for r in rows:
         for which in ("raw", "refined"):
             m = r[which][proto]
             hands = " / ".join(_f(_hand(r, which, proto, s, "E_j")) for s in ("right", "left"))
             tips = " / ".join(_f(_hand(r, which, proto, s, "E_ft")) for s in ("right", "left"))
-            wall = _f(r["wall_s"], 0) if which == "refined" else ""
+            wall = f"{r['wall_s']:.0f} ({r.get('peak_rss_mib', 0):.0f} MiB)" if which == "refined" else ""
             sps = _f(r["steps_per_second"], 0) if which == "refined" else ""
             lines.append(f"| {r['sequence'] if which == 'raw' else ''} | {r['frames'] if which == 'raw' else ''} | "
                          f"{which} | {_f(m['success'])} | {_f(m['E_t'])} | {_f(m['E_r'])} | {_f(m['E_a'])} | {hands} | "
