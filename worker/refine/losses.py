@@ -48,11 +48,7 @@ scale so the default weights read as "how much one scale unit of error costs":
   lifted, 0.3 and 1 moved one or two; 3 lifted and held five (one succeeds, four fail on a peak frame). On
   dev120 (paper's protocol): success 90.8 % unchanged (first attempt 85.0 -> 87.5 %), E_t 1.17 -> 0.76 cm, E_r
   4.45 -> 3.38 deg, penetration 0.39 -> 0.46 mm (sequence maxima 1.47 -> 1.69 mm mean, worst 4.3 -> 8.6 mm);
-  ``bench/results/left_hands_thin.md``. Only the fingers that take part in the recorded grip are asked to touch:
-  those whose recorded distal segment is within ``REACH_CAP`` (3 cm) of the object on the frame
-  (``HandKeypointTargets.reach_fingers``): a thumb 1-2 cm off a thin marker (vision error) still is, while a hand
-  that supports a laptop from below or pushes a lid open with its fingers, its thumb held clear (ARCTIC's two-hand
-  recordings), is not pulled into a pinch it never made.
+  ``bench/results/left_hands_thin.md``.
 
 * ``object_articulation`` (an articulated object only, issue #52): per joint |a_sim - a_ref| / 0.04 rad (or / 1 cm
   for a sliding part), the scale of ``object_pose``'s rotation and position parts, plus (max(0, |a_sim - a_ref| -
@@ -185,9 +181,6 @@ class HandKeypointTargets:
     #: ``contact_local`` is in that part's frame and ``surface`` is unused).
     contact_part: npt.NDArray[np.int64] | None = None
     parts: PartSurfaces | None = None
-    #: (T, 5) the fingers (thumb first) that take part in the recorded grip: their recorded distal segment within
-    #: ``REACH_CAP`` of the object (``grasp_reach`` asks only these to touch); None: every finger.
-    reach_fingers: BoolArray | None = None
 
     def __post_init__(self) -> None:
         t, j, _ = self.keypoints.shape
@@ -378,14 +371,14 @@ def hand_terms(rec: WindowRecord, side: str, ref: HandKeypointTargets) -> dict[s
             assert rec.part_quat is not None
             gaps = ref.parts.gaps(ref.distal, kp[:, grip], rec.part_pos[:, grip], rec.part_quat[:, grip])
             gaps = np.clip(gaps - REACH_TOLERANCE, 0.0, REACH_CAP)  # (C, G, 5)
-            reach = reach_gaps(gaps, None if ref.reach_fingers is None else ref.reach_fingers[f][grip])
+            reach = ((gaps[..., 0] + gaps[..., 1:].min(axis=-1)) / POS_SCALE).sum(axis=1)
     elif ref.grip is not None and ref.distal is not None and ref.surface is not None:
         grip = ref.grip[f]
         if grip.any():
             pts = kp[:, grip]  # (C, G, J, 3)
             local = quat_rotate(quat_conj(rec.obj_quat[:, grip])[:, :, None], pts - rec.obj_pos[:, grip][:, :, None])
             gaps = np.clip(ref.distal.gaps(local, ref.surface) - REACH_TOLERANCE, 0.0, REACH_CAP)  # (C, G, 5)
-            reach = reach_gaps(gaps, None if ref.reach_fingers is None else ref.reach_fingers[f][grip])
+            reach = ((gaps[..., 0] + gaps[..., 1:].min(axis=-1)) / POS_SCALE).sum(axis=1)
     return {
         "hand_joints": joints,
         "fingertip_contact": contact,
@@ -394,18 +387,6 @@ def hand_terms(rec: WindowRecord, side: str, ref: HandKeypointTargets) -> dict[s
         "penetration": pen,
         "grasp_reach": reach,
     }
-
-
-def reach_gaps(gaps: FloatArray, fingers: BoolArray | None) -> FloatArray:
-    """(C,) ``grasp_reach`` from the clipped gaps (C, G, 5) of the grip frames: the thumb's plus the nearest other
-    finger's, / 1 cm, counting only the fingers that take part in the recorded grip on each frame (``fingers``
-    (G, 5), ``HandKeypointTargets.reach_fingers``; None: all)."""
-    if fingers is None or fingers.all():
-        return np.asarray(((gaps[..., 0] + gaps[..., 1:].min(axis=-1)) / POS_SCALE).sum(axis=1))
-    thumb = np.where(fingers[:, 0], gaps[..., 0], 0.0)
-    others = np.where(fingers[:, 1:], gaps[..., 1:], np.inf).min(axis=-1)
-    others = np.where(np.isfinite(others), others, 0.0)
-    return np.asarray(((thumb + others) / POS_SCALE).sum(axis=1))
 
 
 def window_losses(

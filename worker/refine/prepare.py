@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from common.errors import ConfigurationError
-from common.geometry import FloatArray, quat_conj, quat_rotate
+from common.geometry import FloatArray
 from common.job_options import JobOptions
 from common.primitive_surface import object_surface_points, part_surface_points
 from common.sequence import FINGERTIP_INDICES, ObjectSpec, Sequence
@@ -24,7 +24,6 @@ from worker.refine.controls import HandControlSpace, PoseBasis10
 from worker.refine.distance_grid import DistanceGrid
 from worker.refine.evaluator import ParallelEvaluator, SimState
 from worker.refine.losses import (
-    REACH_CAP,
     BoolArray,
     DistalSegments,
     HandKeypointTargets,
@@ -217,12 +216,10 @@ def _hand_targets(
     hands: dict[str, HandKeypointTargets] = {}
     for r in references:
         mask, local = contact_targets(r.keypoints, r.valid, pose[:, :3], pose[:, 3:], surface, FINGERTIP_INDICES)
-        distal = distal_segments(r.geometry)
-        recorded = quat_rotate(quat_conj(pose[:, 3:])[:, None], r.keypoints - pose[:, None, :3])
         hands[r.side] = HandKeypointTargets(
             r.keypoints, r.valid, FINGERTIP_INDICES, mask, local,
             grip=grip_frames(pose, mask, round(GRIP_LEAD_S * seq.fps)),
-            distal=distal, surface=surface_grid, reach_fingers=distal.gaps(recorded, surface_grid) <= REACH_CAP,
+            distal=distal_segments(r.geometry), surface=surface_grid,
         )  # fmt: skip
     return hands
 
@@ -245,12 +242,10 @@ def _part_hand_targets(
                                                  surfaces.exact, FINGERTIP_INDICES)  # fmt: skip
         # The grip follows the part the hand holds: a hand on a lid grips from when the lid starts to move.
         moved = _part_moved_pose(parts, part, mask)
-        distal = distal_segments(r.geometry)
-        reach = surfaces.gaps(distal, r.keypoints, parts[..., :3], parts[..., 3:]) <= REACH_CAP
         hands[r.side] = HandKeypointTargets(
             r.keypoints, r.valid, FINGERTIP_INDICES, mask, local,
             grip=grip_frames(moved, mask, round(GRIP_LEAD_S * seq.fps)),
-            distal=distal, contact_part=part, parts=surfaces, reach_fingers=reach,
+            distal=distal_segments(r.geometry), contact_part=part, parts=surfaces,
         )  # fmt: skip
     return hands
 
