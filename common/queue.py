@@ -46,6 +46,7 @@ from common.errors import (
 )
 from common.job_options import JobOptions
 from common.job_state import ACTIVE, JobState
+from common.progress import finished_progress
 from common.queue_types import Artifact, BatchRecord, ClaimedJob, JobEventRecord, JobRecord, QueueStats
 from common.safe_text import shown
 from common.settings import Settings, get_settings
@@ -373,9 +374,9 @@ class JobQueue:
     def _lease_row(self, conn: Connection, job_id: str, lease_token: str) -> Row[Any]:
         row = conn.execute(
             self.tx.locked(
-                sa.select(jobs.c.attempt, jobs.c.errors, jobs.c.cancel_requested, jobs.c.worker_id).where(
-                    jobs.c.id == job_id, jobs.c.lease_token == lease_token, jobs.c.state == JobState.RUNNING
-                )
+                sa.select(
+                    jobs.c.attempt, jobs.c.errors, jobs.c.cancel_requested, jobs.c.worker_id, jobs.c.progress
+                ).where(jobs.c.id == job_id, jobs.c.lease_token == lease_token, jobs.c.state == JobState.RUNNING)
             )
         ).first()
         if row is None:
@@ -398,7 +399,7 @@ class JobQueue:
         token-checked transaction."""
         now = utcnow()
         with self.tx.write() as conn:
-            self._lease_row(conn, job_id, lease_token)
+            row = self._lease_row(conn, job_id, lease_token)
             conn.execute(sa.delete(results).where(results.c.job_id == job_id))
             conn.execute(
                 sa.insert(results).values(
@@ -407,8 +408,9 @@ class JobQueue:
             )
             self._store_artifacts(conn, job_id, artifacts, now)
             outcome, detail = outcome_columns(summary)
+            # A finished job shows "done", not its last window and ETA (``common.progress``).
             self._settle(conn, job_id, lease_token, now=now, state=JobState.SUCCEEDED, finished_at=now,
-                         outcome=outcome, outcome_detail=detail)  # fmt: skip
+                         progress=finished_progress(row.progress), outcome=outcome, outcome_detail=detail)  # fmt: skip
             self._event(conn, job_id, "succeeded", now, result_bytes=len(result), outcome=outcome)
 
     @staticmethod
