@@ -15,6 +15,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from common.batch_metrics import OUTCOMES, UNKNOWN
 from common.job_options import JobOptions
 from common.job_state import JobState
+from common.outcome import REASON_DESCRIPTIONS
+from common.progress import STEPS
 from common.queue_types import JobRecord
 from service import links
 
@@ -89,14 +91,24 @@ class JobCreate(BaseModel):
 
 
 class ProgressPublic(BaseModel):
-    """What the worker last reported; ``eta_s`` is estimated from the window rate when the worker gives none."""
+    """What the worker last reported. A worker older than the whole-job ``fraction`` reported only its window
+    within the current pass: then ``eta_s`` is estimated here from the window rate when it gives none."""
 
     model_config = ConfigDict(extra="allow")
-    window: int | None = None
-    windows: int | None = None
+    fraction: float | None = Field(default=None, description="0..1 over the whole job; only goes forward")
+    stage: str | None = Field(default=None, description="what runs now, e.g. 'attempt 2 of 4', 'polish sweep 3', "
+                              "'rescue on finer parts: attempt 1 of 4', 'verifying', 'preview', 'done'")  # fmt: skip
+    step: str | None = Field(default=None, description="the same for programs: " + ", ".join(STEPS))
+    eta_s: float | None = Field(default=None, description="seconds until the whole job is done (0 when done)")
+    elapsed_s: float | None = Field(default=None, description="seconds since the job's computation started")
+    attempt: int | None = Field(default=None, description="the queue's attempt at the job (as the job's attempt)")
+    refine_attempt: int | None = Field(default=None, description="the refinement's own attempt (1, then restarts)")
+    refine_attempts: int | None = Field(default=None, description="the most refinement attempts the options allow")
+    polish_sweep: int | None = Field(default=None, description="the polish sweep running, if one is")
+    window: int | None = Field(default=None, description="sliding window within the current attempt or sweep")
+    windows: int | None = Field(default=None, description="windows in the current attempt or sweep")
     best_loss: float | None = None
-    evaluations: int | None = None
-    eta_s: float | None = None
+    evaluations: int | None = Field(default=None, description="candidate evaluations in the job so far")
 
 
 OutcomeStatus = Literal[OUTCOMES]  # type: ignore[valid-type]
@@ -105,7 +117,10 @@ OutcomeStatus = Literal[OUTCOMES]  # type: ignore[valid-type]
 class ReasonPublic(BaseModel):
     """Why a sequence is not executable (or was rescued), with its evidence."""
 
-    code: str = Field(description="machine-readable class of the reason")
+    code: str = Field(
+        description="machine-readable class of the reason: "
+        + "; ".join(f"{code.value}: {text}" for code, text in REASON_DESCRIPTIONS.items())
+    )
     frame: int | None = Field(description="the frame it was found at, when it has one")
     value: float | None = Field(description="the measured figure, in ``unit``")
     unit: str | None = Field(description="unit of ``value`` (e.g. cm/frame, deg/frame, cm, frames)")
@@ -196,7 +211,8 @@ class JobPublic(BaseModel):
         progress = None
         if job.progress is not None:
             progress = ProgressPublic.model_validate(job.progress)
-            if progress.eta_s is None and job.state == JobState.RUNNING and job.started_at:
+            older = progress.fraction is None
+            if older and progress.eta_s is None and job.state == JobState.RUNNING and job.started_at:
                 # Rate up to the last heartbeat (updated_at), not up to now: the representation, and so its
                 # ETag, then changes only when the job does.
                 progress.eta_s = _eta(progress, (job.updated_at - job.started_at).total_seconds())
