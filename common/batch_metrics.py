@@ -19,6 +19,8 @@ import math
 from collections.abc import Iterable, Mapping
 from typing import Any
 
+from common.outcome import FAILURE_CODES
+
 #: The protocol every summary has: ``summary["metrics"]`` itself.
 ALL_FRAMES = "all_frames"
 STAGES: tuple[str, ...] = ("raw", "refined")
@@ -168,6 +170,11 @@ def reasons(outcome: Mapping[str, Any] | None) -> list[dict[str, Any]]:
             "message": _text(item.get("message")) or "",
         })  # fmt: skip
     return out
+
+
+def primary_reason(items: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """The most telling reason: the first that explains a failure, else the first (e.g. a rescue)."""
+    return next((r for r in items if r["code"] in FAILURE_CODES), items[0] if items else None)
 
 
 def headline_metrics(summary: Mapping[str, Any] | None, protocol: str | None) -> dict[str, float | None]:

@@ -18,9 +18,18 @@ from typing import Any
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from common.batch_metrics import ALL_FRAMES, METRICS, STAGES, outcome_of, outcome_status, reasons, report_columns
+from common.batch_metrics import (
+    ALL_FRAMES,
+    METRICS,
+    STAGES,
+    outcome_of,
+    outcome_status,
+    primary_reason,
+    reasons,
+    report_columns,
+)
 from common.job_state import JobState
-from common.outcome import FAILURE_CODES, PROTOCOL
+from common.outcome import PROTOCOL
 from common.queue_types import JobRecord
 
 BASE_COLUMNS: tuple[tuple[str, pa.DataType], ...] = (
@@ -50,11 +59,6 @@ STANDARD_METRIC_COLUMNS: tuple[str, ...] = tuple(
     for stage in STAGES
     for label in METRICS.values()
 )
-
-
-def primary_reason(items: list[dict[str, Any]]) -> dict[str, Any] | None:
-    """The most telling failure reason (the first whose code explains a failure), else the first reason."""
-    return next((r for r in items if r["code"] in FAILURE_CODES), items[0] if items else None)
 
 
 def outcome_cells(job: JobRecord) -> dict[str, Any]:
