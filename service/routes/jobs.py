@@ -53,7 +53,7 @@ def _job_response(response: Response, job: JobPublic, retry_after: int) -> JobPu
     response_model=JobPublic,
     summary="Submit a sequence for refinement",
     # 400: a multipart body the form parser refuses (e.g. more parts than it accepts).
-    responses={400: PROBLEM, 409: PROBLEM, 413: PROBLEM, 429: PROBLEM},
+    responses={400: PROBLEM, 409: PROBLEM, 413: PROBLEM, 415: PROBLEM, 429: PROBLEM},
     openapi_extra={
         "requestBody": {
             "required": True,
