@@ -1,5 +1,5 @@
 """``hoi-refine verify RESULT.npz``: recompute everything a result claims from its embedded sequence and stored
-controls (``worker.refine.verify``), fail naming each field that differs, flag a non-default physics config, and
+controls (``worker.verification.check``), fail naming each field that differs, flag a non-default physics config, and
 print the largest deviation and the digests."""
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ def _verify(args: argparse.Namespace) -> int:
     from common.errors import ResultMismatchError
     from common.result_format import content_digest
     from common.sequence_io import load_sequence
-    from worker.refine.verify import check_result
+    from worker.verification import check_result
 
     seq = load_sequence(args.sequence) if args.sequence else None
     blob = args.result.read_bytes()
