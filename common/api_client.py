@@ -299,14 +299,3 @@ class ApiClient:
     def batch_report(self, batch_id: str, fmt: str = "csv") -> bytes:
         """``GET /v1/batches/{id}/report?format=csv|parquet``: one row per sequence."""
         return self.request("GET", f"/v1/batches/{batch_id}/report", params={"format": fmt}).content
-
-    def jobs(self, **params: Any) -> list[dict[str, Any]]:
-        """``GET /v1/jobs`` with filters (``batch_id``, ``state``, ``outcome``), every page."""
-        out: list[dict[str, Any]] = []
-        query = {k: v for k, v in params.items() if v is not None} | {"page_size": 500}
-        while True:
-            doc = self.request("GET", "/v1/jobs", params=query).json()
-            out.extend(j for j in doc.get("data", []) if isinstance(j, dict))
-            if not doc.get("next_page_token"):
-                return out
-            query["page_token"] = doc["next_page_token"]

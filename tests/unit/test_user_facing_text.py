@@ -46,3 +46,17 @@ def test_the_check_finds_what_it_is_meant_to() -> None:
     assert source_references("as a job queue (DESIGN §2)")
     assert source_references("tolerances (worker/refine/verify_report.py)")
     assert not source_references("`python replay.py` in the folder; results.npz")
+
+
+def test_every_contact_field_states_its_unit_in_the_schema() -> None:
+    engine = sa.create_engine("sqlite://")
+    try:
+        schema = create_app(Settings(database_url="sqlite://"), engine).openapi()["components"]["schemas"]
+    finally:
+        engine.dispose()
+    fields = schema["ContactPublic"]["properties"]
+    units = {"frame": "index", "hand": "side", "body": "hand body", "position_world": ", m", "position_object": ", m",
+             "normal": "unit vector", "force": ", N", "torque": "N·m", "depth": ", m"}  # fmt: skip
+    assert set(fields) == set(units)
+    for name, unit in units.items():
+        assert unit in fields[name].get("description", ""), (name, fields[name])
