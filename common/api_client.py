@@ -292,6 +292,10 @@ class ApiClient:
         return doc if isinstance(doc, dict) else {}
 
     def batch(self, batch_id: str) -> dict[str, Any]:
-        """``GET /v1/batches/{id}``: counts per state and the aggregate raw / refined metrics."""
+        """``GET /v1/batches/{id}``: counts per state and outcome, the aggregate raw / refined metrics, links."""
         doc = self.request("GET", f"/v1/batches/{batch_id}").json()
         return doc if isinstance(doc, dict) else {}
+
+    def batch_report(self, batch_id: str, fmt: str = "csv") -> bytes:
+        """``GET /v1/batches/{id}/report?format=csv|parquet``: one row per sequence."""
+        return self.request("GET", f"/v1/batches/{batch_id}/report", params={"format": fmt}).content

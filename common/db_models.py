@@ -86,6 +86,8 @@ class Job(Base):
         sa.Index("ix_jobs_lease", "state", "lease_expires_at"),
         # a batch's counts, report and events.
         sa.Index("ix_jobs_batch", "batch_id", "state"),
+        # listing by outcome: keyset pagination per owner within one outcome.
+        sa.Index("ix_jobs_owner_outcome", "owner_key_id", "outcome", "created_at", "id"),
     )
 
     id: Mapped[str] = mapped_column(sa.String(32), primary_key=True)
@@ -118,6 +120,12 @@ class Job(Base):
     started_at: Mapped[datetime | None]
     finished_at: Mapped[datetime | None]
     updated_at: Mapped[datetime]
+    #: Set with the result (``common.batch_metrics.outcome_columns``): ``executable`` / ``not_executable`` (the
+    #: refined sequence passes the paper's protocol or not), ``unknown`` for a result that carries no outcome
+    #: (made before outcomes existed); None until the job SUCCEEDED.
+    outcome: Mapped[str | None] = mapped_column(sa.String(16))
+    #: The outcome's short form for listings: protocol, reasons, refined E_t / E_r on that protocol.
+    outcome_detail: Mapped[dict[str, Any] | None]
 
 
 class JobInput(Base):

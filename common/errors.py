@@ -56,6 +56,13 @@ class UnsupportedFormatError(InputError):
     title = "Unsupported format"
 
 
+class UnsupportedMediaTypeError(InputError):
+    """A request body of a media type the endpoint does not take (HTTP 415)."""
+
+    http_status = 415
+    title = "Unsupported media type"
+
+
 class ConfigurationError(HoiRefineError):
     """A setting is missing or wrong (the message names the ``HOI_REFINE_*`` variable)."""
 

@@ -35,7 +35,7 @@ def parse_weights(text: str) -> dict[str, float]:
 
 def add_job_option_arguments(parser: argparse.ArgumentParser, queue: bool = False) -> None:
     """Add the ``JobOptions`` flags; ``queue`` also adds ``--priority`` (meaningful only to the service)."""
-    g = parser.add_argument_group("job options (see common.job_options.JobOptions)")
+    g = parser.add_argument_group("job options (the same as the API's options object)")
     g.add_argument("--seed", type=int, default=0, help="CMA-ES seed (default 0)")
     g.add_argument("--keyframe-interval", type=int, default=None, help="frames between keyframes (default fps/6)")
     g.add_argument("--max-generations", type=int, default=None, help="CMA-ES generations per window")

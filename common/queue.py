@@ -32,7 +32,7 @@ from typing import Any, cast
 import sqlalchemy as sa
 from sqlalchemy.engine import Connection, Engine, Row
 
-from common.batch_metrics import aggregate
+from common.batch_metrics import OUTCOMES, aggregate, outcome_columns
 from common.database import Transactions
 from common.db_models import Batch, Job, JobArtifact, JobEvent, JobInput, JobResult, utcnow
 from common.errors import (
@@ -46,6 +46,7 @@ from common.errors import (
 )
 from common.job_options import JobOptions
 from common.job_state import ACTIVE, JobState
+from common.progress import finished_progress
 from common.queue_types import Artifact, BatchRecord, ClaimedJob, JobEventRecord, JobRecord, QueueStats
 from common.safe_text import shown
 from common.settings import Settings, get_settings
@@ -206,8 +207,10 @@ class JobQueue:
         page_size: int = 50,
         page_token: str | None = None,
         batch_id: str | None = None,
+        outcome: str | None = None,
     ) -> tuple[builtins.list[JobRecord], str | None]:
-        """Newest first, keyset-paginated on (created_at, id); returns (jobs, next_page_token)."""
+        """Newest first, keyset-paginated on (created_at, id); returns (jobs, next_page_token). ``outcome``
+        (``common.batch_metrics.OUTCOMES``) keeps SUCCEEDED jobs of that outcome only."""
         page_size = max(1, min(page_size, MAX_PAGE_SIZE))
         query = self._job_select(with_summary=False)
         if owner_key_id is not None:
@@ -216,6 +219,8 @@ class JobQueue:
             query = query.where(jobs.c.state == state)
         if batch_id is not None:
             query = query.where(jobs.c.batch_id == batch_id)
+        if outcome is not None:
+            query = query.where(jobs.c.outcome == _known_outcome(outcome))
         if page_token is not None:
             created, last_id = _decode_page_token(page_token)
             query = query.where(
@@ -224,8 +229,8 @@ class JobQueue:
         query = query.order_by(jobs.c.created_at.desc(), jobs.c.id.desc()).limit(page_size + 1)
         with self.tx.read() as conn:
             page = [self._record(r) for r in conn.execute(query)]
-        more = len(page) > page_size
-        page = page[:page_size]
+            more = len(page) > page_size
+            page = self._with_files(conn, page[:page_size])
         return page, (_encode_page_token(page[-1].created_at, page[-1].id) if more else None)
 
     def get_result(self, owner_key_id: str | None, job_id: str) -> tuple[bytes, dict[str, Any]]:
@@ -369,9 +374,9 @@ class JobQueue:
     def _lease_row(self, conn: Connection, job_id: str, lease_token: str) -> Row[Any]:
         row = conn.execute(
             self.tx.locked(
-                sa.select(jobs.c.attempt, jobs.c.errors, jobs.c.cancel_requested, jobs.c.worker_id).where(
-                    jobs.c.id == job_id, jobs.c.lease_token == lease_token, jobs.c.state == JobState.RUNNING
-                )
+                sa.select(
+                    jobs.c.attempt, jobs.c.errors, jobs.c.cancel_requested, jobs.c.worker_id, jobs.c.progress
+                ).where(jobs.c.id == job_id, jobs.c.lease_token == lease_token, jobs.c.state == JobState.RUNNING)
             )
         ).first()
         if row is None:
@@ -394,7 +399,7 @@ class JobQueue:
         token-checked transaction."""
         now = utcnow()
         with self.tx.write() as conn:
-            self._lease_row(conn, job_id, lease_token)
+            row = self._lease_row(conn, job_id, lease_token)
             conn.execute(sa.delete(results).where(results.c.job_id == job_id))
             conn.execute(
                 sa.insert(results).values(
@@ -402,8 +407,11 @@ class JobQueue:
                 )
             )
             self._store_artifacts(conn, job_id, artifacts, now)
-            self._settle(conn, job_id, lease_token, now=now, state=JobState.SUCCEEDED, finished_at=now)
-            self._event(conn, job_id, "succeeded", now, result_bytes=len(result))
+            outcome, detail = outcome_columns(summary)
+            # A finished job shows "done", not its last window and ETA (``common.progress``).
+            self._settle(conn, job_id, lease_token, now=now, state=JobState.SUCCEEDED, finished_at=now,
+                         progress=finished_progress(row.progress), outcome=outcome, outcome_detail=detail)  # fmt: skip
+            self._event(conn, job_id, "succeeded", now, result_bytes=len(result), outcome=outcome)
 
     @staticmethod
     def _store_artifacts(conn: Connection, job_id: str, items: Sequence[Artifact], now: datetime) -> None:
@@ -605,11 +613,16 @@ class JobQueue:
         return dataclasses.replace(record, metrics=metrics)
 
     def list_batches(
-        self, owner_key_id: str, page_size: int = 50, page_token: str | None = None
+        self, owner_key_id: str, page_size: int = 50, page_token: str | None = None, outcome: str | None = None
     ) -> tuple[builtins.list[BatchRecord], str | None]:
-        """Newest first, keyset-paginated on (created_at, id) like ``list``; counts, no metrics."""
+        """Newest first, keyset-paginated on (created_at, id) like ``list``; counts, no metrics. ``outcome``
+        keeps the batches with at least one job of that outcome."""
         page_size = max(1, min(page_size, MAX_PAGE_SIZE))
         query = sa.select(batches).where(batches.c.owner_key_id == owner_key_id)
+        if outcome is not None:
+            wanted = _known_outcome(outcome)
+            of_batch = sa.select(jobs.c.id).where(jobs.c.batch_id == batches.c.id, jobs.c.outcome == wanted)
+            query = query.where(of_batch.exists())
         if page_token is not None:
             created, last_id = _decode_page_token(page_token)
             query = query.where(
@@ -622,8 +635,8 @@ class JobQueue:
             rows = conn.execute(query).all()
             more = len(rows) > page_size
             rows = rows[:page_size]
-            counts = self._counts(conn, [r.id for r in rows])
-        page = [_batch(r, counts.get(r.id, {})) for r in rows]
+            counts, outcomes = self._counts(conn, [r.id for r in rows])
+        page = [_batch(r, counts.get(r.id, {}), outcomes.get(r.id, {})) for r in rows]
         return page, (_encode_page_token(page[-1].created_at, page[-1].id) if more else None)
 
     def batch_jobs(self, owner_key_id: str | None, batch_id: str) -> builtins.list[JobRecord]:
@@ -733,21 +746,31 @@ class JobQueue:
         return row
 
     @staticmethod
-    def _counts(conn: Connection, batch_ids: builtins.list[str]) -> dict[str, dict[str, int]]:
+    def _counts(
+        conn: Connection, batch_ids: builtins.list[str]
+    ) -> tuple[dict[str, dict[str, int]], dict[str, dict[str, int]]]:
+        """Per batch: jobs per state, and SUCCEEDED jobs per outcome."""
         if not batch_ids:
-            return {}
+            return {}, {}
         rows = conn.execute(
-            sa.select(jobs.c.batch_id, jobs.c.state, sa.func.count())
+            sa.select(jobs.c.batch_id, jobs.c.state, jobs.c.outcome, sa.func.count())
             .where(jobs.c.batch_id.in_(batch_ids))
-            .group_by(jobs.c.batch_id, jobs.c.state)
+            .group_by(jobs.c.batch_id, jobs.c.state, jobs.c.outcome)
         ).all()
-        out: dict[str, dict[str, int]] = {}
-        for batch_id, state, n in rows:
-            out.setdefault(batch_id, {})[state] = int(n)
-        return out
+        states: dict[str, dict[str, int]] = {}
+        outcomes: dict[str, dict[str, int]] = {}
+        for batch_id, state, outcome, n in rows:
+            per_state = states.setdefault(batch_id, {})
+            per_state[state] = per_state.get(state, 0) + int(n)
+            if state == JobState.SUCCEEDED:
+                per_outcome = outcomes.setdefault(batch_id, {})
+                key = outcome or OUTCOMES[-1]
+                per_outcome[key] = per_outcome.get(key, 0) + int(n)
+        return states, outcomes
 
     def _batch_record(self, conn: Connection, row: Row[Any]) -> BatchRecord:
-        return _batch(row, self._counts(conn, [row.id]).get(row.id, {}))
+        states, outcomes = self._counts(conn, [row.id])
+        return _batch(row, states.get(row.id, {}), outcomes.get(row.id, {}))
 
     @staticmethod
     def _events(conn: Connection, now: datetime, items: builtins.list[tuple[str, str]]) -> None:
@@ -767,7 +790,23 @@ class JobQueue:
         # Another key's job answers exactly like a missing one, so ids cannot be probed.
         if row is None or (owner_key_id is not None and row.owner_key_id != owner_key_id):
             raise NotFoundError(f"no job {job_id}")
-        return self._record(row)
+        return self._with_files(conn, [self._record(row)])[0]
+
+    @staticmethod
+    def _with_files(conn: Connection, records: builtins.list[JobRecord]) -> builtins.list[JobRecord]:
+        """The records with the names, types and sizes of their artifacts (one query for all SUCCEEDED ones)."""
+        done = [r.id for r in records if r.state == JobState.SUCCEEDED]
+        if not done:
+            return records
+        rows = conn.execute(
+            sa.select(artifacts.c.job_id, artifacts.c.name, artifacts.c.content_type, artifacts.c.size_bytes)
+            .where(artifacts.c.job_id.in_(done))
+            .order_by(artifacts.c.job_id, artifacts.c.name)
+        ).all()
+        files: dict[str, builtins.list[Artifact]] = {}
+        for r in rows:
+            files.setdefault(r.job_id, []).append(Artifact(r.name, r.content_type, b"", r.size_bytes))
+        return [dataclasses.replace(r, files=tuple(files.get(r.id, ()))) if r.id in files else r for r in records]
 
     def _owned_state(self, conn: Connection, owner_key_id: str | None, job_id: str) -> JobState:
         _require_plain_id(job_id)
@@ -787,7 +826,7 @@ class JobQueue:
             payload_hash=m["payload_hash"], worker_id=m["worker_id"], lease_expires_at=m["lease_expires_at"],
             not_before=m["not_before"], created_at=m["created_at"], queued_at=m["queued_at"],
             started_at=m["started_at"], finished_at=m["finished_at"], updated_at=m["updated_at"], summary=m["summary"],
-            batch_id=m["batch_id"],
+            batch_id=m["batch_id"], outcome=m["outcome"], outcome_detail=m["outcome_detail"],
         )  # fmt: skip
 
 
@@ -817,9 +856,16 @@ def _decode_page_token(token: str) -> tuple[datetime, str]:
         raise InvalidRequestError([FieldProblem("page_token", "is not a token this service issued")]) from exc
 
 
-def _batch(row: Row[Any], counts: dict[str, int]) -> BatchRecord:
+def _batch(row: Row[Any], counts: dict[str, int], outcomes: dict[str, int]) -> BatchRecord:
     full = {str(state): counts.get(state, 0) for state in JobState}
-    return BatchRecord(row.id, row.owner_key_id, row.name, dict(row.meta), row.created_at, full)
+    per_outcome = {name: outcomes.get(name, 0) for name in OUTCOMES}
+    return BatchRecord(row.id, row.owner_key_id, row.name, dict(row.meta), row.created_at, full, outcomes=per_outcome)
+
+
+def _known_outcome(outcome: str) -> str:
+    if outcome not in OUTCOMES:
+        raise InvalidRequestError([FieldProblem("outcome", f"must be one of {', '.join(OUTCOMES)}")])
+    return outcome
 
 
 def _event_record(row: Row[Any]) -> JobEventRecord:

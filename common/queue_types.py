@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any
 
@@ -39,6 +39,12 @@ class JobRecord:
     #: The result's summary (metrics, config, versions) once SUCCEEDED; None before, or when not loaded.
     summary: dict[str, Any] | None = None
     batch_id: str | None = None
+    #: ``executable`` / ``not_executable`` / ``unknown`` once SUCCEEDED (``common.batch_metrics.OUTCOMES``), with
+    #: its short form (protocol, reasons, refined E_t / E_r); None before.
+    outcome: str | None = None
+    outcome_detail: dict[str, Any] | None = None
+    #: The files stored beside the result (names, types, sizes; no data), once SUCCEEDED.
+    files: tuple[Artifact, ...] = ()
 
     @property
     def is_terminal(self) -> bool:
@@ -98,6 +104,8 @@ class BatchRecord:
     created_at: datetime
     counts: dict[str, int]
     metrics: dict[str, Any] | None = None
+    #: SUCCEEDED jobs per outcome (``executable``, ``not_executable``, ``unknown``).
+    outcomes: dict[str, int] = field(default_factory=dict)
 
     @property
     def total(self) -> int:

@@ -133,7 +133,7 @@ class WebhookStore:
                 if kind is None or row.owner_key_id not in hooks:
                     continue
                 data = {"job_id": row.job_id, "batch_id": row.batch_id, "event_id": row.id, "state": kind[4:].upper()}
-                data.update({k: v for k, v in row.detail.items() if k in ("attempt", "error", "worker_id")})
+                data.update({k: v for k, v in row.detail.items() if k in ("attempt", "error", "worker_id", "outcome")})
                 written += self._enqueue(conn, hooks[row.owner_key_id], kind, row.at, data, now)
                 if row.batch_id is not None:
                     touched[row.batch_id] = row.at

@@ -29,6 +29,15 @@ from service.schemas import JobCreate
 from service.webhook_dispatcher import WebhookDispatcher
 
 API_VERSION = "1.0.0"
+DESCRIPTION = (
+    "Physics-in-the-loop refinement of hand-object demonstrations, as a job queue. Submit a sequence (a hand and "
+    "an object pose per frame) to `POST /v1/jobs`; a worker drives an articulated hand in MuJoCo, lets the object "
+    "move only through contact, and optimises the hand's motion until the simulated object follows the recorded "
+    "one. A job that ran to the end is SUCCEEDED; its `outcome` says whether the refined sequence is executable "
+    "(every frame from 10 on within 3 cm / 30 deg of the recorded object) and, when not, why. Every job and batch "
+    "body links its result, contacts, metrics, events, input and files. Authenticate with `Authorization: Bearer "
+    "KEY` (`hoi-refine keys create NAME`); errors are `application/problem+json` naming each field."
+)
 
 
 def create_app(settings: Settings | None = None, engine: Engine | None = None) -> FastAPI:
@@ -57,7 +66,7 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None) -
     app = FastAPI(
         title="hoi-refine",
         version=API_VERSION,
-        description="Physics-in-the-loop refinement of hand-object demonstrations as a job queue (DESIGN §2).",
+        description=DESCRIPTION,
         lifespan=lifespan,
     )
     app.state.settings = settings

@@ -13,9 +13,13 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from common.articulation import MAX_PARTS
+from common.batch_metrics import OUTCOMES, UNKNOWN
 from common.job_options import JobOptions
 from common.job_state import JobState
+from common.outcome import REASON_DESCRIPTIONS
+from common.progress import STEPS
 from common.queue_types import JobRecord
+from service import links
 
 VertexIndex = Annotated[int, Field(ge=0, le=2**31 - 1)]
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
@@ -132,14 +136,79 @@ class JobCreate(BaseModel):
 
 
 class ProgressPublic(BaseModel):
-    """What the worker last reported; ``eta_s`` is estimated from the window rate when the worker gives none."""
+    """What the worker last reported. A worker older than the whole-job ``fraction`` reported only its window
+    within the current pass: then ``eta_s`` is estimated here from the window rate when it gives none."""
 
     model_config = ConfigDict(extra="allow")
-    window: int | None = None
-    windows: int | None = None
+    fraction: float | None = Field(default=None, description="0..1 over the whole job; only goes forward")
+    stage: str | None = Field(default=None, description="what runs now, e.g. 'attempt 2 of 4', 'polish sweep 3', "
+                              "'rescue on finer parts: attempt 1 of 4', 'verifying', 'preview', 'done'")  # fmt: skip
+    step: str | None = Field(default=None, description="the same for programs: " + ", ".join(STEPS))
+    eta_s: float | None = Field(default=None, description="seconds until the whole job is done (0 when done)")
+    elapsed_s: float | None = Field(default=None, description="seconds since the job's computation started")
+    attempt: int | None = Field(default=None, description="the queue's attempt at the job (as the job's attempt)")
+    refine_attempt: int | None = Field(default=None, description="the refinement's own attempt (1, then restarts)")
+    refine_attempts: int | None = Field(default=None, description="the most refinement attempts the options allow")
+    polish_sweep: int | None = Field(default=None, description="the polish sweep running, if one is")
+    window: int | None = Field(default=None, description="sliding window within the current attempt or sweep")
+    windows: int | None = Field(default=None, description="windows in the current attempt or sweep")
     best_loss: float | None = None
-    evaluations: int | None = None
-    eta_s: float | None = None
+    evaluations: int | None = Field(default=None, description="candidate evaluations in the job so far")
+
+
+OutcomeStatus = Literal[OUTCOMES]  # type: ignore[valid-type]
+
+
+class ReasonPublic(BaseModel):
+    """Why a sequence is not executable (or was rescued), with its evidence."""
+
+    code: str = Field(
+        description="machine-readable class of the reason: "
+        + "; ".join(f"{code.value}: {text}" for code, text in REASON_DESCRIPTIONS.items())
+    )
+    frame: int | None = Field(description="the frame it was found at, when it has one")
+    value: float | None = Field(description="the measured figure, in ``unit``")
+    unit: str | None = Field(description="unit of ``value`` (e.g. cm/frame, deg/frame, cm, frames)")
+    message: str = Field(description="one sentence for a person")
+
+
+class OutcomePublic(BaseModel):
+    """Whether the refined sequence is executable: it passes the success test (every frame within 3 cm and 30
+    deg of the recorded object) on ``protocol``; ``unknown`` for a result made before outcomes existed."""
+
+    status: OutcomeStatus = Field(description="executable, not_executable, or unknown")
+    protocol: str | None = Field(description="the protocol the test is judged on: paper = frames 10 onward")
+    reasons: list[ReasonPublic] = Field(description="the first reasons (the result's summary holds them all)")
+    reasons_total: int = Field(description="how many reasons the result gives")
+    E_t: float | None = Field(description="refined object position error, cm, on ``metrics_protocol``")
+    E_r: float | None = Field(description="refined object rotation error, deg, on ``metrics_protocol``")
+    metrics_protocol: str | None = Field(description="the protocol E_t and E_r are measured on")
+
+    @classmethod
+    def from_record(cls, job: JobRecord) -> OutcomePublic | None:
+        if job.state != JobState.SUCCEEDED:
+            return None
+        detail = job.outcome_detail or {}
+        return cls(
+            status=job.outcome or UNKNOWN, protocol=detail.get("protocol"), reasons=detail.get("reasons") or [],
+            reasons_total=int(detail.get("reasons_total") or 0), E_t=detail.get("E_t"), E_r=detail.get("E_r"),
+            metrics_protocol=detail.get("protocol_metrics"),
+        )  # fmt: skip
+
+
+class LinkPublic(BaseModel):
+    href: str = Field(description="URL relative to the API's base URL (GET, same API key)")
+    type: str = Field(description="media type of what the URL returns")
+    title: str
+
+
+class FilePublic(BaseModel):
+    """A file stored beside the result (preview video, Rerun recording, export, plots)."""
+
+    name: str = Field(description="the stored name, e.g. video.mp4 or plots/errors.png")
+    href: str = Field(description="URL relative to the API's base URL (GET, same API key)")
+    type: str = Field(description="media type")
+    size_bytes: int
 
 
 class JobError(BaseModel):
@@ -154,7 +223,10 @@ class JobPublic(BaseModel):
     batch_id: str | None = None
     name: str
     state: JobState
-    attempt: int
+    outcome: OutcomePublic | None = Field(
+        default=None, description="once SUCCEEDED: whether the refined sequence is executable, and why not"
+    )
+    attempt: int = Field(description="the queue's run of this job: 1, then +1 each time it is requeued")
     max_attempts: int
     priority: int
     num_frames: int
@@ -168,14 +240,24 @@ class JobPublic(BaseModel):
     progress: ProgressPublic | None
     errors: list[JobError]
     #: ``metrics`` (raw replay and refined) and run facts from the result summary, once SUCCEEDED.
-    summary: dict[str, Any] | None = None
+    summary: dict[str, Any] | None = Field(
+        default=None,
+        description="the result's summary once SUCCEEDED (only on GET /v1/jobs/{id}); preview.files are URLs",
+    )
+    links: dict[str, LinkPublic] = Field(
+        default_factory=dict,
+        description="self, events, input, dashboard, batch; once SUCCEEDED result, result_npz, contacts, metrics "
+        "and each stored file's route (video, recording, export, plots)",
+    )
+    files: list[FilePublic] = Field(default_factory=list, description="files stored beside the result")
 
     @classmethod
     def from_record(cls, job: JobRecord) -> JobPublic:
         progress = None
         if job.progress is not None:
             progress = ProgressPublic.model_validate(job.progress)
-            if progress.eta_s is None and job.state == JobState.RUNNING and job.started_at:
+            older = progress.fraction is None
+            if older and progress.eta_s is None and job.state == JobState.RUNNING and job.started_at:
                 # Rate up to the last heartbeat (updated_at), not up to now: the representation, and so its
                 # ETag, then changes only when the job does.
                 progress.eta_s = _eta(progress, (job.updated_at - job.started_at).total_seconds())
@@ -185,8 +267,19 @@ class JobPublic(BaseModel):
             options=job.options, cancel_requested=job.cancel_requested, created_at=job.created_at,
             queued_at=job.queued_at, started_at=job.started_at, finished_at=job.finished_at,
             updated_at=job.updated_at, progress=progress, errors=[JobError.model_validate(e) for e in job.errors],
-            summary=job.summary,
+            summary=_with_preview_urls(job.id, job.summary), outcome=OutcomePublic.from_record(job),
+            links=links.job_links(job.id, job.state, job.batch_id, [(f.name, f.content_type) for f in job.files]),
+            files=links.file_entries(job.id, [(f.name, f.content_type, f.size_bytes) for f in job.files]),
         )  # fmt: skip
+
+
+def _with_preview_urls(job_id: str, summary: dict[str, Any] | None) -> dict[str, Any] | None:
+    """The summary with ``preview.files`` (stored names) as the URLs that serve them."""
+    preview = summary.get("preview") if summary else None
+    if summary is None or not isinstance(preview, dict) or not isinstance(preview.get("files"), list):
+        return summary
+    urls = [links.artifact_href(job_id, n) if isinstance(n, str) else None for n in preview["files"]]
+    return {**summary, "preview": {**preview, "files": [u for u in urls if u is not None]}}
 
 
 def _eta(progress: ProgressPublic, elapsed_s: float) -> float | None:
@@ -215,15 +308,19 @@ class JobEventsPublic(BaseModel):
 
 
 class ContactPublic(BaseModel):
-    frame: int
-    hand: str = Field(description="the hand's side: right or left")
-    body: str = Field(description="the hand body touching (palm or a finger segment)")
-    position_world: list[float]
-    position_object: list[float] = Field(description="in the touched part's frame (the object's for a rigid one)")
-    normal: list[float]
-    force: list[float]
-    torque: list[float]
-    depth: float
+    """One hand-object contact in one frame; the wrench is the one the hand exerts on the object."""
+
+    frame: int = Field(description="frame index (0-based)")
+    hand: str = Field(description="hand side: right or left")
+    body: str = Field(description="hand body touching the object (palm, thumb1 ... pinky3)")
+    position_world: list[float] = Field(description="contact point, world frame, m (x, y, z)")
+    position_object: list[float] = Field(description="contact point in the frame of the object part touched (the "
+                                         "object's own for a rigid object), m (x, y, z)")
+    normal: list[float] = Field(description="contact normal, world frame, unit vector from the object to the hand")
+    force: list[float] = Field(description="force of the hand on the object, world frame, N (x, y, z)")
+    torque: list[float] = Field(description="torque of the hand on the object about the contact point, world "
+                                "frame, N·m (x, y, z)")  # fmt: skip
+    depth: float = Field(description="penetration depth, m (>= 0)")
     part: str | None = Field(default=None, description="the object part touched (an articulated object), else null")
 
 
@@ -237,7 +334,11 @@ class ContactsPublic(BaseModel):
 
 class MetricsPublic(BaseModel):
     job_id: str
-    metrics: dict[str, Any] = Field(description="``raw`` (reference replay) and ``refined`` metrics, DESIGN §1.8")
+    metrics: dict[str, Any] = Field(
+        description="``raw`` (replay of the recording) and ``refined``: E_t (cm), E_r (deg), E_j and E_ft (cm), "
+        "success, penetration (mm) over all frames, the same on the paper's protocol under ``paper`` (frames 10 "
+        "onward); ``verification`` (the worker's replay of the stored result); ``outcome`` when the result has one"
+    )
 
 
 class PlotPublic(BaseModel):

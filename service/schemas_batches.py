@@ -9,13 +9,15 @@ from pydantic import AnyHttpUrl, BaseModel, ConfigDict, Field
 
 from common.queue_types import BatchRecord, DeliveryRecord, WebhookRecord
 from common.webhook_store import ALL_EVENT_TYPES
+from service.links import batch_links
+from service.schemas import LinkPublic
 
 BatchState = Literal["EMPTY", "ACTIVE", "COMPLETED"]
 WebhookEventType = Literal[ALL_EVENT_TYPES]  # type: ignore[valid-type]
 
 
 class BatchCreate(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
     name: str = Field(default="batch", min_length=1, max_length=200)
     meta: dict[str, str] = Field(default_factory=dict, description="Free labels (dataset, split, ...)")
 
@@ -29,6 +31,12 @@ class StageMetrics(BaseModel):
     E_r: float | None = Field(description="mean object rotation error, deg")
     E_j: float | None = Field(description="mean hand joint error, cm")
     E_ft: float | None = Field(description="mean fingertip error, cm")
+    penetration_mean_mm: float | None = Field(
+        default=None, description="mean over sequences of the mean per-frame deepest hand-object penetration, mm"
+    )
+    penetration_max_mm: float | None = Field(
+        default=None, description="mean over sequences of the deepest hand-object penetration, mm"
+    )
 
 
 class BatchPublic(BaseModel):
@@ -38,18 +46,26 @@ class BatchPublic(BaseModel):
     created_at: datetime
     state: BatchState = Field(description="EMPTY (no job), ACTIVE (a job is QUEUED or RUNNING), COMPLETED")
     total: int
+    outcomes: dict[str, int] = Field(
+        default_factory=dict, description="SUCCEEDED jobs per outcome: executable, not_executable, unknown"
+    )
     counts: dict[str, int] = Field(description="jobs per state")
     metrics: dict[str, dict[str, StageMetrics]] | None = Field(
         default=None,
-        description="protocol (all_frames; paper once results carry it) -> raw | refined -> means; "
-        "only on GET /v1/batches/{id}",
+        description="protocol (all_frames; paper: frames 10 onward) -> raw | refined -> means over the SUCCEEDED "
+        "jobs; only on GET /v1/batches/{id}",
+    )
+    links: dict[str, LinkPublic] = Field(
+        default_factory=dict,
+        description="self, jobs, not_executable and failed jobs, events, report_csv, report_parquet, dashboard",
     )
 
     @classmethod
     def from_record(cls, batch: BatchRecord) -> BatchPublic:
         return cls(
             id=batch.id, name=batch.name, meta=batch.meta, created_at=batch.created_at, state=batch.state,
-            total=batch.total, counts=batch.counts, metrics=batch.metrics,
+            total=batch.total, outcomes=batch.outcomes, counts=batch.counts, metrics=batch.metrics,
+            links=batch_links(batch.id),
         )  # fmt: skip
 
 

@@ -20,7 +20,7 @@ from common.errors import (
     FieldProblem,
     InvalidRequestError,
     PayloadTooLargeError,
-    UnsupportedFormatError,
+    UnsupportedMediaTypeError,
 )
 from common.job_options import JobOptions
 from common.safe_text import shown
@@ -74,7 +74,7 @@ async def read_submission(request: Request, settings: Settings) -> Submission:
         blob, options, batch_id = await _read_multipart(request, settings)
         seq = await run_in_threadpool(_from_npz, blob, settings)
     else:
-        raise UnsupportedFormatError(
+        raise UnsupportedMediaTypeError(
             f"Content-Type {shown(content_type or '(none)')} is not accepted: send application/json or "
             "multipart/form-data"
         )
@@ -100,7 +100,9 @@ def _from_json(body: bytes, settings: Settings) -> tuple[Sequence, JobOptions, s
     try:
         # pydantic parses the bytes straight into the model (no intermediate Python objects); NaN and
         # Infinity are refused by the models' allow_inf_nan=False, too-deep nesting by its recursion limit.
-        parsed = JobCreate.model_validate_json(body)
+        # Strict: a number is a JSON number ("fps": "30" is refused, as the schema says), a boolean a JSON
+        # boolean; only an integer is taken where a float is asked for.
+        parsed = JobCreate.model_validate_json(body, strict=True)
     except ValidationError as exc:
         raise _invalid(validation_problems(exc.errors())) from exc
     seq_doc = parsed.model_dump(exclude={"options", "batch_id"}, exclude_none=True)
@@ -122,7 +124,7 @@ async def _read_form(form: FormData) -> tuple[bytes, JobOptions, str | None]:
     if isinstance(raw_options, UploadFile):
         raw_options = (await raw_options.read(1024 * 1024 + 1)).decode(errors="replace")
     try:
-        options = JobOptions.model_validate_json(raw_options) if raw_options else JobOptions()
+        options = JobOptions.model_validate_json(raw_options, strict=True) if raw_options else JobOptions()
     except ValidationError as exc:
         raise _invalid(_prefixed(exc, "options")) from exc
     batch_id = form.get("batch_id")
@@ -132,6 +134,11 @@ async def _read_form(form: FormData) -> tuple[bytes, JobOptions, str | None]:
 
 
 def _from_npz(blob: bytes, settings: Settings) -> Sequence:
+    if blob.lstrip(b"\xef\xbb\xbf \t\r\n")[:1] in (b"{", b"["):
+        # A JSON sequence sent as the file part: say how to send it rather than that it is no zip file.
+        raise _invalid([FieldProblem("sequence", "holds JSON, not an NPZ file: send a JSON sequence as the request "
+                                     "body itself (Content-Type: application/json, the job options as its "
+                                     "\"options\" member), or the file part as a native or DexYCB NPZ")])  # fmt: skip
     try:
         seq = sequence_from_npz_bytes(blob, limits=settings.parse_limits())
     except ConfigurationError as exc:

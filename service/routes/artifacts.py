@@ -3,7 +3,8 @@
 like every job route: another key gets 404, a job not yet SUCCEEDED 409, a job run with ``preview_video`` off
 (or whose preview failed: see the summary's ``preview`` entry) 404.
 
-Names match ``worker.visual.preview`` (the service does not import the worker).
+Names match the worker's preview (``service.links`` maps each to its route; the service does not import the
+worker).
 """
 
 from __future__ import annotations
@@ -14,10 +15,10 @@ from fastapi import APIRouter, Depends, Path, Response
 
 from common.job_state import JobState
 from service.deps import KeyDep, QueueDep, reject_unknown_query_parameters
+from service.links import EXPORT, PLOTS_PREFIX, RECORDING, VIDEO
 from service.routes.jobs import COMMON_ERRORS, PROBLEM
 from service.schemas import PlotPublic, PlotsPublic
 
-VIDEO, RECORDING, EXPORT, PLOTS_PREFIX = "video.mp4", "recording.rrd", "export.zip", "plots/"
 PLOT_NAME = r"^[A-Za-z0-9_.-]{1,80}\.png$"
 
 router = APIRouter(

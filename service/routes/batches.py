@@ -15,7 +15,9 @@ from starlette.concurrency import run_in_threadpool
 from common.queue_types import JobEventRecord
 from service import batch_report, event_stream
 from service.deps import KeyDep, QueueDep, SettingsDep, reject_unknown_query_parameters
+from service.links import REPORT_TYPES
 from service.routes.jobs import COMMON_ERRORS, PROBLEM
+from service.schemas import OutcomeStatus
 from service.schemas_batches import BatchActionPublic, BatchCreate, BatchesPublic, BatchPublic
 
 router = APIRouter(
@@ -24,8 +26,6 @@ router = APIRouter(
     responses=COMMON_ERRORS,
     dependencies=[Depends(reject_unknown_query_parameters)],
 )
-
-REPORT_TYPES = {"csv": "text/csv", "parquet": "application/vnd.apache.parquet"}
 
 
 @router.post("", status_code=201, response_model=BatchPublic, summary="Create a batch to submit jobs into",
@@ -42,8 +42,11 @@ def list_batches(
     key_id: KeyDep,
     page_size: Annotated[int, Query(ge=1, le=500)] = 50,
     page_token: Annotated[str | None, Query(max_length=500)] = None,
+    outcome: Annotated[
+        OutcomeStatus | None, Query(description="only batches with at least one job of this outcome")
+    ] = None,
 ) -> BatchesPublic:
-    page, token = queue.list_batches(key_id, page_size=page_size, page_token=page_token)
+    page, token = queue.list_batches(key_id, page_size=page_size, page_token=page_token, outcome=outcome)
     return BatchesPublic(data=[BatchPublic.from_record(b) for b in page], count=len(page), next_page_token=token)
 
 
@@ -55,7 +58,8 @@ def get_batch(batch_id: str, queue: QueueDep, key_id: KeyDep) -> BatchPublic:
 
 @router.get(
     "/{batch_id}/report",
-    summary="One row per sequence (state, timing, raw and refined metrics) as CSV or Parquet",
+    summary="One row per sequence (outcome and reasons, state, timing, verification, raw and refined metrics on "
+    "both protocols, penetration) as CSV or Parquet",
     responses={200: {"content": {t: {} for t in REPORT_TYPES.values()}}},
 )
 def get_report(

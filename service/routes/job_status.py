@@ -29,7 +29,7 @@ from service.routes.jobs import COMMON_ERRORS
 from service.schemas import JobPublic
 
 #: Bump when ``JobPublic``'s JSON changes shape, so ETags issued by an older server stop matching.
-REPRESENTATION_VERSION = "2"
+REPRESENTATION_VERSION = "3"
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"], responses=COMMON_ERRORS)
 

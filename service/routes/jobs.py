@@ -9,6 +9,7 @@ from fastapi import APIRouter, Depends, Header, Query, Request, Response
 from fastapi.responses import StreamingResponse
 from starlette.concurrency import run_in_threadpool
 
+from common.batch_metrics import outcome_of
 from common.errors import FieldProblem, InvalidRequestError
 from common.job_state import ACTIVE, JobState
 from common.queue_types import JobEventRecord
@@ -23,6 +24,7 @@ from service.schemas import (
     JobPublic,
     JobsPublic,
     MetricsPublic,
+    OutcomeStatus,
     Problem,
     ResultJson,
 )
@@ -51,7 +53,7 @@ def _job_response(response: Response, job: JobPublic, retry_after: int) -> JobPu
     response_model=JobPublic,
     summary="Submit a sequence for refinement",
     # 400: a multipart body the form parser refuses (e.g. more parts than it accepts).
-    responses={400: PROBLEM, 409: PROBLEM, 413: PROBLEM, 429: PROBLEM},
+    responses={400: PROBLEM, 409: PROBLEM, 413: PROBLEM, 415: PROBLEM, 429: PROBLEM},
     openapi_extra={
         "requestBody": {
             "required": True,
@@ -87,8 +89,14 @@ def list_jobs(
     page_token: Annotated[str | None, Query(max_length=500)] = None,
     state: JobState | None = None,
     batch_id: Annotated[str | None, Query(max_length=32, description="only the jobs of this batch")] = None,
+    outcome: Annotated[
+        OutcomeStatus | None,
+        Query(description="only SUCCEEDED jobs whose refined sequence is executable, not_executable, or unknown "
+              "(a result made before outcomes existed)"),
+    ] = None,
 ) -> JobsPublic:
-    jobs, token = queue.list(key_id, state=state, page_size=page_size, page_token=page_token, batch_id=batch_id)
+    jobs, token = queue.list(key_id, state=state, page_size=page_size, page_token=page_token, batch_id=batch_id,
+                             outcome=outcome)  # fmt: skip
     return JobsPublic(data=[JobPublic.from_record(j) for j in jobs], count=len(jobs), next_page_token=token)
 
 
@@ -153,7 +161,11 @@ def get_contacts(
             responses={409: PROBLEM})  # fmt: skip
 def get_metrics(job_id: str, queue: QueueDep, key_id: KeyDep) -> MetricsPublic:
     _, summary = queue.get_result(key_id, job_id)
-    return MetricsPublic(job_id=job_id, metrics=dict(summary.get("metrics", {})))
+    metrics = dict(summary.get("metrics", {}))
+    outcome = outcome_of(summary)
+    if outcome is not None:
+        metrics.setdefault("outcome", dict(outcome))
+    return MetricsPublic(job_id=job_id, metrics=metrics)
 
 
 @router.get(

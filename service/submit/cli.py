@@ -36,8 +36,9 @@ def register(subparsers: Any) -> None:
             "recursively, DexYCB release roots), validate each locally, and submit it with an Idempotency-Key "
             "derived from its content and the options. Progress is kept in OUT/manifest.json: after a crash or "
             "Ctrl-C, run the same command again to resume without submitting anything twice. With --wait, "
-            "results and contacts are downloaded into OUT/results/. Exit status: 0 all done, 1 some failed, "
-            "130 interrupted."
+            "results and contacts are downloaded into OUT/results/. At the end the batch's outcome (executable or "
+            "not, and why not), its report URLs and its metrics are printed, and the report is saved as "
+            "OUT/report.csv and OUT/report.parquet. Exit status: 0 all done, 1 some failed, 130 interrupted."
         ),
     )
     p.add_argument("paths", nargs="+", type=Path, metavar="PATH", help="sequence files or folders")
@@ -54,6 +55,13 @@ def register(subparsers: Any) -> None:
     p.add_argument("--wait", action="store_true", help="wait for every job and download results + contacts")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"manifest + results folder (default {DEFAULT_OUT})")
     p.add_argument("--poll-interval", type=float, default=2.0, help="longest pause between polls of a job (s)")
+    p.add_argument(
+        "--progress-every",
+        type=float,
+        default=30.0,
+        metavar="SECONDS",
+        help="when the output is not a terminal: print a progress line this often (default 30)",
+    )
     p.add_argument(
         "--retry-failed",
         action="store_true",
@@ -83,5 +91,6 @@ def _cmd_submit(args: argparse.Namespace) -> int:
         poll_interval_s=max(0.05, args.poll_interval),
         max_frames=get_settings().max_frames,
         retry_failed=args.retry_failed,
+        progress_every_s=max(0.1, args.progress_every),
     )
     return run_submit(cfg).exit_code

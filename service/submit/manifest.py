@@ -49,6 +49,10 @@ class Entry:
     files: dict[str, str] = field(default_factory=dict)
     #: ``{"raw": {...}, "refined": {...}}`` from the result summary.
     metrics: dict[str, Any] | None = None
+    #: Once SUCCEEDED: ``executable``, ``not_executable`` or ``unknown`` (a result without an outcome), and the
+    #: outcome's primary reason (code, frame, value, unit, message) when it has one.
+    outcome: str | None = None
+    reason: dict[str, Any] | None = None
     #: POSTs this tool made for the entry (the server dedupes by key; this is for the record).
     posts: int = 0
     #: Times ``--retry-failed`` requeued the FAILED job (``POST /v1/jobs/{id}:retry``; same job id).

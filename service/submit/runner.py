@@ -7,16 +7,24 @@ manifest themselves (atomic save under a lock); the main thread only schedules, 
 Ctrl-C into a clean stop: no new work starts, requests in flight finish and are recorded, retries' waits
 end at once, and the user is told to run the same command again. With ``retry_failed`` a job found FAILED is
 requeued once per run (``POST /v1/jobs/{id}:retry``, same job id) instead of being reported as failed.
+
+While it waits the main thread sleeps until the next poll is due (or a request finishes): it never spins. SIGINT
+and SIGTERM stop the run cleanly (the run's own handler, so also where a shell started it with SIGINT ignored); a
+second one aborts at once. Without a terminal a progress line is printed every ``progress_every_s`` seconds
+instead of the bar. At the end the batch's report URLs are printed and its CSV and Parquet saved beside the
+manifest.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import signal
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -28,7 +36,7 @@ from common.errors import ApiError, HoiRefineError
 from common.job_options import JobOptions
 from common.job_state import FINISHED, JobState
 from common.result_format import content_digest, read_summary
-from service.submit.batch import ensure_batch, print_batch
+from service.submit.batch import ensure_batch, print_batch, save_reports
 from service.submit.discovery import Source, SourceFormat, discover, load_source
 from service.submit.manifest import (
     FAILED_STATES,
@@ -42,10 +50,12 @@ from service.submit.manifest import (
 )
 from service.submit.payload import idempotency_key, sequence_payload
 from service.submit.report import (
+    ProgressLines,
     counts,
     describe,
     job_error,
     job_metrics,
+    job_outcome,
     make_progress,
     print_summary,
     summary_document,
@@ -57,6 +67,8 @@ SUMMARY_NAME = "summary.json"
 EXIT_OK, EXIT_FAILED, EXIT_INTERRUPTED = 0, 1, 130
 #: Status requests per second over all tracked jobs, at most (each job's pause grows with their number).
 MAX_POLLS_PER_S = 20.0
+#: Longest sleep of the main thread between two looks at the run (stop flag, progress).
+MAX_IDLE_S = 1.0
 
 #: Called in the main thread after each step: ``(event, entry)`` with event one of submitted, invalid, rejected,
 #: unreachable, error, lost (404: sent again), state, downloaded, retried. Tests use it to interrupt a run.
@@ -78,6 +90,8 @@ class SubmitConfig:
     max_frames: int | None = None
     #: Requeue jobs that ended FAILED (once per run) rather than reporting them as failed.
     retry_failed: bool = False
+    #: Seconds between two progress lines when the output is not a terminal (no bar can be drawn there).
+    progress_every_s: float = 30.0
 
 
 @dataclass
@@ -170,8 +184,9 @@ class _Run:
         state = str(doc.get("state", entry.state))
         error = job_error(doc) if state in UNSUCCESSFUL else None
         metrics = job_metrics(doc) or entry.metrics
+        outcome, reason = job_outcome(doc)
         self.manifest.update(entry, state=state, attempt=doc.get("attempt", entry.attempt), error=error,
-                             metrics=metrics)
+                             metrics=metrics, outcome=outcome, reason=reason)  # fmt: skip
         if state == JobState.SUCCEEDED and download:
             try:
                 self.download(entry)
@@ -309,9 +324,18 @@ def run_submit(
             return sum(run.downloaded(e) or e.state in FAILED_STATES for e in visible)
         return sum(e.job_id is not None or e.state in FAILED_STATES for e in visible)
 
+    def idle_for(tracked: list[Entry], in_flight: set[str], now: float) -> float:
+        """How long the main thread may sleep: until the next poll is due, at most ``MAX_IDLE_S``."""
+        due = [polls_due.get(e.source, 0.0) for e in tracked if e.source not in in_flight]
+        pause = min([MAX_IDLE_S, *(d - now for d in due)])
+        if lines is not None:
+            pause = min(pause, lines.seconds_to_next())
+        return max(pause, 0.0)
+
     progress = make_progress(console)
+    lines = None if console.is_terminal else ProgressLines(console, cfg.progress_every_s, len(visible))
     try:
-        with progress:
+        with progress if lines is None else _nothing(), _stop_on_signals(stop, console):
             bar = progress.add_task(describe(visible), total=len(visible), completed=finished_count())
             for e, s in to_submit:
                 futures[submit_pool.submit(run.prepare_and_submit, e, s)] = ("submit", e)
@@ -334,7 +358,13 @@ def run_submit(
                         futures[poll_pool.submit(run.poll, e, cfg.wait)] = ("poll", e)
                 if not futures and not tracked:
                     break
-                done, _ = wait(list(futures), timeout=0.2, return_when=FIRST_COMPLETED)
+                # ``wait`` on no futures returns at once: sleep on the stop flag instead (Ctrl-C ends it).
+                pause = idle_for(tracked, in_flight | {e.source for _, e in futures.values()}, now)
+                if futures:
+                    done, _ = wait(list(futures), timeout=pause, return_when=FIRST_COMPLETED)
+                else:
+                    stop.wait(pause)
+                    done = set()
                 for fut in done:
                     kind, e = futures.pop(fut)
                     event = _settle(fut, kind, e, manifest, console)
@@ -362,6 +392,8 @@ def run_submit(
                     if on_event is not None and event != "stopped":
                         on_event(event, e)
                 progress.update(bar, description=describe(visible), completed=finished_count())
+                if lines is not None:
+                    lines.update(visible, finished_count())
     except KeyboardInterrupt:
         interrupted = True
     finally:
@@ -370,11 +402,15 @@ def run_submit(
         poll_pool.shutdown(wait=True, cancel_futures=True)
         manifest.save()
 
+    if lines is not None:
+        lines.update(visible, finished_count(), force=True)
     print_summary(console, visible, retried=len(retried), retry_hint=not cfg.retry_failed)
     document = summary_document(visible, len(retried))
     if run.batch_id is not None and run.unreachable is None:
-        client.stop = threading.Event()  # the run's stop is set by now; this one last read may go out
+        client.stop = threading.Event()  # the run's stop is set by now; these last reads may go out
         document["batch"] = print_batch(console, client, cfg.api_url, run.batch_id)
+        if not interrupted:
+            document["reports"] = save_reports(console, client, cfg.api_url, run.batch_id, cfg.out_dir)
     if own_client:
         client.close()
     write_atomic(cfg.out_dir / SUMMARY_NAME, json.dumps(document, indent=1).encode())
@@ -397,6 +433,38 @@ def run_submit(
     code = EXIT_INTERRUPTED if interrupted else EXIT_FAILED if failed else EXIT_OK
     return SubmitOutcome(entries=visible, interrupted=interrupted, exit_code=code, counts=counts(visible),
                          retried=len(retried))  # fmt: skip
+
+
+@contextmanager
+def _nothing() -> Iterator[None]:
+    yield
+
+
+@contextmanager
+def _stop_on_signals(stop: threading.Event, console: Console) -> Iterator[None]:
+    """SIGINT / SIGTERM set ``stop`` (the run winds down and says how to resume); a second one aborts.
+
+    The run installs its own handler, so it also stops where it was started with SIGINT ignored (a background
+    job of a non-interactive shell), and no KeyboardInterrupt can land in the middle of a manifest update.
+    Only the main thread can install handlers; elsewhere (a test's thread) the run relies on ``stop``.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum: int, _frame: Any) -> None:
+        if stop.is_set():
+            raise KeyboardInterrupt
+        stop.set()
+        console.print(f"\n{signal.Signals(signum).name}: stopping (requests in flight finish; again to abort)",
+                      highlight=False)  # fmt: skip
+
+    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
 
 
 def _settle(fut: Future[Any], kind: str, entry: Entry, manifest: Manifest, console: Console) -> str:

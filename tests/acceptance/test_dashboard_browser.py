@@ -13,104 +13,26 @@ missing); where it cannot be installed the test skips.
 
 from __future__ import annotations
 
-import os
-import shutil
-import socket
-import subprocess
-import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from common.database import create_engine_for, upgrade_to_head
 from common.job_options import JobOptions
-from common.queue import JobQueue
 from common.sequence_io import sequence_to_npz_bytes
-from common.settings import Settings
+from tests.support.browser import CHROMIUM_ARGS, Deployment, chromium_path, use_key
 from tests.support.visual import DOCS, update_docs
 
 pytestmark = pytest.mark.slow
 
-CHROMIUM = "/usr/bin/chromium"
 #: The default CMA-ES budget without restarts: about 10 s here, and the refined hand lifts the box.
 OPTIONS = JobOptions(restarts=0)
 
 
-def _apt_install(package: str) -> None:
-    env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
-    cmd = ["apt-get", "install", "-y", "-q", "--no-install-recommends", package]
-    if subprocess.run(cmd, env=env, capture_output=True, timeout=900).returncode != 0:
-        subprocess.run(["apt-get", "update", "-q"], env=env, capture_output=True, timeout=600)
-        subprocess.run(cmd, env=env, capture_output=True, timeout=900)
-
-
 @pytest.fixture(scope="session")
 def chromium() -> str:
-    """Debian's chromium, installed with apt when missing and possible; otherwise the test skips."""
-    pytest.importorskip("playwright.sync_api", reason="the playwright package is not installed")
-    path = shutil.which("chromium") or CHROMIUM
-    if not Path(path).exists() and hasattr(os, "geteuid") and os.geteuid() == 0 and shutil.which("apt-get"):
-        try:
-            _apt_install("chromium")
-        except (OSError, subprocess.TimeoutExpired) as exc:
-            pytest.skip(f"could not install chromium with apt: {exc}")
-        path = shutil.which("chromium") or CHROMIUM
-    if not Path(path).exists():
-        pytest.skip("Debian's chromium is not installed and cannot be installed here (not root or no apt)")
-    return path
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-class Deployment:
-    """The API (uvicorn in a thread) and, once ``start_worker`` is called, one worker loop in another thread."""
-
-    def __init__(self, tmp: Path) -> None:
-        import uvicorn
-
-        from service.app import create_app
-
-        url = f"sqlite:///{tmp / 'dashboard.sqlite3'}"
-        upgrade_to_head(url)
-        self.settings = Settings(lease_seconds=30.0, max_active_jobs_per_key=20)
-        self.engine = create_engine_for(url)
-        self.queue = JobQueue(self.engine, self.settings)
-        self.port = _free_port()
-        self.base_url = f"http://127.0.0.1:{self.port}"
-        config = uvicorn.Config(create_app(self.settings, self.engine), host="127.0.0.1", port=self.port,
-                                log_level="warning")  # fmt: skip
-        self.server = uvicorn.Server(config)
-        self.threads = [threading.Thread(target=self.server.run, daemon=True)]
-        self.threads[0].start()
-        deadline = time.monotonic() + 30
-        while not self.server.started:
-            assert time.monotonic() < deadline, "the API server did not start"
-            time.sleep(0.05)
-        self.loop: Any = None
-
-    def start_worker(self) -> None:
-        from worker.runtime.jobs import RefineJob, refine_preview
-        from worker.runtime.loop import WorkerLoop
-
-        self.loop = WorkerLoop(JobQueue(self.engine, self.settings), RefineJob(1), "browser-test-worker",
-                               lease_seconds=30.0, idle_poll_seconds=0.1, artifact_fn=refine_preview)  # fmt: skip
-        self.threads.append(threading.Thread(target=self.loop.run, daemon=True))
-        self.threads[-1].start()
-
-    def close(self) -> None:
-        if self.loop is not None:
-            self.loop.stop()
-        self.server.should_exit = True
-        for t in self.threads:
-            t.join(60)
-        self.engine.dispose()
+    return chromium_path()
 
 
 @pytest.fixture
@@ -120,11 +42,6 @@ def deployment(tmp_path: Path) -> Iterator[Deployment]:
         yield dep
     finally:
         dep.close()
-
-
-def _use_key(page: Any, key: str) -> None:
-    page.fill("#key", key)
-    page.click("#use-key")
 
 
 @pytest.mark.usefixtures("offscreen_gl")  # the worker renders the preview video
@@ -139,14 +56,11 @@ def test_dashboard_shows_a_job_to_its_key_only(chromium: str, deployment: Deploy
     _, key_a = keys.create("browser A")
     _, key_b = keys.create("browser B")
     with sync_playwright() as pw:
-        # Root in a container: no sandbox. No network here: nothing in the background may try to reach one.
-        args = ["--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
-                "--disable-component-update", "--disable-sync", "--autoplay-policy=no-user-gesture-required"]
-        browser = pw.chromium.launch(executable_path=chromium, args=args)
+        browser = pw.chromium.launch(executable_path=chromium, args=CHROMIUM_ARGS)
         try:
             page = browser.new_page(viewport={"width": 1100, "height": 900})
             page.goto(deployment.base_url + "/ui")
-            _use_key(page, key_a)
+            use_key(page, key_a)
             client = ApiClient(deployment.base_url, key_a)
             seq = short_example_sequence()
             job_id = client.submit(sequence_to_npz_bytes(seq), f"{seq.name}.npz", OPTIONS)["id"]
@@ -181,7 +95,8 @@ def test_dashboard_shows_a_job_to_its_key_only(chromium: str, deployment: Deploy
                 }"""
             )
             assert played["error"] is None and played["time"] > 0, played
-            assert (played["width"], played["height"]) == (640, 240)
+            # Two 4:3 panels side by side (the preview's panel size is the worker's to choose).
+            assert played["width"] * 3 == played["height"] * 8 and played["height"] >= 240, played
             expect(page.locator("#plots img")).to_have_count(3, timeout=30_000)
             assert page.evaluate("[...document.querySelectorAll('#plots img')].every(i => i.naturalWidth > 100)")
             if update_docs():
@@ -189,7 +104,7 @@ def test_dashboard_shows_a_job_to_its_key_only(chromium: str, deployment: Deploy
                 page.screenshot(path=str(DOCS / "dashboard.png"), full_page=True)
 
             # Another key: the job is not listed, and its page cannot be read.
-            _use_key(page, key_b)
+            use_key(page, key_b)
             page.evaluate("location.hash = '#/'")
             expect(page.locator("#empty")).to_be_visible(timeout=10_000)
             expect(page.locator(f'tr[data-job-id="{job_id}"]')).to_have_count(0)

@@ -160,3 +160,51 @@ def test_idempotent_resubmission_adopts_the_job_into_the_batch(api: ApiHarness) 
     assert moved.status_code == 409
     missing = api.client.post("/v1/jobs", json={**json_body(2), "batch_id": "nope"}, headers=api.headers)
     assert missing.status_code == 404
+
+
+def worker_summary(executable: bool, reasons: list[dict[str, object]]) -> dict[str, object]:
+    """The layout the worker writes (issue #53): the paper's protocol nested in each stage, penetration,
+    verification, and the outcome (also copied among the metrics)."""
+    def stage(e_t: float, ok: bool) -> dict[str, object]:
+        return {"E_t": e_t, "E_r": 5.0, "success": ok, "penetration_mean_mm": 1.5, "penetration_max_mm": 4.0,
+                "paper": {"E_t": e_t + 0.2, "E_r": 6.0, "success": ok, "penetration_max_mm": 3.5}}
+    outcome = {"executable": executable, "protocol": "paper", "reasons": reasons}
+    return {"kind": "refine", "outcome": outcome,
+            "metrics": {"raw": stage(3.0, False), "refined": stage(0.5 if executable else 4.0, executable),
+                        "verification": {"verified": True, "content_sha256": "ab"}, "outcome": outcome}}  # fmt: skip
+
+
+def test_the_report_puts_the_outcome_first_with_both_protocols_penetration_and_verification(api: ApiHarness) -> None:
+    batch_id = api.client.post("/v1/batches", json={"name": "r"}, headers=api.headers).json()["id"]
+    ids = [submit(api, i, batch_id) for i in range(3)]
+    rescued = {"code": "rescued_on_finer_parts", "frame": None, "value": None, "unit": None, "message": "kept on "
+               "the finer convex parts"}  # fmt: skip
+    jump = {"code": "recording_too_fast", "frame": 41, "value": 38.5, "unit": "deg/frame",
+            "message": "the recorded object turns 38.5 deg between frames 40 and 41"}  # fmt: skip
+    finish(api, ids[0], worker_summary(False, [rescued, jump]))
+    finish(api, ids[1], worker_summary(True, [rescued]))
+    finish(api, ids[2], summary(2.0, 0.5, True))  # an older result: no outcome
+
+    rows = list(csv.DictReader(io.StringIO(api.client.get(f"/v1/batches/{batch_id}/report",
+                                                          headers=api.headers).text)))  # fmt: skip
+    assert list(rows[0])[:4] == ["job_id", "name", "outcome", "reason"]
+    assert [r["outcome"] for r in rows] == ["not_executable", "executable", "unknown"]
+    # The primary reason is the first that explains a failure; every code is listed.
+    assert (rows[0]["reason"], rows[0]["reason_frame"], rows[0]["reason_value"], rows[0]["reason_unit"]) == (
+        "recording_too_fast", "41", "38.5", "deg/frame")
+    assert rows[0]["reasons"] == "rescued_on_finer_parts;recording_too_fast"
+    assert rows[1]["reason"] == "rescued_on_finer_parts" and rows[2]["reason"] == rows[2]["reasons"] == ""
+    assert [r["verified"] for r in rows] == ["True", "True", ""]
+    assert float(rows[0]["paper_refined_E_t"]) == pytest.approx(4.2) and rows[0]["paper_refined_SR"] == "0.0"
+    assert float(rows[0]["all_frames_refined_penetration_max_mm"]) == 4.0
+    assert float(rows[1]["paper_raw_penetration_max_mm"]) == 3.5 and rows[1]["paper_raw_penetration_mean_mm"] == ""
+
+    table = pq.read_table(io.BytesIO(api.client.get(f"/v1/batches/{batch_id}/report", params={"format": "parquet"},
+                                                    headers=api.headers).content))  # fmt: skip
+    assert table.column("outcome").to_pylist() == ["not_executable", "executable", "unknown"]
+    assert table.schema.field("verified").type == "bool" and table.schema.field("reason_frame").type == "int64"
+    assert table.column("paper_refined_E_r").to_pylist() == [6.0, 6.0, None]
+    batch = api.client.get(f"/v1/batches/{batch_id}", headers=api.headers).json()
+    assert batch["outcomes"] == {"executable": 1, "not_executable": 1, "unknown": 1}
+    assert batch["metrics"]["paper"]["refined"]["n"] == 2
+    assert batch["metrics"]["paper"]["refined"]["penetration_max_mm"] == pytest.approx(3.5)

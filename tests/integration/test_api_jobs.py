@@ -98,6 +98,35 @@ def test_validation_errors_name_every_field(api: ApiHarness) -> None:
     assert big.status_code == 413 and big.headers["content-type"] == PROBLEM
 
 
+
+def test_media_type_json_as_a_file_and_strict_numbers(api: ApiHarness) -> None:
+    """Issue #53 item 8: 415 for a body of another media type; a JSON sequence sent as the multipart file is told
+    how to send it; numbers must be JSON numbers (and booleans JSON booleans), as the schema says."""
+    text = api.client.post("/v1/jobs", headers={**api.headers, "Content-Type": "text/plain"}, content=b"seq")
+    assert text.status_code == 415 and text.headers["content-type"] == PROBLEM
+    assert "application/json or multipart/form-data" in text.json()["detail"]
+    assert api.client.post("/v1/jobs", headers=api.headers, content=b"x").status_code == 415  # no Content-Type
+    as_file = json.dumps(json_body()).encode()
+    resp = api.client.post("/v1/jobs", headers=api.headers, files={"sequence": ("seq.json", b"\n  " + as_file)})
+    assert resp.status_code == 422 and fields(resp) == {"sequence"}
+    assert "holds JSON, not an NPZ file" in resp.text and "Content-Type: application/json" in resp.text
+    for name, value in (("fps", "30"), ("fps", True), ("frame_start", 1.0)):
+        body = {**json_body(), name: value}
+        resp = api.client.post("/v1/jobs", json=body, headers=api.headers)
+        assert resp.status_code == 422 and fields(resp) == {name}, (name, value, resp.text)
+    body = json_body()
+    body["hands"][0]["valid"] = [1] * 5  # type: ignore[index]
+    body["options"] = {"seed": "3"}
+    resp = api.client.post("/v1/jobs", json=body, headers=api.headers)
+    assert resp.status_code == 422 and {"hands[0].valid[0]", "options.seed"} <= fields(resp), resp.text
+    form = multipart(4)
+    form["data"] = {"options": '{"seed": "4"}'}
+    multi = api.client.post("/v1/jobs", headers=api.headers, **form)  # type: ignore[arg-type]
+    assert multi.status_code == 422 and fields(multi) == {"options.seed"}
+    body = json_body()
+    body["fps"] = 30  # an integer where a float is asked for is a number all the same
+    assert api.client.post("/v1/jobs", json=body, headers=api.headers).status_code == 202
+
 def test_auth_and_owner_scoping(api: ApiHarness) -> None:
     anonymous = api.client.get("/v1/jobs")
     assert anonymous.status_code == 401 and anonymous.headers["WWW-Authenticate"] == "Bearer"

@@ -77,6 +77,7 @@ def test_signed_deliveries_verify_and_a_500_is_retried(api: ApiHarness) -> None:
                                         "batch.completed"])  # fmt: skip
         done = next(p for p in payloads if p["type"] == "job.succeeded")
         assert done["data"]["job_id"] == job_id and done["data"]["batch_id"] == batch_id
+        assert done["data"]["outcome"] == "unknown"  # the fake result carries no outcome
         completed = next(p for p in payloads if p["type"] == "batch.completed")
         assert completed["data"]["counts"] == {"SUCCEEDED": 1}
 

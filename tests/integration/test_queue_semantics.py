@@ -38,6 +38,8 @@ def test_submit_claim_heartbeat_complete_round_trip(queue: JobQueue, owner: str)
     queue.complete(job_id, claimed.lease_token, blob, summary)
     job = queue.get(owner, job_id)
     assert job.state == "SUCCEEDED" and job.summary == summary and job.finished_at is not None
+    # A finished job shows done: no last window or ETA left over from its computation.
+    assert job.progress == {"evaluations": 40, "fraction": 1.0, "stage": "done", "step": "done", "eta_s": 0.0}
     assert queue.get_result(owner, job_id) == (blob, summary)
     kinds = [e.kind for e in queue.events(owner, job_id)]
     assert kinds == ["submitted", "claimed", "progress", "succeeded"]

@@ -17,7 +17,8 @@ def register(subparsers: Any) -> None:
     p = subparsers.add_parser(
         "refine",
         help="optimise the hand motion of a sequence until the simulated object follows the recorded one",
-        description="Windowed CMA-ES over spline keyframes (DESIGN §1.3-1.7); writes one result NPZ.",
+        description="Windowed CMA-ES over spline keyframes: the hand's motion is optimised window by window until the "
+        "simulated object, moved only through contact, follows the recorded one; writes one result NPZ.",
     )
     p.add_argument("sequence", type=Path, help="sequence file (.npz native or DexYCB, .json, DexYCB folder, ARCTIC "
                    ".npy)")

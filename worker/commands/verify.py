@@ -20,7 +20,7 @@ def register(subparsers: Any) -> None:
         "simulated keypoints, wrist track, contacts, per-frame and summary metrics on both protocols, success) "
         "and fails naming each field that differs and by how much. A physics config other than the product's "
         "defaults fails unless --allow-config. On the machine that made the result the replay is bit-identical; "
-        "on another x86_64 host it is compared within physical tolerances (worker/verification/report.py). "
+        "on another x86_64 host it is compared within physical tolerances (millimetres for a held object). "
         "Prints the largest trajectory deviation, a SHA-256 over everything checked, and the result's content "
         "sha256 (every member but the wall-clock timings), which two runs with the same input, options and seed "
         "share.",

@@ -12,12 +12,15 @@ RUNNING; only then is Ray shut down.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
+import tempfile
 import threading
 import time
 import uuid
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from common.errors import ConfigurationError, DatabaseUnavailableError, LeaseLostError
@@ -29,6 +32,13 @@ log = logging.getLogger(__name__)
 ENV_PREFIX = "HOI_REFINE_"
 #: Wait before the n-th retry of ``ray start`` for this machine's node: n times this.
 NODE_START_RETRY_SECONDS = 5.0
+#: Ray's folder under the deployment's var dir: its sessions, with the logs in ``session_latest/logs``.
+RAY_DIR_NAME = "ray"
+#: A Unix socket's path holds at most this many bytes (Linux: 108 with the NUL; Ray checks it).
+SOCKET_PATH_MAX = 107
+#: What Ray adds below its temp dir to reach a socket: ``/session_<date>_<time>_<us>_<pid>`` (up to 45 bytes
+#: with a 7-digit pid) and ``/sockets/plasma_store`` with an increment suffix (up to 24).
+RAY_SOCKET_SUFFIX_BYTES = 69
 
 
 @dataclass
@@ -92,10 +102,40 @@ def ray_executable() -> str:
     """The ``ray`` CLI installed beside this interpreter (falls back to PATH)."""
     import shutil
     import sys
-    from pathlib import Path
 
     beside = Path(sys.executable).with_name("ray")
     return str(beside) if beside.exists() else (shutil.which("ray") or "ray")
+
+
+def ray_temp_dir(var_dir: Path) -> Path:
+    """Where a Ray node of this deployment keeps its sessions and logs: ``VAR/ray``.
+
+    Ray puts its Unix sockets below this folder, and a socket path may hold at most ``SOCKET_PATH_MAX`` bytes.
+    When ``VAR/ray`` is too long for that, Ray gets a short folder in the system temp dir named after the var dir
+    (the same one on every start), and ``VAR/ray`` is a link to it, so the logs are still found under VAR.
+    """
+    wanted = var_dir.resolve() / RAY_DIR_NAME
+    if len(str(wanted).encode()) + RAY_SOCKET_SUFFIX_BYTES <= SOCKET_PATH_MAX:
+        wanted.mkdir(parents=True, exist_ok=True)
+        return wanted
+    digest = hashlib.sha256(str(wanted).encode()).hexdigest()[:12]
+    short = Path(tempfile.gettempdir()) / f"hoi-refine-ray-{digest}"
+    short.mkdir(mode=0o700, exist_ok=True)
+    wanted.parent.mkdir(parents=True, exist_ok=True)
+    if wanted.is_symlink() and wanted.resolve() != short.resolve():
+        wanted.unlink()
+    if not wanted.exists() and not wanted.is_symlink():
+        wanted.symlink_to(short, target_is_directory=True)
+    elif not wanted.is_symlink():
+        log.warning("%s is a folder: Ray's logs go to %s (the path is too long for Ray's sockets)", wanted, short)
+    return short
+
+
+def with_temp_dir(start_args: tuple[str, ...], var_dir: Path) -> tuple[str, ...]:
+    """``ray start`` options with ``--temp-dir`` under the var dir, unless the user gave one."""
+    if any(a == "--temp-dir" or a.startswith("--temp-dir=") for a in start_args):
+        return start_args
+    return (*start_args, "--temp-dir", str(ray_temp_dir(var_dir)))
 
 
 def actor_environment() -> dict[str, str]:
@@ -137,13 +177,16 @@ class WorkerPool:
             if cfg.ray_address:
                 ray.init(address=cfg.ray_address, log_to_driver=cfg.log_to_driver)
             else:
-                # Lean local start (2-core machines): no dashboard, exactly the CPUs the actors need.
+                # Lean local start (2-core machines): no dashboard, exactly the CPUs the actors need; its sessions
+                # and logs under the deployment's var dir.
                 ray.init(
                     num_cpus=cfg.workers * cfg.threads_per_worker,
                     include_dashboard=False,
                     log_to_driver=cfg.log_to_driver,
                     configure_logging=False,
+                    _temp_dir=str(ray_temp_dir(settings.var_dir)),
                 )
+                log.info("Ray's logs: %s", Path(settings.var_dir).resolve() / RAY_DIR_NAME / "session_latest" / "logs")
             self.started_ray = True
         cls = remote_worker_class(cfg.threads_per_worker)
         if cfg.join_as_node:
@@ -177,7 +220,7 @@ class WorkerPool:
         cfg = self.config
         cpus = cfg.workers * cfg.threads_per_worker
         cmd = [ray_executable(), "start", "--address", str(cfg.ray_address), "--num-cpus", str(cpus)]
-        cmd += ["--disable-usage-stats", *cfg.node_start_args]
+        cmd += ["--disable-usage-stats", *with_temp_dir(cfg.node_start_args, get_settings().var_dir)]
         for attempt in range(1, cfg.node_start_attempts + 1):
             log.info("joining Ray cluster %s as a node with %d CPU(s) (attempt %d)", cfg.ray_address, cpus, attempt)
             if subprocess.run(cmd, check=False).returncode == 0:

@@ -24,9 +24,12 @@ def register(subparsers: Any) -> None:
 def _cmd_ray_head(args: argparse.Namespace) -> int:
     import os
 
-    from worker.runtime.pool import ray_executable
+    from common.settings import get_settings
+    from worker.runtime.pool import ray_executable, with_temp_dir
 
     cmd = [ray_executable(), "start", "--head", "--block", "--port", str(args.port), "--num-cpus", str(args.num_cpus)]
-    cmd += ["--include-dashboard", "false", "--disable-usage-stats", *args.ray_start_args]
+    # Its sessions and logs under the deployment's var dir (HOI_REFINE_VAR_DIR), unless --temp-dir is given.
+    cmd += ["--include-dashboard", "false", "--disable-usage-stats",
+            *with_temp_dir(args.ray_start_args, get_settings().var_dir)]  # fmt: skip
     # Replace this process: the container's stop signal then reaches `ray start --block` directly.
     os.execv(cmd[0], cmd)
