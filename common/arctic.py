@@ -77,15 +77,6 @@ def widen_limits(obj: ObjectSpec, articulation: np.ndarray) -> dict[str, str]:
     return notes
 
 
-def load_arctic(path: Path, object_dir: Path | None = None, max_frames: int | None = None) -> Sequence:
-    """Either ARCTIC layout (module docstring), by the file's name."""
-    if is_dexmachina_processed(path):
-        return load_dexmachina_processed(path, object_dir, max_frames)
-    from common.arctic_release import load_arctic_release
-
-    return load_arctic_release(path, object_dir, max_frames)
-
-
 def load_dexmachina_processed(path: Path, object_dir: Path | None = None, max_frames: int | None = None) -> Sequence:
     """A dexmachina-processed ARCTIC sequence and its object (see the module docstring)."""
     data = load_object_npy(path)

@@ -441,9 +441,13 @@ def load_sequence(path: Path | str, max_frames: int | None = None, object_dir: P
     if suffix == ".json":
         return sequence_from_json_bytes(path.read_bytes(), base_dir=path.parent, max_frames=max_frames)
     if suffix == ".npy":
-        from common.arctic import load_arctic
+        # ARCTIC: a dexmachina-processed file, or a release sequence's ``.mano.npy`` (``common.arctic``).
+        from common.arctic import is_dexmachina_processed, load_dexmachina_processed
+        from common.arctic_release import load_arctic_release
 
-        return load_arctic(path, object_dir=object_dir, max_frames=max_frames)
+        if is_dexmachina_processed(path):
+            return load_dexmachina_processed(path, object_dir, max_frames)
+        return load_arctic_release(path, object_dir, max_frames)
     raise UnsupportedFormatError(
         f"{path.name}: unknown sequence format {suffix!r} (expected .npz, .json or an ARCTIC .npy)"
     )

@@ -34,9 +34,10 @@ def _box() -> Example:
 def _hinged_box() -> Example:
     from worker.example.hinged_box import OPEN_RAD, hinged_box_sequence, short_hinged_box_sequence
 
-    return Example("hinged_box", "the built-in two-handed hinged box (the left hand holds a 0.8 kg base while the "
-                   f"right hand opens the 0.15 kg block hinged on it by {OPEN_RAD:g} rad; both observed hands have "
-                   "hovering/penetrating fingers and jitter)", hinged_box_sequence, short_hinged_box_sequence)  # fmt: skip
+    about = ("the built-in two-handed hinged box (the left hand holds a 0.8 kg base while the right hand opens the "
+             f"0.15 kg block hinged on it by {OPEN_RAD:g} rad; both observed hands have hovering/penetrating fingers "
+             "and jitter)")
+    return Example("hinged_box", about, hinged_box_sequence, short_hinged_box_sequence)
 
 
 EXAMPLES: dict[str, Callable[[], Example]] = {"box": _box, "hinged_box": _hinged_box}
