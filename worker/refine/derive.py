@@ -126,6 +126,7 @@ def replay_metrics(prep: Prepared, rec: ReplayRecord) -> dict[str, Any]:
         {r.side: r.keypoints for r in prep.references},
         {r.side: r.valid for r in prep.references},
         rec.contact_frames,
+        {side: tuple(t.fingertips) for side, t in prep.hand_targets.items()},
     )
 
 

@@ -112,5 +112,6 @@ def window_problem(prep: Prepared, evaluator: ParallelEvaluator, start: SimState
                    lookahead_rotation_weight: float = LOOKAHEAD_ROTATION_WEIGHT) -> SimWindowProblem:
     """The window problem of a prepared sequence (``weights`` empty: the job's own)."""
     return SimWindowProblem(prep.layout, prep.spaces, prep.obj_targets, prep.hand_targets,
-                            weights or resolve_weights(prep.options.loss_weights), evaluator, start, LOOKAHEAD,
+                            weights or resolve_weights(prep.options.loss_weights, robot=prep.options.hand is not None),
+                            evaluator, start, LOOKAHEAD,
                             lookahead_rotation_weight)

@@ -95,6 +95,7 @@ def robot_fragment(emb: Embodiment, config: SimConfig, wrist_pos: FloatArray, wr
                           for j in range(len(emb.keypoint_ids))),
         joint_names=joints,
         keypoint_ids=emb.keypoint_ids,
+        q_limits=emb.q_limits.copy(),
     )
 
 

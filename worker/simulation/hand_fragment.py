@@ -13,8 +13,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from common.geometry import FloatArray
-from worker.hand.model import HINGE_NAMES
+from worker.hand.model import HINGE_NAMES, JOINT_LIMITS
 from worker.hand.reference import HandReference
 from worker.simulation.config import SimConfig
 from worker.simulation.hand_mjcf import (
@@ -40,6 +42,7 @@ class HandFragment:
     sensors: str
     joint_names: tuple[str, ...]
     keypoint_ids: tuple[int, ...]
+    q_limits: FloatArray  # (H, 2) the actuated joints' ranges, as the pipeline clips to them
 
 
 def human_fragment(ref: HandReference, config: SimConfig) -> HandFragment:
@@ -53,6 +56,7 @@ def human_fragment(ref: HandReference, config: SimConfig) -> HandFragment:
         sensors=hand_sensor_xml(ref.side),
         joint_names=HINGE_NAMES,
         keypoint_ids=HUMAN_KEYPOINTS,
+        q_limits=np.asarray(JOINT_LIMITS, dtype=np.float64),
     )
 
 

@@ -162,7 +162,7 @@ def hand_handles(model: mujoco.MjModel, fragment: HandFragment) -> HandHandles:
         body_ids=body_ids,
         body_names=tuple(mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, int(b)) or "" for b in body_ids),
         keypoint_ids=np.asarray(fragment.keypoint_ids, dtype=np.int64),
-        q_limits=model.jnt_range[joint_ids].astype(np.float64),
+        q_limits=np.asarray(fragment.q_limits, dtype=np.float64),
         penetration_sensor_adr=int(model.sensor_adr[penetration]),
     )
 
