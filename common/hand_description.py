@@ -153,6 +153,10 @@ class HandDescription(_Strict):
         """The placed keypoints in ``JOINT_NAMES`` order: the order of the robot's keypoint sites."""
         return [k for k in JOINT_NAMES if k in self.keypoints]
 
+    def fingertip_sites(self) -> tuple[int, ...]:
+        """Indices of the fingertips (``*4``) among the keypoint sites, thumb first."""
+        return tuple(i for i, k in enumerate(self.keypoint_order()) if k.endswith("4"))
+
 
 def parse_hand_description(data: object, prefix: str = "hand") -> HandDescription:
     """A ``HandDescription`` from decoded JSON/YAML; ``HandDescriptionError`` naming every field at fault."""

@@ -6,6 +6,8 @@ from typing import Any
 
 import numpy as np
 
+from common.hand_description import parse_hand_description
+
 from common.geometry import quat_to_matrix, rotation_error_deg
 from common.result_format import CONTACT_KEYS
 from worker.refine.verify_report import CROSS_HOST, Tolerances, VerifyReport
@@ -217,7 +219,9 @@ def check_stored_metrics(
                                           np.flatnonzero(arrays["object_table_contact"]), n)
             except ValueError as exc:
                 report.failures.append(f"contact_frame: {exc}")
-        m = compute_metrics(pose, ref, kp_sim, kp_ref, valid, contacts)
+        hand = (summary.get("options") or {}).get("hand")  # a robot hand: its fingertip sites (issue #55)
+        tips = None if hand is None else {s: parse_hand_description(hand).fingertip_sites() for s in kp_sim}
+        m = compute_metrics(pose, ref, kp_sim, kp_ref, valid, contacts, tips)
         for key, val in m["per_frame"].items():
             stored = arrays.get(f"metrics_{name}_{key}")
             if stored is None or (not kp_sim and key in ("e_j_cm", "e_ft_cm")):
