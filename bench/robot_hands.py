@@ -1,7 +1,8 @@
 """Robot hands on DexYCB dev (issue #55): retarget-only replay vs refined, for Allegro and LEAP, beside the human
 hand's figures of the same sequences (``bench/results/refine_dev120.md``'s per-sequence rows).
 
-    python bench/robot_hands.py --robot-dir /path/to/dex-urdf --per-side 20 --threads 2 --out bench/results/robot_hands.md
+    python bench/robot_hands.py --robot-dir /path/to/dex-urdf --per-side 20 --threads 2 \
+        --out bench/results/robot_hands.md
 
 Takes the first ``--per-side`` right and left sequences of ``bench/samples/dev120.txt`` in file order, refines each
 with every ``--hands`` hand (the product's options), keeps one JSON line per (sequence, hand) in ``--cache`` (a re-run
@@ -56,7 +57,7 @@ def run_one(name: str, hand: str, robot_dir: Path, threads: int) -> dict[str, An
     for which in ("raw", "refined"):
         m = s["metrics"][which]
         p = m["paper"]
-        robot = next(iter(m.get("robot", {}).values()), {})
+        robot: dict[str, Any] = next(iter(m.get("robot", {}).values()), {})
         row[which] = {"success": p["success"], "E_t": p["E_t"], "E_r": p["E_r"], "E_ft": p["E_ft"],
                       "pen_mean": p.get("penetration_mean_mm"), "pen_max": p.get("penetration_max_mm"), **robot}
     arrays = out.arrays
@@ -106,7 +107,8 @@ def report(rows: list[dict[str, Any]], hands: list[str], names: list[str], args:
             sub = [r[which] for r in mine]
             lines.append(
                 f"| {hand} | {'retarget-only replay' if which == 'raw' else 'refined'} | {len(sub)} | "
-                f"{100 * np.mean([s['success'] for s in sub]):.1f} | {_mean(sub, 'E_t'):.2f} | {_mean(sub, 'E_r'):.2f} | "
+                f"{100 * np.mean([s['success'] for s in sub]):.1f} | {_mean(sub, 'E_t'):.2f} | "
+                f"{_mean(sub, 'E_r'):.2f} | "
                 f"{_mean(sub, 'E_ft'):.2f} | {_mean(sub, 'pen_mean'):.2f} / {_mean(sub, 'pen_max'):.2f} | "
                 f"{_mean(sub, 'velocity_ratio'):.2f}, {_mean(sub, 'command_velocity_ratio'):.2f} | "
                 f"{_mean(sub, 'peak_acceleration'):.0f} | {_mean(sub, 'force_peak_ratio'):.2f} | "
@@ -119,13 +121,15 @@ def report(rows: list[dict[str, Any]], hands: list[str], names: list[str], args:
                          f"{_mean(hs, 'E_r'):.2f} | | {_mean(hs, 'pen'):.2f} / | | | | "
                          f"{np.median([h['wall_s'] for h in hs]):.0f} | {max(h['wall_s'] for h in hs):.0f} |")
     lines += ["", "## Per sequence", "", "| sequence | side | hand | retarget tip mm | raw ok | raw E_t | ok | E_t | "
-              "E_r | pen max mm | speed ratio | wall s | human ok / E_t / E_r |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "E_r | pen max mm | speed ratio | wall s | human ok / E_t / E_r |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         h = human.get(r["sequence"])
         f, raw = r["refined"], r["raw"]
         lines.append(f"| {r['sequence']} | {r['side']} | {r['hand']} | {r['retarget_tip_mm']:.1f} | "
                      f"{'yes' if raw['success'] else 'no'} | {raw['E_t']:.2f} | {'yes' if f['success'] else 'no'} | "
-                     f"{f['E_t']:.2f} | {f['E_r']:.2f} | {f['pen_max'] or 0:.2f} | {f.get('velocity_ratio') or 0:.2f} | "
+                     f"{f['E_t']:.2f} | {f['E_r']:.2f} | {f['pen_max'] or 0:.2f} | "
+                     f"{f.get('velocity_ratio') or 0:.2f} | "
                      f"{r['wall_s']:.0f} | " + (f"{'yes' if h['success'] else 'no'} / {h['E_t']:.2f} / {h['E_r']:.2f} |"
                                                 if h else "- |"))
     return "\n".join(lines) + "\n"

@@ -28,8 +28,8 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from common.errors import FieldProblem, InputError
-from common.sequence import JOINT_NAMES
 from common.safe_text import text_problem
+from common.sequence import JOINT_NAMES
 
 #: Names that resolve to a shipped correspondence (``worker/robot/data/<name>.json``) whose model lies in the
 #: robot folder (``HOI_REFINE_ROBOT_DIR``: a checkout of the public dex-urdf repository).
@@ -186,13 +186,15 @@ def packed_model_problems(desc: HandDescription, prefix: str = "hand") -> list[F
         problems.append(FieldProblem(f"{prefix}.root_body", f"no body named {desc.root_body!r} in the model"))
     for name, site in desc.keypoints.items():
         if site.body not in bodies:
-            problems.append(FieldProblem(f"{prefix}.keypoints.{name}.body", f"no body named {site.body!r} in the model"))
+            problems.append(FieldProblem(f"{prefix}.keypoints.{name}.body",
+                                         f"no body named {site.body!r} in the model"))
     for i, spec in enumerate(desc.joints):
         joint = joints.get(spec.name)
         if joint is None:
             problems.append(FieldProblem(f"{prefix}.joints.{i}.name", f"no joint named {spec.name!r} in the model"))
         elif spec.range is None and joint.get("range") is None:
-            problems.append(FieldProblem(f"{prefix}.joints.{i}.range", f"joint {spec.name!r} has no limits: give a range"))
+            problems.append(FieldProblem(f"{prefix}.joints.{i}.range",
+                                         f"joint {spec.name!r} has no limits: give a range"))
     return problems
 
 

@@ -27,8 +27,9 @@ from worker.hand.reference import HandReference
 from worker.refine.evaluator import ParallelEvaluator
 from worker.refine.prepare import Prepared, prepare, settled_start
 from worker.refine.replay import ReplayJob, ReplayRecord, replay_all
-from worker.simulation.config import SimConfig
 from worker.robot.metrics import robot_motion_metrics
+from worker.robot.reference import RobotReference
+from worker.simulation.config import SimConfig
 from worker.simulation.metrics import compute_metrics, scalar_metrics
 
 
@@ -133,6 +134,7 @@ def replay_metrics(prep: Prepared, rec: ReplayRecord) -> dict[str, Any]:
     if rec.joints:
         m["robot"] = {}
         for r in prep.references:
+            assert isinstance(r, RobotReference)
             emb = r.embodiment
             m["robot"][r.side] = robot_motion_metrics(
                 rec.joints[r.side], rec.command[r.side], rec.joint_force[r.side], emb.q_limits,
@@ -170,7 +172,7 @@ def build_arrays(
         arrays[f"{s}_keypoints_sim"] = final.keypoints[s]
         arrays[f"{s}_keypoints_ref"] = ref.keypoints
         arrays[f"{s}_valid"] = ref.valid
-        if s in final.joints:  # a robot hand (issue #55): its joints as simulated and as retargeted
+        if isinstance(ref, RobotReference):  # a robot hand (issue #55): its joints as simulated and retargeted
             arrays[f"{s}_q_sim"] = final.joints[s]
             arrays[f"{s}_actuator_force_peak"] = final.joint_force[s]
             arrays[f"{s}_q_retarget"] = ref.q

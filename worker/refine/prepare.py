@@ -178,6 +178,7 @@ def prepare(
     layout = SimLayout.from_scene(scene)
     interval = options.keyframe_interval or default_keyframe_interval(seq.fps)
     robots = [r for r in references if isinstance(r, RobotReference)]
+    bases: dict[Any, PoseBasis10]
     if robots:
         bases = {r.side: PoseBasis10(*robot_basis(r)) for r in robots}
         provenance = f"robot {robots[0].embodiment.description.name}: PCA of the retargeted joint motion"
@@ -193,14 +194,15 @@ def prepare(
     surface_grid = DistanceGrid(samples)
     hands: dict[str, HandKeypointTargets] = {}
     for r in references:
-        robot = isinstance(r, RobotReference)
-        tips = r.embodiment.fingertips if robot else FINGERTIP_INDICES
+        if isinstance(r, RobotReference):
+            tips, distal, joint_targets = r.embodiment.fingertips, robot_distal_segments(r), r.q.copy()
+        else:
+            tips, distal, joint_targets = FINGERTIP_INDICES, distal_segments(r.geometry), None
         mask, local = contact_targets(r.keypoints, r.valid, pose[:, :3], pose[:, 3:], surface, tips)
         hands[r.side] = HandKeypointTargets(
             r.keypoints, r.valid, tips, mask, local,
             grip=grip_frames(pose, mask, round(GRIP_LEAD_S * seq.fps)),
-            distal=robot_distal_segments(r) if robot else distal_segments(r.geometry), surface=surface_grid,
-            joint_targets=r.q.copy() if robot else None,
+            distal=distal, surface=surface_grid, joint_targets=joint_targets,
         )  # fmt: skip
     # The mocap and the servo targets run ahead of their tracks by the weld's and the servos' lags
     # (``SimConfig.wrist_lead_s`` / ``finger_lead_s``), as in the raw replay (``stepping.substep_controls``);

@@ -6,9 +6,8 @@ from typing import Any
 
 import numpy as np
 
-from common.hand_description import parse_hand_description
-
 from common.geometry import quat_to_matrix, rotation_error_deg
+from common.hand_description import parse_hand_description
 from common.result_format import CONTACT_KEYS
 from worker.refine.verify_report import CROSS_HOST, Tolerances, VerifyReport
 from worker.simulation.contacts import contact_frames

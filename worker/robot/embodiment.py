@@ -74,7 +74,8 @@ def pack_description(desc: HandDescription, base_dir: Path) -> HandDescription:
         assert desc.model is not None
         path = (base_dir / desc.model).resolve()
         source = compile_source(path)
-        packed = urdf_velocity_limits(desc, path).model_copy(update={"model": None, "model_xml": canonical_xml(source, desc.root_body)})
+        xml = canonical_xml(source, desc.root_body)
+        packed = urdf_velocity_limits(desc, path).model_copy(update={"model": None, "model_xml": xml})
     Embodiment.from_description(packed, packed.model_side)  # every name checked against the compiled model
     return packed
 
@@ -153,9 +154,11 @@ class Embodiment:
             site = desc.keypoints[name]
             b = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, site.body)
             if b < 0:
-                problems.append(FieldProblem(f"hand.keypoints.{name}.body", f"no body named {site.body!r} in the model"))
+                problems.append(FieldProblem(f"hand.keypoints.{name}.body",
+                                             f"no body named {site.body!r} in the model"))
             elif not _in_subtree(model, b, root):
-                problems.append(FieldProblem(f"hand.keypoints.{name}.body", f"body {site.body!r} is not part of the hand"))
+                problems.append(FieldProblem(f"hand.keypoints.{name}.body",
+                                             f"body {site.body!r} is not part of the hand"))
             bodies.append(site.body)
             pos = np.asarray(site.pos, dtype=np.float64)
             positions.append(pos if side == desc.model_side else pos * MIRROR)
@@ -188,8 +191,8 @@ def urdf_velocity_limits(desc: HandDescription, path: Path) -> HandDescription:
         limit = joint.find("limit")
         if limit is not None and limit.get("velocity"):
             speeds[joint.get("name")] = float(limit.get("velocity", "0"))
-    joints = [j if j.velocity is not None or not speeds.get(j.name) else j.model_copy(update={"velocity": speeds[j.name]})
-              for j in desc.joints]
+    joints = [j if j.velocity is not None or not speeds.get(j.name)
+              else j.model_copy(update={"velocity": speeds[j.name]}) for j in desc.joints]
     return desc.model_copy(update={"joints": joints})
 
 

@@ -73,8 +73,8 @@ def robot_fragment(emb: Embodiment, config: SimConfig, wrist_pos: FloatArray, wr
         })  # fmt: skip
     for site in root.iter("site"):
         site.set("name", name(site.get("name")))
-    for j, (body, pos) in enumerate(zip(emb.site_bodies, emb.site_pos, strict=True)):
-        ET.SubElement(bodies[body], "site", name=f"{side}_kp{j}", pos=fmt(pos), size="0.004")
+    for j, (body_name, pos) in enumerate(zip(emb.site_bodies, emb.site_pos, strict=True)):
+        ET.SubElement(bodies[body_name], "site", name=f"{side}_kp{j}", pos=fmt(pos), size="0.004")
     equality = [hand_equality_xml(side, config)]
     eq = doc.find("equality")
     for coupling in [] if eq is None else list(eq):

@@ -72,7 +72,3 @@ def hand_fragment(ref: object, config: SimConfig) -> HandFragment:
     assert isinstance(fragment, HandFragment)
     return fragment
 
-
-def wrist_start(ref: object) -> tuple[FloatArray, FloatArray]:
-    """The frame-0 wrist (root) pose of a reference."""
-    return getattr(ref, "wrist_pos")[0], getattr(ref, "wrist_quat")[0]

@@ -74,7 +74,8 @@ def compute_metrics(
 ) -> dict[str, Any]:
     """Metrics of one trajectory. Poses (F,7) world x y z qw qx qy qz; keypoints side -> (F,21,3); valid
     side -> (F,); a robot hand's keypoints are (F,J,3), its keypoint sites, with ``fingertips[side]`` the indices
-    of its fingertips among them (default: the 21 human keypoints and ``FINGERTIP_INDICES``). Returns the all-frames figures ``E_t`` (cm), ``E_r`` (deg), ``E_j`` (cm), ``E_ft`` (cm),
+    of its fingertips among them (default: the 21 human keypoints and ``FINGERTIP_INDICES``). Returns the
+    all-frames figures ``E_t`` (cm), ``E_r`` (deg), ``E_j`` (cm), ``E_ft`` (cm),
     ``success`` (bool), ``max_E_t``, ``max_E_r``, ``frames`` (and with ``contacts`` the plausibility figures of the
     module docstring), the same for the paper's protocol under ``paper``, and ``per_frame`` (dict of (F,) arrays
     ``PER_FRAME_KEYS`` — hand errors NaN on frames where no hand is valid). ``scalar_metrics`` gives the JSON part.

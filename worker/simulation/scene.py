@@ -242,7 +242,8 @@ def _scene_document(config: SimConfig, table: SupportPlane, fragments: list[Hand
 
 
 def build_scene(
-    seq: Sequence, references: list[HandReference] | list[Any], config: SimConfig | None = None, *, cache_dir: Path | None = None
+    seq: Sequence, references: list[HandReference] | list[Any], config: SimConfig | None = None, *,
+    cache_dir: Path | None = None,
 ) -> Scene:
     """Compile the scene for a sequence and its retargeted hands (one ``HandReference`` per hand). ``cache_dir``:
     where a mesh object's convex parts are cached on disk (None: memory only)."""
