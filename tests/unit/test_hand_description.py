@@ -91,7 +91,8 @@ def test_the_fragment_names_everything_with_the_side(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("change", "field"),
     [
-        ({"keypoints": {**description()["keypoints"], "index4": {"body": "no_such_link"}}}, "hand.keypoints.index4.body"),
+        ({"keypoints": {**description()["keypoints"], "index4": {"body": "no_such_link"}}},
+         "hand.keypoints.index4.body"),
         ({"joints": [{"name": "no_such_joint"}] + [{"name": j} for j in JOINTS[1:]]}, "hand.joints.0.name"),
         ({"root_body": "nowhere"}, "hand.root_body"),
         ({"model": "missing.urdf"}, "hand.model"),
