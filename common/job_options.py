@@ -23,6 +23,7 @@ LossName = Literal[
     "penetration",
     "grasp_reach",
     "robot_joints",
+    "object_articulation",
 ]
 LOSS_NAMES: tuple[str, ...] = LossName.__args__  # type: ignore[attr-defined]
 

@@ -37,6 +37,20 @@ def object_surface_points(obj: ObjectSpec, spacing: float = SPACING_M) -> FloatA
     return np.concatenate([verts, primitive_surface_points(obj.primitive, obj.size, spacing)])
 
 
+def posed_surface_points(obj: ObjectSpec, values: FloatArray | None, spacing: float = SPACING_M) -> FloatArray:
+    """``object_surface_points`` of every part of an articulated object, in the base part's frame with its joints at
+    ``values`` (J,); a rigid object's own points."""
+    if not obj.parts:
+        return object_surface_points(obj, spacing)
+    from common.geometry import quat_rotate
+
+    assert values is not None
+    poses = obj.part_poses(np.array([0.0, 0, 0, 1, 0, 0, 0]), np.asarray(values, dtype=np.float64))
+    chunks = [quat_rotate(poses[k, 3:], object_surface_points(shape, spacing)) + poses[k, :3]
+              for k, shape in enumerate(obj.part_shapes())]  # fmt: skip
+    return np.concatenate(chunks)
+
+
 def primitive_surface_points(kind: str, size: FloatArray, spacing: float = SPACING_M) -> FloatArray:
     """(N, 3) points on the surface of a primitive in its own frame (``ObjectSpec`` conventions: box half-extents;
     cylinder/capsule radius and half-length along z; sphere radius)."""

@@ -31,6 +31,7 @@ from worker.robot.metrics import robot_motion_metrics
 from worker.robot.reference import RobotReference
 from worker.simulation.config import SimConfig
 from worker.simulation.metrics import compute_metrics, scalar_metrics
+from worker.simulation.replay import articulation_frames
 
 
 @dataclass
@@ -129,6 +130,7 @@ def replay_metrics(prep: Prepared, rec: ReplayRecord) -> dict[str, Any]:
         {r.side: r.keypoints for r in prep.references},
         {r.side: r.valid for r in prep.references},
         rec.contact_frames,
+        articulation_frames(prep.seq, rec.articulation),
         {side: tuple(t.fingertips) for side, t in prep.hand_targets.items()},
     )
     if rec.joints:
@@ -162,6 +164,10 @@ def build_arrays(
     }
     if final.contact_frames is not None:
         arrays["object_table_contact"] = final.contact_frames.table
+    if final.articulation is not None and raw.articulation is not None and prep.seq.articulation is not None:
+        arrays["object_articulation_sim"] = final.articulation
+        arrays["object_articulation_ref"] = prep.seq.articulation
+        arrays["raw_object_articulation_sim"] = raw.articulation
     for ref in prep.references:
         s = ref.side
         q, p, r = prep.spaces[s].frame_controls(keyframes[s])

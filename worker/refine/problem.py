@@ -64,6 +64,22 @@ class SimLayout:
     hands: dict[str, HandLayout]
     hold_eq: int = -1
     release_frame: int = 0
+    #: An articulated object: ``n_joints`` joint values from ``articulation_sensor_adr`` and, per part beyond the
+    #: base, 7 values (position, quaternion of its body frame) from ``part_sensor_adr`` (-1: a rigid object).
+    articulation_sensor_adr: int = -1
+    n_joints: int = 0
+    part_sensor_adr: int = -1
+
+    def parts_from_sensors(self, sens: FloatArray, base_pos: FloatArray, base_quat: FloatArray
+                           ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """An articulated object's joint values (..., J) and part poses (..., P, 3) / (..., P, 4), base first,
+        from sensordata (..., ns) and the base's body-frame pose (``object_from_sensors``)."""
+        a, n = self.articulation_sensor_adr, self.n_joints
+        values = sens[..., a : a + n]
+        rows = sens[..., self.part_sensor_adr : self.part_sensor_adr + 7 * n].reshape((*sens.shape[:-1], n, 7))
+        pos = np.concatenate([base_pos[..., None, :], rows[..., :3]], axis=-2)
+        quat = np.concatenate([base_quat[..., None, :], rows[..., 3:]], axis=-2)
+        return values, pos, quat
 
     def equality_switches(self, steps: IntArray) -> FloatArray:
         """(n, neq) ``eq_active`` for global physics steps ``steps``: the model's own, and the object's hold on
@@ -112,7 +128,8 @@ class SimLayout:
             for side, h in scene.hands.items()
         }
         return SimLayout(scene.model, scene.substeps_per_frame, scene.object_body_id, scene.object_sensor_adr, hands,
-                         scene.object_hold_eq, scene.object_release_frame)
+                         scene.object_hold_eq, scene.object_release_frame, scene.object_articulation_sensor_adr,
+                         len(scene.object_joint_qpos_adr), scene.object_part_sensor_adr)
 
     @staticmethod
     def from_model(
@@ -335,6 +352,9 @@ class SimWindowProblem:
             if h.joint_qpos_adrs is not None and side in self._robot_sides:
                 joints[side] = states[:, after][..., 1 + h.joint_qpos_adrs]
         obj_pos, obj_quat, obj_vel = self.layout.object_from_sensors(sens)
+        arti = part_pos = part_quat = None
+        if self.layout.n_joints:
+            arti, part_pos, part_quat = self.layout.parts_from_sensors(sens, obj_pos, obj_quat)
         return WindowRecord(
             frames=frames,
             obj_pos=obj_pos,
@@ -349,4 +369,7 @@ class SimWindowProblem:
                 frames > (j + 1) * self.interval, self.lookahead_rotation_weight, 1.0
             ),
             joints=joints,
+            articulation=arti,
+            part_pos=part_pos,
+            part_quat=part_quat,
         )

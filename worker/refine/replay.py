@@ -51,6 +51,8 @@ class ReplayRecord:
     joint_force: dict[str, FloatArray] = field(default_factory=dict)
     #: side -> (F, H) the servo targets reached at each frame (robot hands only).
     command: dict[str, FloatArray] = field(default_factory=dict)
+    #: (F, J) an articulated object's joint values; None for a rigid one.
+    articulation: FloatArray | None = None
 
 
 def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyframes: dict[str, FloatArray],
@@ -84,6 +86,7 @@ def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyfra
 
     evaluator.step_python(start, control[0], hook)
     pos, quat, vel = layout.object_from_sensors(sensors)
+    articulation = layout.parts_from_sensors(sensors, pos, quat)[0] if layout.n_joints else None
     return ReplayRecord(
         object_pose=np.concatenate([pos, quat], axis=1),
         object_vel=vel,
@@ -95,6 +98,7 @@ def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyfra
         joint_force=force,
         command={side: control[0][np.maximum(np.arange(n_frames) * s - 1, 0)][:, h.actuator_ids]
                  for side, h in robots.items()},
+        articulation=articulation,
     )
 
 

@@ -145,6 +145,13 @@ class SimConfig:
     #: decomposed sequences: SR 82.8 -> 75.9 % on 29; bench/results/refine_dev120_coacd_fine_part.md), while the
     #: sequences that fail on the coarse parts mostly did better on the fine ones (dev120_experiments.md).
     convex_detail: str = "coarse"
+    #: An articulated object's joints (issue #52), unless its file gives a joint's own values: viscous damping
+    #: (N m s/rad, N s/m) and dry friction as a multiple of the largest gravity load the joint carries (the
+    #: part and what hangs from it, weighed at their reach from the axis: N m, or N for a sliding part). Above 1 a
+    #: part stays where the hands leave it at any angle, as the lids, covers and caps of the recordings do (a
+    #: laptop screen, a waffle iron's lid), and a hand still moves it with a little more than the part's weight.
+    articulation_damping: float = 0.01
+    articulation_friction_factor: float = 1.5
 
     def __post_init__(self) -> None:
         if self.convex_detail not in CONVEX_DETAILS:
