@@ -5,7 +5,10 @@ does, and writes ``docs/dexycb_frame.png`` (the first frame where the simulated 
 ``docs/dexycb_errors.png`` (the ``errors.png`` plot). The dashboard screenshot comes from the browser test
 (``HOI_REFINE_UPDATE_DOCS=1``, tests/acceptance/test_dashboard_browser.py).
 
-    .venv/bin/python bench/docs_pictures.py [--sequence PATH | --result PATH]
+    .venv/bin/python bench/docs_pictures.py [--sequence PATH | --result PATH] [--prefix NAME]
+
+``--prefix allegro --result R.npz`` writes ``docs/allegro_frame.png`` / ``_errors.png`` from a robot hand's result
+(issue #55: ``hoi-refine refine SEQ --hand allegro``).
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ def main() -> int:
     parser.add_argument("--sequence", type=Path, default=None, help="DexYCB development NPZ to refine")
     parser.add_argument("--result", type=Path, default=None, help="an existing refinement result instead")
     parser.add_argument("--out", type=Path, default=ROOT / "docs", help="folder for the pictures (default docs/)")
+    parser.add_argument("--prefix", default="dexycb", help="file name prefix (default dexycb)")
     args = parser.parse_args()
     if args.result is not None:
         blob = args.result.read_bytes()
@@ -62,11 +66,11 @@ def main() -> int:
         frames, _ = read_mp4(video)
         z = pb.trajectories["refined"].object_pose[:, 2]
         best = int(np.argmax(z >= z[0] + 0.6 * (z.max() - z[0])))  # well into the lift
-        Image.fromarray(frames[best]).save(args.out / "dexycb_frame.png")
+        Image.fromarray(frames[best]).save(args.out / f"{args.prefix}_frame.png")
         plots = write_plots(blob, Path(tmp) / "plots")
-        shutil.copy(next(p for p in plots if p.name == "errors.png"), args.out / "dexycb_errors.png")
-    print(f"wrote {args.out / 'dexycb_frame.png'} (frame {best + 1} of {pb.num_frames}) and "
-          f"{args.out / 'dexycb_errors.png'} ({pb.summary.get('sequence')})")
+        shutil.copy(next(p for p in plots if p.name == "errors.png"), args.out / f"{args.prefix}_errors.png")
+    print(f"wrote {args.out / (args.prefix + '_frame.png')} (frame {best + 1} of {pb.num_frames}) and "
+          f"{args.out / (args.prefix + '_errors.png')} ({pb.summary.get('sequence')})")
     return 0
 
 

@@ -1,6 +1,6 @@
 """A small robot hand the tests write themselves (issue #55): MJCF model and hand description, human-sized so the
-built-in example's box fits its grasp. Three fingers (thumb, index, middle) of hinges on capsules, a box palm; the
-fingers point along the palm's +z and flex towards +x, as Allegro's do."""
+built-in example's box fits its grasp. Five fingers of hinges on capsules, a box palm; the fingers point along the
+palm's +z and flex towards +x, as Allegro's do."""
 
 from __future__ import annotations
 
@@ -38,20 +38,23 @@ MODEL_XML = f"""<mujoco model="test_hand">
     <body name="base">
       <inertial pos="0 0 0.045" mass="0.2" diaginertia="2e-4 2e-4 1e-4"/>
       <geom name="palm" type="box" size="0.012 0.04 0.045" pos="0 0 0.045"/>
-      {_finger("index", "0 0.02 0.09", (0.045, 0.028, 0.022))}
-      {_finger("middle", "0 -0.02 0.09", (0.048, 0.03, 0.023))}
+      {_finger("index", "0 0.03 0.09", (0.045, 0.028, 0.022))}
+      {_finger("middle", "0 0.01 0.09", (0.048, 0.03, 0.023))}
+      {_finger("ring", "0 -0.01 0.088", (0.045, 0.028, 0.022))}
+      {_finger("pinky", "0 -0.03 0.083", (0.036, 0.022, 0.02))}
       {_finger("thumb", "0.02 0.045 0.025", (0.04, 0.032, 0.025), abd=True)}
     </body>
   </worldbody>
 </mujoco>
 """
 
-JOINTS = [f"{f}_{j}" for f in ("thumb", "index", "middle") for j in ("abd", "flex1", "flex2", "flex3")]
+FINGERS = ("thumb", "index", "middle", "ring", "pinky")
+JOINTS = [f"{f}_{j}" for f in FINGERS for j in ("abd", "flex1", "flex2", "flex3")]
 
 
 def description(model: str = "test_hand.xml") -> dict[str, Any]:
     keypoints: dict[str, Any] = {"wrist": {"body": "base"}}
-    for finger in ("thumb", "index", "middle"):
+    for finger in FINGERS:
         for k in (1, 2, 3):
             keypoints[f"{finger}{k}"] = {"body": f"{finger}{k}"}
         keypoints[f"{finger}4"] = {"body": f"{finger}_tip", "pos": [0.0, 0.0, -0.004]}

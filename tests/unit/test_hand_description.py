@@ -33,8 +33,8 @@ def test_a_test_written_hand_packs_self_contained(tmp_path: Path) -> None:
     assert [j.velocity for j in packed.joints] == [8.0] * len(JOINTS)
     for side in ("right", "left"):
         emb = Embodiment.from_description(packed, side)
-        assert emb.joint_names == tuple(JOINTS) and emb.q_limits.shape == (12, 2)
-        assert emb.fingertips == (4, 8, 12)  # thumb4, index4, middle4 among the 13 sites
+        assert emb.joint_names == tuple(JOINTS) and emb.q_limits.shape == (20, 2)
+        assert emb.fingertips == (4, 8, 12, 16, 20)  # the five tips among the 21 sites
     assert resolve_hand("human") is None and resolve_hand(None) is None
 
 
@@ -78,7 +78,7 @@ def test_the_fragment_names_everything_with_the_side(tmp_path: Path) -> None:
            + "</equality><actuator>" + "".join(f.actuators for f in frags) + "</actuator><sensor>"
            + "".join(f.sensors for f in frags) + "</sensor></mujoco>")
     model = mujoco.MjModel.from_xml_string(xml)  # two hands side by side: no name clashes
-    assert model.nu == 24 and model.nsensor == 26
+    assert model.nu == 40 and model.nsensor == 2 * 21
     for side in ("right", "left"):
         assert mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, f"{side}_palm") >= 0
         assert mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, f"{side}_root") >= 0
