@@ -57,7 +57,7 @@ def description(model: str = "test_hand.xml") -> dict[str, Any]:
     for finger in FINGERS:
         for k in (1, 2, 3):
             keypoints[f"{finger}{k}"] = {"body": f"{finger}{k}"}
-        keypoints[f"{finger}4"] = {"body": f"{finger}_tip", "pos": [0.0, 0.0, -0.004]}
+        keypoints[f"{finger}4"] = {"body": f"{finger}_tip", "pos": [0.0, 0.0, 0.0075]}  # the end of the cap
     return {"name": "test-hand", "model": model, "joints": [{"name": j, "velocity": 8.0, "effort": 2.0}
                                                              for j in JOINTS],
             "keypoints": keypoints, "tip_radius": 0.008}
