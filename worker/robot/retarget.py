@@ -12,8 +12,9 @@ the fingertips are what touches the object; on three dev sequences the other key
 fingertips 28-44 mm off, at 0.02 13-18 mm), the nominal root pose the human wrist's composed with the mount
 (``mount``: the description's, or fitted by aligning the robot's keypoint sites at rest with the human hand's),
 and q_prev the previous frame's solution (the warm start too). Damped least squares (Levenberg-Marquardt) on
-MuJoCo's site Jacobians (``mj_jacSite``), the joints projected onto their limits after each step; the object is
-ignored (the refinement makes the grasp hold). About 5 ms a frame for Allegro or LEAP (0.4 s for 72 frames).
+MuJoCo's site Jacobians (``mj_jacSite``), with the joints held at a limit the step would push them past (an
+active set; clipping after the step alone stalled against the limits and left the fingertips 12-22 mm off where
+mink, a QP-based IK, reached 1 mm: ``bench/results/robot_retarget.md``); the object is ignored (the refinement makes the grasp hold).
 """
 
 from __future__ import annotations
@@ -155,7 +156,17 @@ def solve_frame(model: mujoco.MjModel, data: mujoco.MjData, layout: IKLayout, ta
             reg_err[6:] = q_prev - data.qpos[layout.qpos_adr]
         jw = big_j.T * w
         lhs = jw @ big_j + np.diag(reg + DAMPING)
-        step = np.linalg.solve(lhs, jw @ err + reg * reg_err)
+        rhs = jw @ err + reg * reg_err
+        step = np.linalg.solve(lhs, rhs)
+        # Joints at a limit that the step pushes further out are held there and the rest solved again (an active
+        # set): clipping alone stalls the whole solve against a limit.
+        q = data.qpos[layout.qpos_adr]
+        blocked = ((q <= layout.limits[:, 0] + 1e-9) & (step[6:] < 0)) | ((q >= layout.limits[:, 1] - 1e-9)
+                                                                         & (step[6:] > 0))
+        if blocked.any():
+            free = np.concatenate([np.ones(6, dtype=bool), ~blocked])
+            step = np.zeros(nv)
+            step[free] = np.linalg.solve(lhs[np.ix_(free, free)], rhs[free])
         dq[:] = 0.0
         dq[layout.cols] = step
         mujoco.mj_integratePos(model, data.qpos, dq, 1.0)
