@@ -10,7 +10,8 @@ h_j the human keypoints they stand for (fingertips weighted ``TIP_WEIGHT``, the 
 and the wrist ``WRIST_WEIGHT``: a robot hand is larger than the recorded one and cannot match every keypoint, and
 the fingertips are what touches the object; on three dev sequences the other keypoints at weight 1 left the
 fingertips 28-44 mm off, at 0.02 13-18 mm, before the active set below), the nominal root pose the human
-wrist's composed with the mount (``mount``: the description's, or fitted by aligning the robot's keypoint sites at rest with the human hand's),
+wrist's composed with the mount (``mount``: the description's, or fitted by aligning the robot's keypoint sites at
+rest with the human hand's),
 and q_prev the previous frame's solution (the warm start too). Damped least squares (Levenberg-Marquardt) on
 MuJoCo's site Jacobians (``mj_jacSite``), with the joints held at a limit the step would push them past (an
 active set; clipping after the step alone stalled against the limits and left the fingertips 12-22 mm off where
