@@ -38,8 +38,8 @@ from worker.refine.losses import (
 from worker.refine.problem import SimLayout
 from worker.refine.spline import default_keyframe_interval
 from worker.robot.basis import robot_basis, robot_distal
-from worker.robot.embodiment import robot_references
 from worker.robot.reference import RobotReference
+from worker.robot.retarget import robot_references
 from worker.simulation.config import SimConfig
 from worker.simulation.rest_pose import moved_frame
 from worker.simulation.scene import Scene, build_scene

@@ -14,15 +14,9 @@ The physics and optimisation code imports the modules it needs directly (``worke
 imports none of Ray or the database.
 """
 
-from worker.robot.embodiment import (
-    Embodiment,
-    pack_description,
-    read_description,
-    resolve_hand,
-    robot_references,
-)
+from worker.robot.embodiment import Embodiment, pack_description, read_description, resolve_hand
 from worker.robot.reference import RobotReference
-from worker.robot.retarget import retarget_robot
+from worker.robot.retarget import retarget_robot, robot_references
 
 __all__ = [
     "Embodiment",

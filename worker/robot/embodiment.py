@@ -17,7 +17,6 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import mujoco
 import numpy as np
@@ -203,10 +202,3 @@ def _in_subtree(model: mujoco.MjModel, body: int, root: int) -> bool:
         body = int(model.body_parentid[body])
     return False
 
-
-def robot_references(human: list[Any], desc: HandDescription) -> list[Any]:
-    """The recorded hands' references (``worker.hand.retarget.retarget_sequence``) retargeted to the robot hand
-    ``desc`` describes, one per side (``worker.robot.retarget.retarget_robot``)."""
-    from worker.robot.retarget import retarget_robot
-
-    return [retarget_robot(r, Embodiment.from_description(desc, r.side)) for r in human]

@@ -25,6 +25,7 @@ import mujoco
 import numpy as np
 
 from common.geometry import FloatArray, matrix_to_quat, quat_mul, quat_to_matrix
+from common.hand_description import HandDescription
 from worker.hand.model import local_keypoints
 from worker.hand.reference import HandReference
 from worker.hand.retarget import kabsch
@@ -189,3 +190,9 @@ def _log(rot: FloatArray) -> FloatArray:
         axis = np.sqrt(np.maximum((np.diag(rot) + 1.0) / 2.0, 0.0))
         return axis * angle
     return v * angle / (2.0 * np.sin(angle))
+
+
+def robot_references(human: list[HandReference], desc: HandDescription) -> list[RobotReference]:
+    """The recorded hands' references (``worker.hand.retarget.retarget_sequence``) retargeted to the robot hand
+    ``desc`` describes, one per side."""
+    return [retarget_robot(r, Embodiment.from_description(desc, r.side)) for r in human]
