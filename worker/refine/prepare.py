@@ -185,7 +185,8 @@ def prepare(
         bases = {r.side: PoseBasis10(*robot_basis(r)) for r in robots}
         provenance = f"robot {robots[0].embodiment.description.name}: PCA of the retargeted joint motion"
     else:
-        bases, provenance = pose_basis(references, seq, mano_dir, mirror_left)
+        bases, provenance = pose_basis([r for r in references if isinstance(r, HandReference)], seq, mano_dir,
+                                       mirror_left)
     pivot_kind = rotation_pivot or ROTATION_PIVOT
     if pivot_kind not in PIVOTS:
         raise ValueError(f"rotation_pivot must be one of {', '.join(PIVOTS)}, got {pivot_kind!r}")
