@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import sys
 import time
@@ -48,11 +49,13 @@ def sample(per_side: int) -> list[str]:
 def run_one(name: str, hand: str, robot_dir: Path, threads: int) -> dict[str, Any]:
     seq = load_sequence(DATA / name)
     desc = resolve_hand(hand, robot_dir)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     out = refine_sequence(seq, JobOptions(hand=desc), threads=threads)
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     s = out.summary
-    row: dict[str, Any] = {"sequence": name.removesuffix(".npz"), "hand": hand, "side": s["sides"][0], "wall_s": wall,
+    row: dict[str, Any] = {"sequence": name.removesuffix(".npz"), "hand": hand, "side": s["sides"][0],
+                           "wall_s": wall, "cpu_s": cpu,
+                           "load_avg": os.getloadavg()[0],
                            "attempts": len(s["attempts"])}
     for which in ("raw", "refined"):
         m = s["metrics"][which]
@@ -79,6 +82,16 @@ def human_rows() -> dict[str, dict[str, Any]]:
     return out
 
 
+def _median(rows: list[dict[str, Any]], key: str) -> str:
+    vals = [r[key] for r in rows if r.get(key) is not None]
+    return f"{np.median(vals):.0f}" if vals else "-"
+
+
+def _max(rows: list[dict[str, Any]], key: str) -> str:
+    vals = [r[key] for r in rows if r.get(key) is not None]
+    return f"{max(vals):.0f}" if vals else "-"
+
+
 def _mean(rows: list[dict[str, Any]], key: str) -> float:
     vals = [r[key] for r in rows if r.get(key) is not None]
     return float(np.mean(vals)) if vals else float("nan")
@@ -89,8 +102,9 @@ def report(rows: list[dict[str, Any]], hands: list[str], names: list[str], args:
     seqs = [n.removesuffix(".npz") for n in names]
     lines = ["# Robot hands on DexYCB dev120 (bench/robot_hands.py)", "",
              f"Generated {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} on {platform.processor() or 'x86_64'} "
-             f"({_cpu()}), 2 cores shared with four other engineers' work (load average 3-6 during the run), "
-             f"{args.threads} simulation threads, nice 15. Paper's protocol (frames 10+). Product options "
+             f"({_cpu()}), 2 cores shared with four other engineers' work (1-minute load average at the end of "
+             f"each run: {_load_range(rows)}), {args.threads} simulation threads, nice 15. Paper's protocol "
+             "(frames 10+). Product options "
              "(restarts 3, polish on); the models are dex-urdf's (read from --robot-dir, not shipped).", ""]
     done = {(r["sequence"], r["hand"]) for r in rows}
     lines.append(f"Sample: the first {args.per_side} right and {args.per_side} left sequences of "
@@ -98,7 +112,8 @@ def report(rows: list[dict[str, Any]], hands: list[str], names: list[str], args:
                      f"{h} {sum((s, h) in done for s in seqs)}" for h in hands) + ".")
     lines += ["", "| hand | run | n | SR % | E_t cm | E_r deg | E_ft cm (to retargeted tips) | penetration mm "
               "(mean / max) | joint speed / limit (sim, command) | peak joint acc rad/s² | force peak / effort | "
-              "median wall s | max wall s |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "median wall s | max wall s | median CPU s (both threads) | max CPU s |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for hand in hands:
         mine = [r for r in rows if r["hand"] == hand]
         if not mine:
@@ -112,17 +127,17 @@ def report(rows: list[dict[str, Any]], hands: list[str], names: list[str], args:
                 f"{_mean(sub, 'E_ft'):.2f} | {_mean(sub, 'pen_mean'):.2f} / {_mean(sub, 'pen_max'):.2f} | "
                 f"{_mean(sub, 'velocity_ratio'):.2f}, {_mean(sub, 'command_velocity_ratio'):.2f} | "
                 f"{_mean(sub, 'peak_acceleration'):.0f} | {_mean(sub, 'force_peak_ratio'):.2f} | "
-                + (f"{np.median([r['wall_s'] for r in mine]):.0f} | {max(r['wall_s'] for r in mine):.0f} |"
-                   if which == "refined" else " | |"))
+                + (f"{np.median([r['wall_s'] for r in mine]):.0f} | {max(r['wall_s'] for r in mine):.0f} | "
+                   f"{_median(mine, 'cpu_s')} | {_max(mine, 'cpu_s')} |" if which == "refined" else " | | | |"))
         hs = [human[r["sequence"]] for r in mine if r["sequence"] in human]
         if hs:
             lines.append(f"| human (refine_dev120.md, same {len(hs)}) | refined | {len(hs)} | "
                          f"{100 * np.mean([h['success'] for h in hs]):.1f} | {_mean(hs, 'E_t'):.2f} | "
                          f"{_mean(hs, 'E_r'):.2f} | | {_mean(hs, 'pen'):.2f} / | | | | "
-                         f"{np.median([h['wall_s'] for h in hs]):.0f} | {max(h['wall_s'] for h in hs):.0f} |")
+                         f"{np.median([h['wall_s'] for h in hs]):.0f} | {max(h['wall_s'] for h in hs):.0f} | | |")
     lines += ["", "## Per sequence", "", "| sequence | side | hand | retarget tip mm | raw ok | raw E_t | ok | E_t | "
-              "E_r | pen max mm | speed ratio | wall s | human ok / E_t / E_r |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "E_r | pen max mm | speed ratio | wall s | CPU s | human ok / E_t / E_r |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         h = human.get(r["sequence"])
         f, raw = r["refined"], r["raw"]
@@ -130,9 +145,15 @@ def report(rows: list[dict[str, Any]], hands: list[str], names: list[str], args:
                      f"{'yes' if raw['success'] else 'no'} | {raw['E_t']:.2f} | {'yes' if f['success'] else 'no'} | "
                      f"{f['E_t']:.2f} | {f['E_r']:.2f} | {f['pen_max'] or 0:.2f} | "
                      f"{f.get('velocity_ratio') or 0:.2f} | "
-                     f"{r['wall_s']:.0f} | " + (f"{'yes' if h['success'] else 'no'} / {h['E_t']:.2f} / {h['E_r']:.2f} |"
+                     f"{r['wall_s']:.0f} | {r.get('cpu_s', float('nan')):.0f} | "
+                     + (f"{'yes' if h['success'] else 'no'} / {h['E_t']:.2f} / {h['E_r']:.2f} |"
                                                 if h else "- |"))
     return "\n".join(lines) + "\n"
+
+
+def _load_range(rows: list[dict[str, Any]]) -> str:
+    loads = [r["load_avg"] for r in rows if "load_avg" in r]
+    return f"{min(loads):.1f}-{max(loads):.1f}" if loads else "not recorded"
 
 
 def _cpu() -> str:
