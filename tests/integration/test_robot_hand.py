@@ -27,7 +27,9 @@ pytestmark = pytest.mark.slow
 @pytest.fixture(scope="module")
 def robot_result(tmp_path_factory: pytest.TempPathFactory) -> RefineOutcome:
     hand = resolve_hand(write_robot_hand(tmp_path_factory.mktemp("hand")))
-    return refine_sequence(short_example_sequence(), JobOptions(hand=hand), threads=2)
+    # One attempt, no polish: the test's budget (the product's options are benchmarked on DexYCB:
+    # bench/results/robot_hands.md); it succeeds on the first.
+    return refine_sequence(short_example_sequence(), JobOptions(hand=hand, restarts=0, polish=False), threads=2)
 
 
 def test_the_robot_refines_the_example_to_success(robot_result: RefineOutcome) -> None:
@@ -40,6 +42,7 @@ def test_the_robot_refines_the_example_to_success(robot_result: RefineOutcome) -
     arrays = robot_result.arrays
     assert arrays["right_q_target"].shape[1] == len(JOINTS) == arrays["right_q_sim"].shape[1]
     assert arrays["right_keypoints_sim"].shape[1] == 21  # the test hand places every human keypoint
+    assert not raw["success"]  # replayed as retargeted, the grasp does not hold
     assert robot_result.summary["options"]["hand"]["name"] == "test-hand"
 
 

@@ -151,3 +151,19 @@ def test_only_a_packed_description_travels_with_a_job(tmp_path: Path) -> None:
     broken = {**data, "keypoints": {**data["keypoints"], "thumb4": {"body": "gone", "pos": [0, 0, 0]}}}
     with pytest.raises(ValidationError, match=r"hand\.keypoints\.thumb4\.body"):
         JobOptions.model_validate({"hand": broken})
+
+
+def test_the_cli_names_the_hand_at_fault(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    from common.cli import main as cli_main
+
+    monkeypatch.delenv("HOI_REFINE_ROBOT_DIR", raising=False)
+    seq = tmp_path / "missing.npz"  # the hand is checked before the sequence is read
+    assert cli_main(["refine", str(seq), "--out", str(tmp_path / "r.npz"), "--hand", "allegro"]) == 2
+    assert "HOI_REFINE_ROBOT_DIR" in capsys.readouterr().err
+    bad = write_robot_hand(tmp_path / "bad", keypoints={**description()["keypoints"], "thumb4": {"body": "gone"}})
+    assert cli_main(["refine", str(seq), "--out", str(tmp_path / "r.npz"), "--hand", str(bad)]) == 2
+    assert "hand.keypoints.thumb4.body: no body named 'gone'" in capsys.readouterr().err
+    assert cli_main(["hand", "pack", str(write_robot_hand(tmp_path / "ok")), "--out", str(tmp_path / "p.json")]) == 0
+    packed = json.loads((tmp_path / "p.json").read_text())
+    assert packed["model"] is None and packed["model_xml"].startswith("<mujoco")
