@@ -60,6 +60,12 @@ class JobOptions(BaseModel):
         "description (common.hand_description: model_xml, actuated joints, keypoint correspondence; "
         "`hoi-refine hand pack allegro|leap|FILE` makes one)",
     )
+    two_hands: Literal["per_hand", "joint"] = Field(
+        default="per_hand",
+        description="With two hands: 'per_hand' runs a CMA-ES per hand on paired rollouts, each minimising the "
+        "object's terms plus its own hand's (the published method); 'joint' one CMA-ES over both hands' keyframes "
+        "minimising the object's terms once plus both hands'",
+    )
     priority: int = Field(default=0, ge=-100, le=100, description="Higher runs first (queue only)")
     preview_video: bool = Field(
         default=True,

@@ -14,7 +14,7 @@ import numpy as np
 from common.errors import ConfigurationError
 from common.geometry import FloatArray
 from common.job_options import JobOptions
-from common.primitive_surface import object_surface_points
+from common.primitive_surface import object_surface_points, part_surface_points
 from common.sequence import FINGERTIP_INDICES, ObjectSpec, Sequence
 from worker.hand.mano.pose import mano_pca_basis
 from worker.hand.model import FINGER_BASE_KEYPOINT, MIRROR_SIGNS, HandGeometry
@@ -256,7 +256,7 @@ def _part_hand_targets(
     obj.articulation = seq.articulation
     obj.joint_kinds = tuple(j.kind for j in seq.object.joints)
     parts = seq.object.part_poses(pose, seq.articulation)  # (T, P, 7)
-    samples = [_surface_samples(shape, config.primitive_surface_spacing_m) for shape in seq.object.part_shapes()]
+    samples = [part_surface_points(shape, config.primitive_surface_spacing_m) for shape in seq.object.part_shapes()]
     surfaces = PartSurfaces([SurfaceDistance(s) for s in samples], [DistanceGrid(s) for s in samples])
     hands: dict[str, HandKeypointTargets] = {}
     for r in references:

@@ -173,6 +173,10 @@ def _is_descendant(model: mujoco.MjModel, body: int, root: int) -> bool:
     return False
 
 
+#: The key of the one objective over both hands (``SimWindowProblem.combined``).
+COMBINED = "both"
+
+
 class SimWindowProblem:
     """Windowed refinement of one sequence on a compiled model (implements ``windowed.WindowProblem``)."""
 
@@ -198,6 +202,8 @@ class SimWindowProblem:
         # Factor on the object's rotation error over the frames past keyframe j + 1 (``keyframe_window``'s
         # lookahead beyond DESIGN §1.6's window), where keyframe j's candidate is held (``replay.LOOKAHEAD``).
         self.lookahead_rotation_weight = lookahead_rotation_weight
+        #: Whether the losses are one objective over both hands (``joint_hands.JointHandsProblem``).
+        self.combined = False
         first = spaces[self.sides[0]]
         self.n_keyframes = first.n_keyframes
         self.interval, self.substeps, self.num_frames = first.interval, first.substeps, first.num_frames
@@ -232,8 +238,15 @@ class SimWindowProblem:
         control, offsets = self.build_control(keyframes, f0, f1, j, candidates, hold=hold)
         states, sensors = self.evaluator.rollout(state, control)
         rec = self._record(f0, f1, states, sensors, offsets, j)
-        per_hand, _ = window_losses(rec, self.obj, self.hand_targets, self.weights)
-        return per_hand
+        return self._losses(rec)
+
+    def _losses(self, rec: WindowRecord) -> dict[str, FloatArray]:
+        """Each hand's objective, or with ``combined`` one objective ``COMBINED`` over both hands (the object's
+        terms once, plus every hand's terms: ``joint_hands``)."""
+        per_hand, terms = window_losses(rec, self.obj, self.hand_targets, self.weights)
+        if not self.combined:
+            return per_hand
+        return {COMBINED: np.asarray(sum(terms.values()), dtype=np.float64)}
 
     def probe(self, j: int, state: SimState, keyframes: dict[str, FloatArray]) -> tuple[dict[str, float], bool]:
         f0, f1 = self.window(j)
@@ -252,8 +265,7 @@ class SimWindowProblem:
         # ``_record`` reads are copied out.
         states, sensors = self._step_recording(state, control[0], hook, self._recorded_steps(f0, f1))
         rec = self._record(f0, f1, states[None], sensors[None], offsets, j)
-        per_hand, _ = window_losses(rec, self.obj, self.hand_targets, self.weights)
-        return {s: float(v[0]) for s, v in per_hand.items()}, touched
+        return {s: float(v[0]) for s, v in self._losses(rec).items()}, touched
 
     def commit(self, j: int, state: SimState, keyframes: dict[str, FloatArray]) -> SimState:
         f0, _ = self.window(j)

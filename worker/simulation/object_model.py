@@ -110,7 +110,9 @@ def object_mjcf(
             damping = config.articulation_damping if j.damping is None else j.damping
             lines.append(f'<body name="{part_body_name(c)}" pos="{fmt(j.origin_pos)}" quat="{fmt(j.origin_quat)}">')
             lines.append(f'  <joint name="{joint_name(c - 1)}" type="{kind}" axis="{fmt(j.axis)}" '
-                         f'range="{fmt(j.limits)}" damping="{damping:.9g}" frictionloss="{friction[c - 1]:.9g}"/>')
+                         f'range="{fmt(j.limits)}" damping="{damping:.9g}" frictionloss="{friction[c - 1]:.9g}" '
+                         f'solreffriction="{fmt(config.articulation_friction_solref)}" '
+                         f'solimpfriction="{fmt(config.articulation_friction_solimp)}"/>')
             lines += ["  " + line for line in body_xml(c)]
             lines.append("</body>")
         return lines
