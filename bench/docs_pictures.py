@@ -6,9 +6,14 @@ does, and writes ``docs/dexycb_frame.png`` (the first frame where the simulated 
 (``HOI_REFINE_UPDATE_DOCS=1``, tests/acceptance/test_dashboard_browser.py).
 
     .venv/bin/python bench/docs_pictures.py [--sequence PATH | --result PATH] [--prefix NAME]
+    .venv/bin/python bench/docs_pictures.py --arctic RESULT [--frame F] [--camera AZIMUTH,ELEVATION,DISTANCE]
 
 ``--prefix allegro --result R.npz`` writes ``docs/allegro_frame.png`` / ``_errors.png`` from a robot hand's result
 (issue #55: ``hoi-refine refine SEQ --hand allegro``).
+
+``--arctic`` takes a refinement result of an ARCTIC sequence (``bench/arctic.py`` writes them under var/arctic/)
+and writes ``docs/arctic_frame.png``: the refined replay at frame F (default: the frame where the joint is
+opened furthest from its start), the camera looking at the simulated object from the given direction.
 """
 
 from __future__ import annotations
@@ -38,7 +43,12 @@ def main() -> int:
     parser.add_argument("--result", type=Path, default=None, help="an existing refinement result instead")
     parser.add_argument("--out", type=Path, default=ROOT / "docs", help="folder for the pictures (default docs/)")
     parser.add_argument("--prefix", default="dexycb", help="file name prefix (default dexycb)")
+    parser.add_argument("--arctic", type=Path, default=None, help="an ARCTIC refinement result: docs/arctic_frame.png")
+    parser.add_argument("--frame", type=int, default=None, help="with --arctic: the frame (0-based)")
+    parser.add_argument("--camera", default="210,-20,0.5", help="with --arctic: AZIMUTH,ELEVATION,DISTANCE")
     args = parser.parse_args()
+    if args.arctic is not None:
+        return arctic_frame(args.arctic, args.out, args.frame, args.camera)
     if args.result is not None:
         blob = args.result.read_bytes()
     else:
@@ -71,6 +81,27 @@ def main() -> int:
         shutil.copy(next(p for p in plots if p.name == "errors.png"), args.out / f"{args.prefix}_errors.png")
     print(f"wrote {args.out / (args.prefix + '_frame.png')} (frame {best + 1} of {pb.num_frames}) and "
           f"{args.out / (args.prefix + '_errors.png')} ({pb.summary.get('sequence')})")
+    return 0
+
+
+def arctic_frame(result: Path, out: Path, frame: int | None, camera: str) -> int:
+    """The refined replay of an ARCTIC result at ``frame``, seen from ``camera`` around the simulated object."""
+    import numpy as np
+    from PIL import Image
+
+    from worker.visual import resimulate
+    from worker.visual.render import parse_camera, render_frames
+
+    pb = resimulate(result.read_bytes())
+    refined = pb.trajectories["refined"]
+    if frame is None:
+        assert refined.articulation is not None
+        frame = int(np.argmax(np.abs(refined.articulation - refined.articulation[0]).max(axis=1)))
+    x, y, z = refined.object_pose[frame, :3]
+    cam = parse_camera(f"{camera},{x},{y},{z}", pb)
+    out.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(next(render_frames(pb, ["refined"], 640, 480, cam, [frame]))).save(out / "arctic_frame.png")
+    print(f"wrote {out / 'arctic_frame.png'} (frame {frame + 1} of {pb.num_frames}, {pb.summary.get('sequence')})")
     return 0
 
 

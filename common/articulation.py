@@ -37,6 +37,8 @@ LIMIT_TOLERANCE = 1e-4
 #: A joint's travel may not exceed this (radians for revolute; prismatic travel is bounded by the 5 m extent).
 MAX_REVOLUTE_RANGE = 4 * np.pi
 MAX_PRISMATIC_RANGE = 5.0
+#: A vector whose norm is within this of 1 counts as normalised (``common.sequence.UNIT_NORM_ULPS``).
+UNIT_NORM_ULPS = 1e-15
 
 
 @dataclass
@@ -107,48 +109,49 @@ def validate_joints(
         if name in seen:
             add(prefix, f"part names must be unique, {shown(name)} appears twice")
         seen.add(name)
-    ok = True
+    # Every joint is checked on its own, and a joint's recorded values against its limits whenever those limits
+    # and the values are well-formed, whatever else is wrong: one answer names every problem.
+    limits_ok: list[bool] = []
     for k, joint in enumerate(joints):
         f = f"{prefix}[{k}].joint"
         if (why := text_problem(joint.name, 200)) is not None or not joint.name:
             add(f"{f}.name", why or "must not be empty")
         if joint.kind not in JOINT_KINDS:
             add(f"{f}.type", f"must be one of {', '.join(JOINT_KINDS)}, got {shown(joint.kind)}")
-            ok = False
         if joint.parent not in names[: k + 1]:
             where = "the base part or an earlier part" if joint.parent not in names else "a part listed before it"
             add(f"{f}.parent", f"must name {where} (parts form a tree), got {shown(joint.parent)}")
-            ok = False
-        ok &= _vector(problems, f"{f}.axis", joint.axis, 3, nonzero=True)
-        ok &= _vector(problems, f"{f}.origin.pos", joint.origin_pos, 3)
+        if _vector(problems, f"{f}.axis", joint.axis, 3, nonzero=True):
+            joint.axis = _unit(joint.axis)
+        _vector(problems, f"{f}.origin.pos", joint.origin_pos, 3)
         if _vector(problems, f"{f}.origin.quat", joint.origin_quat, 4, nonzero=True):
             norm = float(np.linalg.norm(joint.origin_quat))
             if abs(norm - 1.0) > 1e-3:
                 add(f"{f}.origin.quat", f"must be a unit quaternion (w x y z), norm is {norm:.4f}")
-                ok = False
-        else:
-            ok = False
-        if _vector(problems, f"{f}.limits", joint.limits, 2):
+            else:
+                joint.origin_quat = _unit(joint.origin_quat)
+        good = _vector(problems, f"{f}.limits", joint.limits, 2)
+        if good:
             lo, hi = (float(v) for v in joint.limits)
-            bound = MAX_REVOLUTE_RANGE if joint.kind == "revolute" else MAX_PRISMATIC_RANGE
+            revolute = joint.kind != "prismatic"  # an unknown kind is held to the revolute bound
+            bound = MAX_REVOLUTE_RANGE if revolute else MAX_PRISMATIC_RANGE
             if lo > hi:
                 add(f"{f}.limits", f"lower must not exceed upper, got [{lo:g}, {hi:g}]")
-                ok = False
+                good = False
             elif hi - lo > bound:
-                add(f"{f}.limits", f"span {hi - lo:g} exceeds {bound:g} ({'rad' if joint.kind == 'revolute' else 'm'})")
-                ok = False
-        else:
-            ok = False
+                add(f"{f}.limits", f"span {hi - lo:g} exceeds {bound:g} ({'rad' if revolute else 'm'})")
+                good = False
+        limits_ok.append(good)
         for key in ("damping", "friction"):
             value = getattr(joint, key)
             if value is not None and not (_is_number(value) and 0 <= float(value) <= 1e3):
                 add(f"{f}.{key}", f"must be a number in [0, 1000] when given, got {shown(value)}")
     values = _values(problems, articulation, t, len(joints))
-    if not ok or values is None:
+    if values is None:
         return
     for k, joint in enumerate(joints):
-        joint.axis = np.asarray(joint.axis, dtype=np.float64) / np.linalg.norm(joint.axis)
-        joint.origin_quat = np.asarray(joint.origin_quat, dtype=np.float64) / np.linalg.norm(joint.origin_quat)
+        if not limits_ok[k]:
+            continue
         lo, hi = float(joint.limits[0]), float(joint.limits[1])
         column = values[:, k]
         bad = np.flatnonzero((column < lo - LIMIT_TOLERANCE) | (column > hi + LIMIT_TOLERANCE))
@@ -178,6 +181,14 @@ def _values(problems: list[FieldProblem], articulation: object, t: int | None, n
         problems.append(FieldProblem("articulation", f"has {articulation.shape[0]} frames but object_pose has {t}"))
         return None
     return np.asarray(articulation, dtype=np.float64)
+
+
+def _unit(v: FloatArray) -> FloatArray:
+    """``v`` as float64 scaled to unit length; left as it is when already unit to within a few ulp, so validating
+    a loaded file again keeps its bits (re-saving it is bit-identical)."""
+    v = np.asarray(v, dtype=np.float64)
+    norm = float(np.linalg.norm(v))
+    return v if abs(norm - 1.0) <= UNIT_NORM_ULPS else v / norm
 
 
 def _vector(problems: list[FieldProblem], field: str, value: object, n: int, nonzero: bool = False) -> bool:

@@ -53,7 +53,8 @@ class NpzLimits:
     max_member_bytes: int = 64 * 1024 * 1024
     #: Largest sum of the uncompressed members (bytes).
     max_total_bytes: int = 128 * 1024 * 1024
-    max_members: int = 64
+    #: Members: an articulated object of ``common.articulation.MAX_PARTS`` parts held by two MANO hands has 91.
+    max_members: int = 128
 
 
 @dataclass(frozen=True)

@@ -141,9 +141,11 @@ def content_digest(blob: bytes) -> str:
 
 
 def read_contacts(blob: bytes, start: int | None = None, end: int | None = None) -> list[dict[str, Any]]:
-    """Contacts with ``start <= frame < end`` as JSON-ready dicts, in frame order."""
+    """Contacts with ``start <= frame < end`` as JSON-ready dicts, in frame order; ``part`` names the object part
+    touched (an articulated object's result; None for a rigid one), in whose frame ``position_object`` is."""
     with _open(blob) as data:
-        cols = {k: data[k] for k in CONTACT_KEYS}
+        cols = {k: data[k] for k in (*CONTACT_KEYS, *PART_CONTACT_KEYS) if k in data.files}
+    parts = cols.get("contact_part")
     frames = cols["contact_frame"]
     mask = np.ones(frames.shape, dtype=bool)
     if start is not None:
@@ -163,6 +165,7 @@ def read_contacts(blob: bytes, start: int | None = None, end: int | None = None)
                 "force": cols["contact_force"][i].tolist(),
                 "torque": cols["contact_torque"][i].tolist(),
                 "depth": float(cols["contact_depth"][i]),
+                "part": None if parts is None else str(parts[i]),
             }
         )
     return rows

@@ -13,7 +13,8 @@ Version 2 (an articulated object, ``common.articulation``) adds object_base_part
   object_part_names (J,), object_part_mass_kg (J,), object_part{k}_mesh_vertices + _mesh_faces | object_part{k}_
   primitive + _size, object_joint_names / _types ('revolute'|'prismatic') / _parents (J,), object_joint_axes (J,3),
   object_joint_origin_pos (J,3), object_joint_origin_quat (J,4) wxyz, object_joint_limits (J,2),
-  [object_joint_damping (J,), object_joint_friction (J,)], object_articulation (T,J) joint values per frame.
+  [object_joint_damping (J,), object_joint_friction (J,)], [object_part{k}_friction] (a part's contact friction),
+  object_articulation (T,J) joint values per frame.
 Native JSON: the same content nested, see ``sequence_to_json_dict``; ``object.mesh_file`` (and a part's
 ``mesh_file``) may name an OBJ/PLY/STL/GLB file relative to the JSON file instead of inline ``mesh``.
 The DexYCB development NPZs in ``shared/data/dexycb`` are read by ``common.dexycb``.
@@ -131,8 +132,6 @@ def sequence_to_json_dict(seq: Sequence) -> dict[str, Any]:
     """The native JSON form (mesh inline), suitable for ``POST /v1/jobs``."""
     obj = seq.object
     obj_d = _shape_json(obj)
-    if obj.friction is not None:
-        obj_d["friction"] = obj.friction
     if obj.parts:
         obj_d["base_part"] = obj.base_part
         obj_d["parts"] = [{**_shape_json(p.shape), "joint": _joint_json(p.joint)} for p in obj.parts]
@@ -180,6 +179,8 @@ def _shape_json(obj: ObjectSpec) -> dict[str, Any]:
     else:
         assert obj.mesh_vertices is not None and obj.mesh_faces is not None
         out["mesh"] = {"vertices": obj.mesh_vertices.tolist(), "faces": obj.mesh_faces.tolist()}
+    if obj.friction is not None:
+        out["friction"] = obj.friction
     return out
 
 

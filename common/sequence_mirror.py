@@ -11,7 +11,12 @@ and gravity are unchanged) through the world origin. Everything is expressed in 
 * the object is reflected in its own frame by ``S = diag(-1, 1, 1)`` (mesh vertices ``v -> S v``, faces
   re-wound so normals still point out) and its pose becomes ``R -> M R S``, ``t -> M t`` — a proper rotation,
   and the world surface ``R' v' + t' = M (R v + t)`` is the reflected one. A box, cylinder, capsule or sphere is
-  symmetric under ``S``, so a primitive stays the same primitive.
+  symmetric under ``S``, so a primitive stays the same primitive;
+* an articulated object (``common.articulation``): every part is reflected in its own frame by ``S`` in the same
+  way, so each part's pose must become ``M R_k S``, ``M t_k``. Forward kinematics gives exactly that when every
+  joint's parent-to-child transform ``T`` becomes ``S T S``: the origin ``p -> S p``, its rotation ``R -> S R S``,
+  a prismatic axis ``a -> S a`` (a direction) and a revolute axis ``a -> -S a`` (a pseudo-vector: ``S Rot(a, q) S =
+  Rot(det(S) S a, q)``); the joint values and limits stay as they are.
 """
 
 from __future__ import annotations
@@ -20,7 +25,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from common.sequence import FloatArray, HandTrack, ObjectSpec, Sequence, Side
+from common.articulation import ObjectJoint
+from common.sequence import FloatArray, HandTrack, ObjectPart, ObjectSpec, Sequence, Side
 
 #: Reflection of the object frame (its x axis): the object's own mirror image.
 _OBJECT_REFLECTION = np.diag([-1.0, 1.0, 1.0])
@@ -55,11 +61,25 @@ def _matrix_to_quat(r: FloatArray) -> FloatArray:
 
 
 def mirror_object(obj: ObjectSpec) -> ObjectSpec:
-    """The object's mirror image in its own frame (``S`` of the module docstring)."""
+    """The object's mirror image in its own frame (``S`` of the module docstring), every part of an articulated
+    object in its own frame and every joint with it."""
+    parts = [ObjectPart(mirror_object(p.shape), mirror_joint(p.joint)) for p in obj.parts]
     if obj.mesh_vertices is None:
-        return replace(obj, size=None if obj.size is None else obj.size.copy())
+        return replace(obj, size=None if obj.size is None else obj.size.copy(), parts=parts)
     faces = None if obj.mesh_faces is None else obj.mesh_faces[:, ::-1].copy()
-    return replace(obj, mesh_vertices=obj.mesh_vertices @ _OBJECT_REFLECTION.T, mesh_faces=faces)
+    return replace(obj, mesh_vertices=obj.mesh_vertices @ _OBJECT_REFLECTION.T, mesh_faces=faces, parts=parts)
+
+
+def mirror_joint(joint: ObjectJoint) -> ObjectJoint:
+    """The joint between two mirrored parts: its transform ``T`` conjugated, ``S T S`` (module docstring)."""
+    s = _OBJECT_REFLECTION
+    origin_rot = s @ _quat_to_matrix(np.asarray(joint.origin_quat, dtype=np.float64)[None])[0] @ s
+    axis = s @ np.asarray(joint.axis, dtype=np.float64)
+    return replace(
+        joint, axis=-axis if joint.kind == "revolute" else axis,
+        origin_pos=s @ np.asarray(joint.origin_pos, dtype=np.float64), origin_quat=_matrix_to_quat(origin_rot[None])[0],
+        limits=np.asarray(joint.limits, dtype=np.float64).copy(),
+    )  # fmt: skip
 
 
 def mirror_sequence(seq: Sequence, normal: FloatArray | tuple[float, float, float] = (1.0, 0.0, 0.0)) -> Sequence:
@@ -83,6 +103,7 @@ def mirror_sequence(seq: Sequence, normal: FloatArray | tuple[float, float, floa
         hands=hands,
         frame_start=seq.frame_start,
         world_from_source=np.eye(4),
+        articulation=None if seq.articulation is None else seq.articulation.copy(),
         meta={**seq.meta, "mirrored": "through the world plane with normal " + " ".join(f"{v:g}" for v in
                                                                                          np.ravel(normal))},
     ).validate()

@@ -149,6 +149,8 @@ def _parts(npz: SafeNpz) -> list[ObjectPart]:
     for k in range(n):
         shape = ObjectSpec(name=names[k], mass_kg=float(masses[k]))
         _shape(npz, shape, f"object_part{k}")
+        if f"object_part{k}_friction" in npz:
+            shape.friction = get_float(npz, f"object_part{k}_friction")
         joint = ObjectJoint(
             name=joint_names[k], kind=cast(Any, kinds[k]), parent=parents[k], axis=axes[k], origin_pos=origin_pos[k],
             origin_quat=origin_quat[k], limits=limits[k],
@@ -182,6 +184,8 @@ def articulated_arrays(seq: Sequence) -> dict[str, Any]:
         out["object_joint_friction"] = np.array([j.friction for j in joints], dtype=np.float64)
     for k, part in enumerate(obj.parts):
         out.update(shape_arrays(part.shape, f"object_part{k}"))
+        if part.shape.friction is not None:
+            out[f"object_part{k}_friction"] = np.array(float(part.shape.friction))
     return out
 
 

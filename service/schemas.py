@@ -12,6 +12,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from common.articulation import MAX_PARTS
 from common.job_options import JobOptions
 from common.job_state import JobState
 from common.queue_types import JobRecord
@@ -34,6 +35,44 @@ class MeshIn(BaseModel):
     faces: list[Annotated[list[VertexIndex], Field(min_length=3, max_length=3)]] = Field(min_length=4)
 
 
+class OriginIn(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    pos: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0], description="the part frame's origin in its "
+                      "parent's frame at joint value 0 (m)")  # fmt: skip
+    quat: Annotated[list[float], Field(min_length=4, max_length=4)] = Field(
+        default_factory=lambda: [1.0, 0.0, 0.0, 0.0], description="the part frame's orientation in its parent's "
+        "frame at joint value 0 (w x y z)")  # fmt: skip
+
+
+class JointIn(BaseModel):
+    """The joint that hangs a part from its parent (``common.articulation``: URDF's conventions)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    name: str
+    type: Literal["revolute", "prismatic"]
+    parent: str = Field(description="the base part's name (object.base_part) or a part listed before this one")
+    axis: Vec3 = Field(description="unit vector in the part's frame (normalised; must not be zero)")
+    origin: OriginIn | None = Field(default=None, description="default: the parent's frame")
+    limits: Annotated[list[float], Field(min_length=2, max_length=2)] = Field(
+        description="lower, upper (rad for revolute, m for prismatic); every recorded value must lie within")
+    damping: float | None = Field(default=None, ge=0, le=1000, description="N m s/rad or N s/m; default: the "
+                                  "simulation's setting")  # fmt: skip
+    friction: float | None = Field(default=None, ge=0, le=1000, description="N m or N; default: the simulation's "
+                                   "setting")  # fmt: skip
+
+
+class PartIn(BaseModel):
+    """A part of an articulated object beyond its base: its shape (a mesh or a primitive) and its joint."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    name: str
+    mass_kg: float = Field(gt=0, le=1000)
+    friction: float | None = Field(default=None, ge=0)
+    primitive: PrimitiveIn | None = None
+    mesh: MeshIn | None = None
+    joint: JointIn
+
+
 class ObjectIn(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     name: str = "object"
@@ -41,6 +80,10 @@ class ObjectIn(BaseModel):
     friction: float | None = Field(default=None, ge=0)
     primitive: PrimitiveIn | None = None
     mesh: MeshIn | None = None
+    base_part: str | None = Field(default=None, description="an articulated object's base part name (default "
+                                  "'base'): this shape, posed by object_pose")  # fmt: skip
+    parts: list[PartIn] = Field(default_factory=list, max_length=MAX_PARTS, description="an articulated object's "
+                                "further parts, parents before children (format_version 2)")  # fmt: skip
 
 
 class ManoIn(BaseModel):
@@ -68,7 +111,7 @@ class JobCreate(BaseModel):
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     format: Literal["hoi-refine-sequence"] = "hoi-refine-sequence"
-    format_version: Literal[1] = 1
+    format_version: Literal[1, 2] = Field(default=1, description="2 for an articulated object (object.parts)")
     name: str = "sequence"
     fps: float = Field(gt=0, le=1000)
     frame_start: int = Field(default=0, ge=0, le=2**31 - 1)
@@ -81,6 +124,8 @@ class JobCreate(BaseModel):
         default=None, min_length=4, max_length=4, description="4x4 rigid transform source -> world"
     )
     up: Vec3 | None = None
+    articulation: list[list[float]] | None = Field(
+        default=None, description="(T, J) every joint's recorded value per frame (rad / m), J = len(object.parts)")
     meta: dict[str, str] = Field(default_factory=dict)
     options: JobOptions = Field(default_factory=JobOptions)
     batch_id: str | None = Field(default=None, max_length=32, description="Submit into this batch (POST /v1/batches)")
@@ -180,14 +225,15 @@ class JobEventsPublic(BaseModel):
 
 class ContactPublic(BaseModel):
     frame: int
-    hand: str
-    body: str
+    hand: str = Field(description="the hand's side: right or left")
+    body: str = Field(description="the hand body touching (palm or a finger segment)")
     position_world: list[float]
-    position_object: list[float]
+    position_object: list[float] = Field(description="in the touched part's frame (the object's for a rigid one)")
     normal: list[float]
     force: list[float]
     torque: list[float]
     depth: float
+    part: str | None = Field(default=None, description="the object part touched (an articulated object), else null")
 
 
 class ContactsPublic(BaseModel):

@@ -25,6 +25,7 @@ import numpy as np
 
 from common.npz_writer import FIXED_DATE_TIME, deterministic_npz_bytes, npy_bytes
 from common.sequence_io import sequence_to_json_dict, sequence_to_npz_bytes
+from tests.support.articulated import tiny_articulated_sequence
 from tests.support.queue_fixtures import tiny_sequence
 
 OUT = Path(__file__).resolve().parent / "bad_inputs"
@@ -36,10 +37,22 @@ def base_arrays() -> Arrays:
         return {k: data[k] for k in data.files}
 
 
-def base_json() -> dict[str, Any]:
-    doc = sequence_to_json_dict(tiny_sequence(0).validate())
+def base_json(articulated: bool = False) -> dict[str, Any]:
+    seq = tiny_articulated_sequence(0) if articulated else tiny_sequence(0)
+    doc = sequence_to_json_dict(seq.validate())
     doc["options"] = {"seed": 0}
     return doc
+
+
+def articulated_arrays() -> Arrays:
+    with np.load(io.BytesIO(sequence_to_npz_bytes(tiny_articulated_sequence(0).validate()))) as data:
+        return {k: data[k] for k in data.files}
+
+
+def articulated_npz_with(change: Callable[[Arrays], None]) -> bytes:
+    arrays = articulated_arrays()
+    change(arrays)
+    return deterministic_npz_bytes(arrays)
 
 
 def raw_zip(members: dict[str, bytes], compression: int = zipfile.ZIP_DEFLATED) -> bytes:
@@ -111,7 +124,7 @@ def _duplicate_member() -> bytes:
 
 def _many_members() -> bytes:
     members = members_of(base_arrays())
-    members.update({f"extra{i}.npy": npy_bytes(np.zeros(1)) for i in range(70)})
+    members.update({f"extra{i}.npy": npy_bytes(np.zeros(1)) for i in range(140)})
     return raw_zip(members)
 
 
@@ -167,7 +180,7 @@ NPZ_CASES: list[tuple[str, Callable[[], bytes], str, str]] = [
     ("truncated_zip", _truncated, "sequence", "half of a valid file"),
     ("member_not_npy", _not_npy_member, "sequence", "a readme.txt member"),
     ("member_name_bidi", _odd_member_name, "sequence", "a member named with U+202E"),
-    ("too_many_members", _many_members, "sequence", "70 extra members"),
+    ("too_many_members", _many_members, "sequence", "140 extra members"),
     ("duplicate_member", _duplicate_member, "sequence", "name.npy twice"),
     ("bzip2_member", _bz2_member, "format", "members compressed with bzip2"),
     ("pickled_object_pose", _pickled_member, "object_pose", "an object (pickle) array"),
@@ -193,7 +206,9 @@ NPZ_CASES: list[tuple[str, Callable[[], bytes], str, str]] = [
     ("fps_nan", lambda: npz_with(_set(fps=np.array(np.nan))), "fps", "NaN"),
     ("fps_huge", lambda: npz_with(_set(fps=np.array(1e9))), "fps", "1e9 frames per second"),
     ("format_wrong", lambda: npz_with(_set(format=np.array("something-else"))), "format", "another format"),
-    ("format_version_2", lambda: npz_with(_set(format_version=np.array(2))), "format_version", "version 2"),
+    ("format_version_3", lambda: npz_with(_set(format_version=np.array(3))), "format_version", "version 3"),
+    ("format_version_2_rigid", lambda: npz_with(_set(format_version=np.array(2))), "object_base_part",
+     "version 2 (articulated) without its members"),
     ("format_version_float", lambda: npz_with(_set(format_version=np.array(1.0))), "format_version", "a float"),
     ("name_nul", lambda: npz_with(_set(name=np.array("seq\x00name"))), "name", "NUL in the name"),
     ("name_bidi", lambda: npz_with(_set(name=np.array("abc\u202etxt.exe"))), "name", "U+202E in the name"),
@@ -244,6 +259,27 @@ NPZ_CASES: list[tuple[str, Callable[[], bytes], str, str]] = [
     ("frame_start_negative", lambda: npz_with(_set(frame_start=np.array(-1))), "frame_start", "-1"),
     ("dexycb_without_ycb_dir", _dexycb, "sequence", "a DexYCB file on a server without HOI_REFINE_YCB_DIR"),
     ("dexycb_joints_shape", lambda: _dexycb(_set(hand_joints=np.zeros((5, 3)))), "hand_joints", "(T, 3)"),
+    # An articulated object (issue #52): the tiny hinged box with one thing broken.
+    ("arti_axis_zero", lambda: articulated_npz_with(_set(object_joint_axes=np.zeros((1, 3)))),
+     "object.parts[0].joint.axis", "a joint axis of zero length"),
+    ("arti_value_outside_limits", lambda: articulated_npz_with(_set(
+        object_articulation=np.array([[0.0], [0.1], [2.0], [0.3], [0.4]]))), "articulation", "2 rad, limits [0, 1.5]"),
+    ("arti_part_without_mesh", lambda: articulated_npz_with(_set(object_part0_primitive=None, object_part0_size=None)),
+     "object_part0_mesh_vertices", "a part with neither a primitive nor a mesh"),
+    ("arti_unknown_parent", lambda: articulated_npz_with(_set(object_joint_parents=np.array(["nowhere"]))),
+     "object.parts[0].joint.parent", "a parent no part is called"),
+    ("arti_articulation_shape", lambda: articulated_npz_with(_set(object_articulation=np.zeros((5, 2)))),
+     "object_articulation", "(T, 2) for one joint"),
+    ("arti_articulation_missing", lambda: articulated_npz_with(_set(object_articulation=None)), "object_articulation",
+     "no joint values"),
+    ("arti_joint_type", lambda: articulated_npz_with(_set(object_joint_types=np.array(["ball"]))),
+     "object.parts[0].joint.type", "a ball joint"),
+    ("arti_limits_reversed", lambda: articulated_npz_with(_set(object_joint_limits=np.array([[1.0, 0.0]]))),
+     "object.parts[0].joint.limits", "lower above upper"),
+    ("arti_joint_axes_rows", lambda: articulated_npz_with(_set(object_joint_axes=np.zeros((2, 3)))),
+     "object_joint_axes", "two axes for one joint"),
+    ("arti_part_name_nul", lambda: articulated_npz_with(_set(object_part_names=np.array(["li\x00d"]))),
+     "object.parts[0].name", "NUL in a part name"),
 ]
 
 OPTION_CASES: list[tuple[str, str, str, str]] = [
@@ -264,6 +300,20 @@ def _json_case(change: Callable[[dict[str, Any]], Any]) -> Callable[[], bytes]:
         return out if isinstance(out, bytes) else json.dumps(doc if out is None else out).encode()
 
     return make
+
+
+def _arti_json(change: Callable[[dict[str, Any]], Any]) -> Callable[[], bytes]:
+    def make() -> bytes:
+        doc = base_json(articulated=True)
+        change(doc)
+        return json.dumps(doc).encode()
+
+    return make
+
+
+def _joint(doc: dict[str, Any]) -> dict[str, Any]:
+    joint: dict[str, Any] = doc["object"]["parts"][0]["joint"]
+    return joint
 
 
 def _replace_number(doc: dict[str, Any], key: str, literal: str) -> bytes:
@@ -297,6 +347,25 @@ JSON_CASES: list[tuple[str, Callable[[], bytes], str, str]] = [
         lambda d: json.dumps({**d, "options": {"loss_weights": {"hand_joints": 7.5}}}).encode().replace(
             b"7.5", b"Infinity")), "options.loss_weights.hand_joints", "Infinity loss weight"),
     ("json_mass_huge", _json_case(lambda d: d["object"].__setitem__("mass_kg", 1e308)), "object.mass_kg", "1e308 kg"),
+    ("json_arti_axis_zero", _arti_json(lambda d: _joint(d).__setitem__("axis", [0.0, 0.0, 0.0])),
+     "object.parts[0].joint.axis", "a joint axis of zero length"),
+    ("json_arti_value_outside_limits", _arti_json(lambda d: d["articulation"][2].__setitem__(0, -1.0)), "articulation",
+     "-1 rad, limits [0, 1.5]"),
+    ("json_arti_part_without_mesh", _arti_json(lambda d: d["object"]["parts"][0].pop("primitive")), "object.parts[0]",
+     "a part with neither a primitive nor a mesh"),
+    ("json_arti_unknown_parent", _arti_json(lambda d: _joint(d).__setitem__("parent", "nowhere")),
+     "object.parts[0].joint.parent", "a parent no part is called"),
+    ("json_arti_articulation_shape", _arti_json(lambda d: d.__setitem__("articulation", [[0.0, 0.0]] * 5)),
+     "articulation", "(T, 2) for one joint"),
+    ("json_arti_articulation_ragged", _arti_json(lambda d: d["articulation"].__setitem__(1, [0.1, 0.2])),
+     "articulation", "rows of different lengths"),
+    ("json_arti_articulation_missing", _arti_json(lambda d: d.pop("articulation")), "articulation", "no joint values"),
+    ("json_arti_joint_type", _arti_json(lambda d: _joint(d).__setitem__("type", "ball")), "object.parts[0].joint.type",
+     "a ball joint"),
+    ("json_arti_axis_length", _arti_json(lambda d: _joint(d).__setitem__("axis", [1.0, 0.0])),
+     "object.parts[0].joint.axis", "two numbers"),
+    ("json_arti_rigid_with_articulation", _json_case(lambda d: d.__setitem__("articulation", [[0.0]] * 5)),
+     "articulation", "joint values for a rigid object"),
 ]
 
 

@@ -91,3 +91,15 @@ def short_refine_result() -> bytes:
     # not as one CMA-ES seed happens to (the first attempt usually succeeds, and then no restart runs).
     outcome = refine_sequence(short_example_sequence(), JobOptions())
     return outcome.to_npz_bytes()
+
+
+@pytest.fixture(scope="session")
+def short_hinged_result() -> bytes:
+    """A cheap refinement of the 32-frame two-handed hinged box (issue #52): two generations of six per window, no
+    restarts or polish (about 10 s); the views need a two-handed articulated result, not a good one."""
+    from worker.example.hinged_box import short_hinged_box_sequence
+    from worker.refine.run import refine_sequence
+
+    outcome = refine_sequence(short_hinged_box_sequence(), JobOptions(max_generations=2, popsize=6, restarts=0,
+                                                                      polish=False))  # fmt: skip
+    return outcome.to_npz_bytes()

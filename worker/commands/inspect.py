@@ -12,23 +12,61 @@ def register(subparsers: Any) -> None:
     p = subparsers.add_parser(
         "inspect", help="show what a sequence file holds and whether it is valid", description=__doc__
     )
-    p.add_argument("sequence", type=Path, help="sequence file (.npz native or DexYCB, .json, DexYCB folder)")
+    p.add_argument("sequence", type=Path, help="sequence file (.npz native or DexYCB, .json, DexYCB folder, ARCTIC "
+                   ".npy)")
+    add_object_dir_argument(p)
     p.set_defaults(func=cmd_inspect)
 
 
-def _describe(seq: Any) -> list[tuple[str, str]]:
-    obj = seq.object
+def add_object_dir_argument(p: Any) -> None:
+    """``--object-dir``, shared by ``inspect``, ``replay`` and ``refine``."""
+    p.add_argument("--object-dir", type=Path, default=None, metavar="DIR",
+                   help="an ARCTIC recording's object folder (dexmachina-processed: the one holding <object>.urdf; "
+                   "release: meta/object_vtemplates/<object>), when it is not where the layout puts it")
+
+
+def _shape_text(obj: Any) -> str:
     shape = (
         f"{obj.primitive} {[round(float(s), 4) for s in obj.size]}"
         if obj.primitive
         else f"mesh, {len(obj.mesh_vertices)} vertices, {len(obj.mesh_faces)} faces"
     )
+    return f"{shape}, {obj.mass_kg:g} kg"
+
+
+def _joint_rows(seq: Any) -> list[tuple[str, str]]:
+    """An articulated object's parts, joints and the recorded range of every joint."""
+    obj = seq.object
+    names = obj.part_names
+    rows = [("parts", f"{len(names)}: {names[0]} (base), " + ", ".join(names[1:]))]
+    for k, (part, joint) in enumerate(zip(obj.part_shapes()[1:], obj.joints, strict=True)):
+        rows.append((f"part {part.name}", _shape_text(part)))
+        scale, unit, si = joint.display_scale(), joint.unit, "rad" if joint.kind == "revolute" else "m"
+        lo, hi = (float(v) for v in joint.limits)
+        axis = " ".join(f"{float(v):.3g}" for v in joint.axis)
+        origin = " ".join(f"{float(v):.4g}" for v in joint.origin_pos)
+        rows.append((f"joint {joint.name}", f"{joint.kind}, {joint.parent} -> {part.name}, axis ({axis}), origin "
+                     f"({origin}) m, limits [{lo:.4g}, {hi:.4g}] {si} ([{lo * scale:.1f}, {hi * scale:.1f}] {unit})"))
+        values = seq.articulation[:, k]
+        a, b = float(values.min()), float(values.max())
+        rows.append((f"articulation {joint.name}", f"recorded {a:.4g} to {b:.4g} {si} ({a * scale:.1f} to "
+                     f"{b * scale:.1f} {unit}; frame 0: {float(values[0]) * scale:.1f} {unit})"))
+    return rows
+
+
+def _describe(seq: Any) -> list[tuple[str, str]]:
+    obj = seq.object
+    base = f" (base part {obj.base_part})" if obj.articulated else ""
     rows = [
         ("name", seq.name),
         ("frames", f"{seq.num_frames} at {seq.fps:g} fps ({seq.num_frames / seq.fps:.2f} s), first {seq.frame_start}"),
-        ("object", f"{obj.name}: {shape}, {obj.mass_kg:g} kg"),
-        ("world frame", "world_from_camera given" if seq.world_from_source is not None else "from up vector / default"),
+        ("object", f"{obj.name}{base}: {_shape_text(obj)}"),
     ]
+    if obj.articulated:
+        rows += _joint_rows(seq)
+    rows.append(
+        ("world frame", "world_from_camera given" if seq.world_from_source is not None else "from up vector / default")
+    )
     for h in seq.hands:
         parts = [f"{int(h.valid.sum())}/{len(h.valid)} valid frames"]
         if h.keypoints is not None:
@@ -54,7 +92,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 
     console = Console()
     try:
-        seq = load_sequence(args.sequence, max_frames=get_settings().max_frames)
+        seq = load_sequence(args.sequence, max_frames=get_settings().max_frames, object_dir=args.object_dir)
     except SequenceValidationError as exc:
         console.print(f"[bold red]invalid[/] {args.sequence}")
         for problem in exc.problems:

@@ -9,6 +9,7 @@ from typing import Any
 
 from common.job_options_cli import add_job_option_arguments, job_options_from_args
 from common.settings import get_settings
+from worker.commands.inspect import add_object_dir_argument
 from worker.commands.progress import ProgressBar
 
 
@@ -18,8 +19,10 @@ def register(subparsers: Any) -> None:
         help="optimise the hand motion of a sequence until the simulated object follows the recorded one",
         description="Windowed CMA-ES over spline keyframes (DESIGN §1.3-1.7); writes one result NPZ.",
     )
-    p.add_argument("sequence", type=Path, help="sequence file (.npz native or DexYCB, .json, DexYCB folder)")
+    p.add_argument("sequence", type=Path, help="sequence file (.npz native or DexYCB, .json, DexYCB folder, ARCTIC "
+                   ".npy)")
     p.add_argument("--out", type=Path, required=True, help="result file to write (.npz)")
+    add_object_dir_argument(p)
     p.add_argument("--threads", type=int, default=1, help="simulation threads (default 1)")
     add_job_option_arguments(p)
     add_hand_arguments(p)
@@ -41,7 +44,7 @@ def _refine(args: argparse.Namespace) -> int:
     options = job_options_from_args(args)  # before loading: a bad flag should not wait for a slow load
     settings = get_settings()
     options = with_hand(options, args, settings.robot_dir)
-    seq = load_sequence(args.sequence)
+    seq = load_sequence(args.sequence, object_dir=args.object_dir)
     bar = None if args.quiet else ProgressBar()
     outcome = refine_sequence(seq, options, threads=args.threads, progress=bar,
                               cache_dir=settings.resolved_cache_dir(), mano_dir=settings.mano_dir)

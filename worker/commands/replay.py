@@ -7,6 +7,8 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from worker.commands.inspect import add_object_dir_argument
+
 
 def register(subparsers: Any) -> None:
     r = subparsers.add_parser(
@@ -15,9 +17,10 @@ def register(subparsers: Any) -> None:
         description="Retarget the hand, simulate the object from its rest pose, write trajectory + contacts.",
     )
     src = r.add_mutually_exclusive_group(required=True)
-    src.add_argument("sequence", type=Path, nargs="?", help="sequence file")
+    src.add_argument("sequence", type=Path, nargs="?", help="sequence file (as for inspect)")
     src.add_argument("--example", action="store_true", help="use the built-in synthetic grasp-and-lift")
     r.add_argument("--out", type=Path, default=None, help="result file to write (.npz)")
+    add_object_dir_argument(r)
     r.set_defaults(func=cmd_replay)
 
 
@@ -56,6 +59,6 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
         seq = example_sequence()
     else:
-        seq = load_sequence(args.sequence, max_frames=get_settings().max_frames)
+        seq = load_sequence(args.sequence, max_frames=get_settings().max_frames, object_dir=args.object_dir)
     run_replay(seq, args.out)
     return 0

@@ -123,22 +123,26 @@ def run_demo(
     short: bool = False,
     options: JobOptions | None = None,
     timeout_s: float = 1800.0,
+    example: str = "box",
 ) -> int:
-    """The demo; with no ``base_url`` it runs its own ``hoi-refine up`` and stops it afterwards."""
+    """The demo of the built-in ``example`` (``worker.example.catalogue``); with no ``base_url`` it runs its own
+    ``hoi-refine up`` and stops it afterwards."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     if base_url is None:
         print(f"starting `hoi-refine up --workers {workers}` (log: {out / 'up.log'}) ...", flush=True)
         with local_deployment(out / "up.log", workers, threads_per_worker, port) as dep:
-            return run_demo(dep.base_url, dep.api_key, out, short=short, options=options, timeout_s=timeout_s)
+            return run_demo(dep.base_url, dep.api_key, out, short=short, options=options, timeout_s=timeout_s,
+                            example=example)
     if not api_key:
         raise ConfigurationError("an API key is needed with a base URL (HOI_REFINE_API_KEY)")
     from common.result_format import read_summary
     from common.sequence_io import sequence_to_npz_bytes
     from worker.commands.refine import print_refine_metrics
-    from worker.example.sequences import example_sequence, short_example_sequence
+    from worker.example.catalogue import example_named
 
-    seq = short_example_sequence() if short else example_sequence()
+    chosen = example_named(example)
+    seq = chosen.build_short() if short else chosen.build()
     client = ApiClient(base_url, api_key)
     try:
         job = client.submit(sequence_to_npz_bytes(seq), f"{seq.name}.npz", options or JobOptions())

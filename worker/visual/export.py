@@ -5,7 +5,8 @@ Folder contents:
 
 * ``scene.xml``: the exact MJCF the result was simulated with (hand(s), object with its convex parts inline,
   table, every physics setting in ``<option>``: timestep, integrator, solver, noslip, contact and weld
-  parameters); ``object.obj`` the object's visual mesh in its body frame (mesh objects only);
+  parameters); ``object.obj`` the object's visual mesh in its body frame (mesh objects only; an articulated
+  object's further parts as ``object_part<k>.obj``, k from 1, each in its own body's frame);
 * ``controls.npz``: per physics step (S = (F - 1) * substeps + 1) ``ctrl`` (S, nu) hinge servo targets,
   ``mocap_pos`` (S, nmocap, 3) and ``mocap_quat`` (S, nmocap, 4) the wrist's mocap pose, already interpolated
   (hinge targets and wrist positions linearly between frames, wrist rotations by slerp, each step driving
@@ -15,9 +16,13 @@ Folder contents:
   ``S_q_target`` (F, 45), ``S_wrist_pos`` (F, 3), ``S_wrist_quat`` (F, 4) the refined tracks before
   interpolation;
 * ``trajectories.npz``: ``object_pose_sim`` (F, 7) the simulated object, ``object_pose_ref`` the recorded one,
-  ``raw_object_pose_sim`` the raw replay's, ``object_vel_sim``, per side ``S_keypoints_sim`` / ``_ref``;
-* ``contacts.npz``: the per-frame contacts (``common.result_format.CONTACT_KEYS``);
-* ``export.json``: frame rate, substeps, timestep, names (actuators, mocap bodies, object body), metrics;
+  ``raw_object_pose_sim`` the raw replay's, ``object_vel_sim``, per side ``S_keypoints_sim`` / ``_ref``; an
+  articulated object adds ``object_articulation_sim`` / ``_ref`` / ``raw_object_articulation_sim`` (F, J) joint
+  values (rad / m);
+* ``contacts.npz``: the per-frame contacts (``common.result_format.CONTACT_KEYS``, and ``contact_part`` for an
+  articulated object);
+* ``export.json``: frame rate, substeps, timestep, names (actuators, mocap bodies, object body; an articulated
+  object's ``object_joints``: per joint its MJCF name, its name in the sequence, its kind and unit), metrics;
 * ``replay.py``: ``worker.visual.standalone_replay`` copied verbatim.
 """
 
@@ -30,7 +35,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from common.result_format import CONTACT_KEYS, read_summary
+from common.result_format import CONTACT_KEYS, PART_CONTACT_KEYS, read_summary
 from common.sequence import Sequence
 from worker.visual.playback import Playback, main_trajectory, resimulate
 
@@ -58,9 +63,9 @@ def export_playback(pb: Playback, out_dir: Path | str) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     scene, arrays, model = pb.scene, pb.arrays, pb.scene.model
     (out / "scene.xml").write_text(scene.xml)
-    obj = pb.sequence.object
-    if obj.mesh_vertices is not None and obj.mesh_faces is not None:
-        _write_obj(out / "object.obj", obj.mesh_vertices, obj.mesh_faces)
+    for k, shape in enumerate(pb.sequence.object.part_shapes()):
+        if shape.mesh_vertices is not None and shape.mesh_faces is not None:
+            _write_obj(out / ("object.obj" if k == 0 else f"object_part{k}.obj"), shape.mesh_vertices, shape.mesh_faces)
     per_frame = {f"{s}_{k}": arrays[f"{s}_{k}"] for s in scene.hands for k in ("q_target", "wrist_pos", "wrist_quat")}
     controls: dict[str, Any] = {
         "ctrl": pb.controls.ctrl,
@@ -72,10 +77,11 @@ def export_playback(pb: Playback, out_dir: Path | str) -> Path:
         **per_frame,
     }
     _savez(out / "controls.npz", controls)
-    traj_keys = ["object_pose_sim", "object_pose_ref", "raw_object_pose_sim", "object_vel_sim"]
+    traj_keys = ["object_pose_sim", "object_pose_ref", "raw_object_pose_sim", "object_vel_sim",
+                 "object_articulation_sim", "object_articulation_ref", "raw_object_articulation_sim"]
     traj_keys += [f"{s}_{k}" for s in scene.hands for k in ("keypoints_sim", "keypoints_ref", "valid")]
     _savez(out / "trajectories.npz", {k: arrays[k] for k in traj_keys if k in arrays})
-    _savez(out / "contacts.npz", {k: arrays[k] for k in CONTACT_KEYS})
+    _savez(out / "contacts.npz", {k: arrays[k] for k in (*CONTACT_KEYS, *PART_CONTACT_KEYS) if k in arrays})
     (out / "export.json").write_text(json.dumps(_meta(pb, model, OBJECT_BODY), indent=1, sort_keys=True))
     from worker.visual import standalone_replay
 
@@ -88,8 +94,12 @@ def _names(model: mujoco.MjModel, kind: mujoco.mjtObj, ids: Any) -> list[str]:
 
 
 def _meta(pb: Any, model: mujoco.MjModel, object_body: str) -> dict[str, Any]:
+    from worker.simulation.object_model import joint_name
+
     mocap_bodies = [b for b in range(model.nbody) if model.body_mocapid[b] >= 0]
     mocap_bodies.sort(key=lambda b: int(model.body_mocapid[b]))
+    joints = [{"mjcf": joint_name(k), "name": j.name, "kind": j.kind, "unit": j.unit, "scale": j.display_scale()}
+              for k, j in enumerate(pb.sequence.object.joints)]  # fmt: skip
     return {
         "sequence": pb.summary.get("sequence"),
         "trajectory": main_trajectory(pb.summary),  # whose controls: the refined hand, or a raw replay's
@@ -99,6 +109,7 @@ def _meta(pb: Any, model: mujoco.MjModel, object_body: str) -> dict[str, Any]:
         "timestep": float(model.opt.timestep),
         "steps": int(pb.controls.ctrl.shape[0]),
         "object_body": object_body,
+        "object_joints": joints,
         "actuators": _names(model, mujoco.mjtObj.mjOBJ_ACTUATOR, range(model.nu)),
         "mocap_bodies": _names(model, mujoco.mjtObj.mjOBJ_BODY, mocap_bodies),
         "interpolation": "controls.npz ctrl/mocap_* hold one row per physics step, already interpolated between "

@@ -6,8 +6,10 @@ A result file stores the object trajectory, the hand keypoints and the controls,
 from frame 0 with ``worker.refine.run.replay`` — the same code that made the result — recording ``qpos`` at
 every frame; the raw replay is the same replay with zero offsets, as ``refine_sequence`` made it. A raw-replay
 result (``hoi-refine replay``, which does not embed its sequence: pass it) is that zero-offset replay of the
-same scene. The stored trajectory's re-simulation is checked against the file (``compare_object_trajectory``),
-so what is drawn is what the file holds.
+same scene. The stored trajectory's re-simulation is checked against the file (``compare_object_trajectory``, and
+an articulated object's joint values too), so what is drawn is what the file holds. An articulated object starts at
+its recorded frame-0 joint values, as in the product (``worker.simulation.stepping.initial_state``), and every part
+is drawn where the simulation has it; ``Playback.part_poses_ref`` holds where the recording has each part.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from common.errors import UnsupportedFormatError
+from common.errors import ResultMismatchError, UnsupportedFormatError
 from common.geometry import FloatArray
 from common.result_format import read_arrays, read_summary
 from common.sequence import Sequence
@@ -39,6 +41,10 @@ class Trajectory:
     contacts: dict[str, np.ndarray]  # ``common.result_format.CONTACT_KEYS`` columns
     e_t_cm: FloatArray  # (F,) object position error
     e_r_deg: FloatArray  # (F,) object rotation error
+    #: An articulated object's joint values (F, J) and per frame its largest joint error (deg, or cm for a
+    #: prismatic joint: ``worker.simulation.metrics.ArticulationFrames``); None for a rigid object.
+    articulation: FloatArray | None = None
+    e_a: FloatArray | None = None
 
 
 @dataclass
@@ -64,6 +70,9 @@ class Playback:
     arrays: dict[str, np.ndarray]
     object_pose_ref: FloatArray  # (F, 7) the recorded object
     keypoints_ref: dict[str, FloatArray]  # side -> (F, 21, 3) the recorded hand
+    #: (F, P, 7) every part's recorded world pose, base first (a rigid object: its pose, P = 1).
+    part_poses_ref: FloatArray
+    articulation_ref: FloatArray | None = None  # (F, J) the recorded joint values of an articulated object
     trajectories: dict[str, Trajectory] = field(default_factory=dict)
     controls: Controls | None = None  # of the refined replay (``export``)
 
@@ -74,6 +83,14 @@ class Playback:
     @property
     def num_frames(self) -> int:
         return int(self.object_pose_ref.shape[0])
+
+    @property
+    def articulated(self) -> bool:
+        return self.articulation_ref is not None
+
+    def joint_labels(self) -> list[str]:
+        """Each joint's name with the unit its error is shown in, e.g. ``lid_hinge (deg)``."""
+        return [f"{j.name} ({j.unit})" for j in self.sequence.object.joints]
 
 
 def load_result(path_or_blob: Any) -> bytes:
@@ -134,6 +151,7 @@ def resimulate(
     from worker.refine.prepare import settled_start
     from worker.refine.replay import replay
     from worker.refine.result import compare_object_trajectory
+    from worker.simulation.replay import articulation_frames
 
     summary = read_summary(blob)
     arrays = read_arrays(blob)
@@ -145,13 +163,16 @@ def resimulate(
         raise UnsupportedFormatError(f"this result has the trajectories {list(available)}, not {list(which)}")
     prep, keyframes = _prepare(blob, summary, sequence, cache_dir, mano_dir)
     ref_pose = prep.obj_targets_pose()
+    seq = prep.seq
     out = Playback(
         scene=prep.scene,
-        sequence=prep.seq,
+        sequence=seq,
         summary=summary,
         arrays=arrays,
         object_pose_ref=ref_pose,
         keypoints_ref={r.side: r.keypoints for r in prep.references},
+        part_poses_ref=seq.object.part_poses(ref_pose, seq.articulation),
+        articulation_ref=None if not seq.object.parts else seq.articulation,
     )
     model = prep.scene.model
     s = prep.scene.substeps_per_frame
@@ -179,6 +200,8 @@ def resimulate(
             rec = replay(prep, ev, start, offsets, record_contacts=True, on_step=on_step)
             if name == main:  # what is drawn is what the file holds
                 compare_object_trajectory(arrays["object_pose_sim"], rec.object_pose)
+                compare_articulation(arrays.get("object_articulation_sim"), rec.articulation)
+            arti = articulation_frames(seq, rec.articulation)
             out.trajectories[name] = Trajectory(
                 name=name,
                 qpos=qpos,
@@ -187,6 +210,8 @@ def resimulate(
                 contacts=rec.contacts,
                 e_t_cm=100.0 * np.linalg.norm(rec.object_pose[:, :3] - ref_pose[:, :3], axis=1),
                 e_r_deg=np.asarray(rotation_error_deg(rec.object_pose[:, 3:], ref_pose[:, 3:])),
+                articulation=rec.articulation,
+                e_a=None if arti is None else arti.errors(n_frames)[0],
             )
             if keep_controls:
                 packed = np.asarray(steps)
@@ -202,6 +227,27 @@ def resimulate(
     return out
 
 
+#: How far (rad or m) a re-simulated joint value may be from the stored one: the object trajectory's own tolerance
+#: (``worker.refine.result.VERIFY_TOLERANCE_M``) read in the joint's unit; a re-simulation on the same build matches
+#: to the last bits.
+ARTICULATION_TOLERANCE = 1e-6
+
+
+def compare_articulation(stored: np.ndarray | None, simulated: FloatArray | None) -> None:
+    """``ResultMismatchError`` when a result's stored joint values (F, J) and the re-simulation's differ (or one of
+    them is missing)."""
+    if stored is None and simulated is None:
+        return
+    if stored is None or simulated is None or stored.shape != simulated.shape:
+        raise ResultMismatchError(f"object_articulation_sim has shape {getattr(stored, 'shape', None)}, the "
+                                  f"re-simulation {getattr(simulated, 'shape', None)}")  # fmt: skip
+    diff = np.abs(np.asarray(stored, dtype=np.float64) - simulated)
+    if diff.size and diff.max() > ARTICULATION_TOLERANCE:
+        frame, joint = np.unravel_index(int(np.argmax(diff)), diff.shape)
+        raise ResultMismatchError(f"object articulation differs from the re-simulation: {diff.max():.3g} at frame "
+                                  f"{frame}, joint {joint}")  # fmt: skip
+
+
 def finger_of_body(body: str) -> str:
     """The finger a hand body belongs to (``right_index2`` -> ``index``), ``palm`` for the palm."""
     from worker.hand.model import FINGERS
@@ -213,14 +259,16 @@ def finger_of_body(body: str) -> str:
     return "palm"
 
 
-def contact_force_per_finger(contacts: dict[str, np.ndarray], num_frames: int) -> dict[str, FloatArray]:
-    """Summed contact force magnitude (N) per finger (and palm) per frame, over both hands."""
+def contact_force_per_finger(contacts: dict[str, np.ndarray], num_frames: int, side: str | None = None
+                             ) -> dict[str, FloatArray]:
+    """Summed contact force magnitude (N) per finger (and palm) per frame, of one hand (``side``) or of both."""
     from worker.hand.model import FINGERS
 
     out = {name: np.zeros(num_frames) for name in (*FINGERS, "palm")}
     frames = np.asarray(contacts["contact_frame"], dtype=np.int64)
     mags = np.linalg.norm(np.asarray(contacts["contact_force"], dtype=np.float64).reshape(-1, 3), axis=1)
-    for frame, body, mag in zip(frames, contacts["contact_body"], mags, strict=True):
-        if 0 <= frame < num_frames:
+    hands = contacts["contact_hand"] if side is not None else [None] * len(frames)
+    for frame, body, mag, hand in zip(frames, contacts["contact_body"], mags, hands, strict=True):
+        if 0 <= frame < num_frames and (side is None or str(hand) == side):
             out[finger_of_body(str(body))][frame] += mag
     return out

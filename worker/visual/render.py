@@ -1,10 +1,12 @@
 """Offscreen frames of a re-simulated result (issue #18 item 1) with ``mujoco.Renderer``.
 
-Each panel shows one trajectory (raw replay or refined) at one frame: the simulated hand and object, the
-recorded object pose as a translucent green ghost, every hand-object contact as a red arrow of the hand's force
-on the object, its head at the contact point (``FORCE_ARROW_M_PER_N`` metres per newton, capped), and a caption
-with the panel's name, the frame number and that frame's E_t / E_r. Panels sit side by side. The default camera
-(``auto_camera``) frames the recorded and simulated object and the hand near it over the whole sequence.
+Each panel shows one trajectory (raw replay or refined) at one frame: the simulated hand(s) and object, the
+recorded object as a translucent green ghost (an articulated object part by part, each part where the recording has
+it, so the ghost opens as the recording does), every hand-object contact as a red arrow of the hand's force on the
+object, its head at the contact point (``FORCE_ARROW_M_PER_N`` metres per newton, capped), and a caption with the
+panel's name, the frame number and that frame's E_t / E_r (and E_a for an articulated object). Panels sit side by
+side. The default camera (``auto_camera``) frames the recorded and simulated object and the hands near it over the
+whole sequence, and looks across the line between two hands so that neither hides the other.
 """
 
 from __future__ import annotations
@@ -44,14 +46,24 @@ class CameraSpec:
     name: str | None = None
 
 
-def auto_camera(playback: Playback, azimuth: float = 135.0, elevation: float = -25.0) -> CameraSpec:
-    """Frame the interaction over the whole sequence: the recorded and simulated object, and the recorded hand
-    where it is within ``NEAR_OBJECT_M`` of the object (a hand still far away would shrink everything)."""
+DEFAULT_AZIMUTH = 135.0
+
+
+def auto_camera(playback: Playback, azimuth: float | None = None, elevation: float = -25.0) -> CameraSpec:
+    """Frame the interaction over the whole sequence: the recorded and simulated object (every part), and the
+    recorded hands where they are within ``NEAR_OBJECT_M`` of a part (a hand still far away would shrink
+    everything). ``azimuth`` None: ``DEFAULT_AZIMUTH`` for one hand; with two, the view across the line between
+    them nearest to it (``two_hand_azimuth``)."""
     ref = playback.object_pose_ref[:, :3]
-    points = [ref, *(t.object_pose[:, :3] for t in playback.trajectories.values())]
-    for kp in playback.keypoints_ref.values():
-        near = np.linalg.norm(kp - ref[:, None, :], axis=2) <= NEAR_OBJECT_M
-        points.append(kp[near])
+    parts = playback.part_poses_ref[:, :, :3]  # (F, P, 3)
+    points = [ref, parts.reshape(-1, 3), *(t.object_pose[:, :3] for t in playback.trajectories.values())]
+    near_points = {}
+    for side, kp in playback.keypoints_ref.items():
+        dist = np.linalg.norm(kp[:, :, None, :] - parts[:, None, :, :], axis=3).min(axis=2)  # (F, 21)
+        near_points[side] = kp[dist <= NEAR_OBJECT_M]
+        points.append(near_points[side])
+    if azimuth is None:
+        azimuth = two_hand_azimuth(near_points)
     cloud = np.concatenate(points)
     cloud = cloud[np.isfinite(cloud).all(axis=1)]
     lo, hi = np.percentile(cloud, 1, axis=0), np.percentile(cloud, 99, axis=0)
@@ -62,6 +74,20 @@ def auto_camera(playback: Playback, azimuth: float = 135.0, elevation: float = -
     distance = 1.2 * radius / np.sin(np.radians(22.5))
     lookat = (float(centre[0]), float(centre[1]), float(centre[2] + 0.08 * distance))
     return CameraSpec(lookat, distance, azimuth, elevation)
+
+
+def two_hand_azimuth(near_points: dict[str, FloatArray], preferred: float = DEFAULT_AZIMUTH) -> float:
+    """The azimuth (deg) looking across the horizontal line between two hands' points nearest to ``preferred``
+    (``preferred`` itself for one hand, or hands less than 2 cm apart seen from above)."""
+    centres = [p[np.isfinite(p).all(axis=1)].mean(axis=0) for p in near_points.values() if len(p)]
+    if len(centres) != 2:
+        return preferred
+    d = centres[1] - centres[0]
+    if float(np.hypot(d[0], d[1])) < 0.02:
+        return preferred
+    line = float(np.degrees(np.arctan2(d[1], d[0])))
+    # MuJoCo's free camera looks along (cos az, sin az) horizontally: across the line is the line's angle +- 90.
+    return min((line + 90.0, line - 90.0), key=lambda a: abs((a - preferred + 180.0) % 360.0 - 180.0)) % 360.0
 
 
 def parse_camera(text: str, playback: Playback) -> CameraSpec:
@@ -112,7 +138,11 @@ class PanelRenderer:
         self.data = mujoco.MjData(self.model)
         self.camera = camera or auto_camera(playback)
         self._cam = self._make_camera(self.camera)
-        self._object_geoms = {int(g) for g in playback.scene.object_geom_ids}
+        scene = playback.scene
+        # Each object geom's part (0: the base; a rigid object's geoms all 0) and that part's body.
+        self._geom_part = {int(g): max(int(scene.geom_part[g]), 0) if len(scene.geom_part) else 0
+                           for g in scene.object_geom_ids}  # fmt: skip
+        self._part_bodies = [int(b) for b in scene.object_part_body_ids] or [int(scene.object_body_id)]
 
     def _colour(self, playback: Playback) -> None:
         """Colours and a brighter headlight: visual fields only, the physics of the model is untouched."""
@@ -151,13 +181,14 @@ class PanelRenderer:
         mujoco.mj_camlight(self.model, d)
         self.renderer.update_scene(d, camera=self._cam)
         scn = self.renderer.scene
-        self._add_ghost(scn, traj.object_pose[frame], self.playback.object_pose_ref[frame])
+        self._add_ghost(scn, self.playback.part_poses_ref[frame])
         self._add_contacts(scn, traj, frame)
         image = self.renderer.render().copy()
-        return caption(image, [
-            f"{PANEL_TITLES.get(traj.name, traj.name)}  frame {frame + 1}/{len(traj.qpos)}",
-            f"E_t {traj.e_t_cm[frame]:.2f} cm  E_r {traj.e_r_deg[frame]:.1f} deg",
-        ])  # fmt: skip
+        errors = f"E_t {traj.e_t_cm[frame]:.2f} cm  E_r {traj.e_r_deg[frame]:.1f} deg"
+        if traj.e_a is not None:
+            errors += f"  E_a {traj.e_a[frame]:.1f} {articulation_unit(self.playback)}"
+        return caption(image, [f"{PANEL_TITLES.get(traj.name, traj.name)}  frame {frame + 1}/{len(traj.qpos)}",
+                               errors])  # fmt: skip
 
     def _free_geom(self, scn: mujoco.MjvScene) -> mujoco.MjvGeom | None:
         if scn.ngeom >= scn.maxgeom:
@@ -165,18 +196,24 @@ class PanelRenderer:
         scn.ngeom += 1
         return scn.geoms[scn.ngeom - 1]
 
-    def _add_ghost(self, scn: mujoco.MjvScene, sim_pose: FloatArray, ref_pose: FloatArray) -> None:
-        """Copies of the object's geoms moved by ref * sim^-1: the object where the recording has it."""
-        r_sim, r_ref = _quat_mat(sim_pose[3:]), _quat_mat(ref_pose[3:])
-        rel = r_ref @ r_sim.T
+    def _add_ghost(self, scn: mujoco.MjvScene, ref_parts: FloatArray) -> None:
+        """Copies of the object's geoms, each moved by its part's ref * sim^-1 (``ref_parts`` (P, 7), the recorded
+        world pose of every part): the object, every part of it, where the recording has it."""
+        d = self.data
+        moves = []
+        for k, body in enumerate(self._part_bodies):
+            r_sim, r_ref = d.xmat[body].reshape(3, 3), _quat_mat(ref_parts[k, 3:])
+            moves.append((r_ref @ r_sim.T, np.asarray(d.xpos[body]), ref_parts[k, :3]))
         for i in range(scn.ngeom):
             src = scn.geoms[i]
-            if src.objtype != mujoco.mjtObj.mjOBJ_GEOM or int(src.objid) not in self._object_geoms:
+            part = self._geom_part.get(int(src.objid)) if src.objtype == mujoco.mjtObj.mjOBJ_GEOM else None
+            if part is None:
                 continue
             g = self._free_geom(scn)
             if g is None:
                 return
-            pos = ref_pose[:3] + rel @ (np.asarray(src.pos) - sim_pose[:3])
+            rel, sim_pos, ref_pos = moves[part]
+            pos = ref_pos + rel @ (np.asarray(src.pos) - sim_pos)
             mat = rel @ np.asarray(src.mat).reshape(3, 3)
             mujoco.mjv_initGeom(g, int(src.type), np.asarray(src.size), pos, mat.ravel(), np.asarray(GHOST_RGBA))
             g.dataid = src.dataid  # the same mesh, for mesh geoms
@@ -201,6 +238,12 @@ class PanelRenderer:
                                 np.asarray(ARROW_RGBA))  # fmt: skip
             mujoco.mjv_connector(g, mujoco.mjtGeom.mjGEOM_ARROW, 0.004, start, end)
             g.category = mujoco.mjtCatBit.mjCAT_DECOR  # mjv_initGeom leaves it unset: unset ones may not be drawn
+
+
+def articulation_unit(playback: Playback) -> str:
+    """The unit E_a is shown in: deg (revolute joints), cm (prismatic) or deg/cm (both kinds)."""
+    units = {j.unit for j in playback.sequence.object.joints}
+    return "deg/cm" if len(units) == 2 else "".join(units)
 
 
 def _quat_mat(quat: FloatArray) -> FloatArray:

@@ -4,16 +4,20 @@ Entities (timeline ``frame``, one tick per video frame):
 
 * ``world/<run>/hand/<geom>`` and ``world/<run>/object/<geom>`` for each re-simulated run (``raw``,
   ``refined``): every geom as a mesh logged once (static) and its pose per frame (``Transform3D``);
-* ``world/recorded/object/<geom>``: the object at its recorded pose (translucent green), and
-  ``world/recorded/hand_<side>``: the recorded hand keypoints and skeleton;
+* ``world/recorded/object/<geom>``: the object at its recorded pose (translucent green; an articulated object's
+  geoms each at its part's recorded pose), and ``world/recorded/hand_<side>``: the recorded hand keypoints and
+  skeleton (both hands);
 * ``world/<run>/contacts``: contact points, and ``world/<run>/forces``: the hand's force on the object as
   arrows ending at the contact (0.01 m per newton);
 * ``metrics/E_t/<run>``, ``metrics/E_r/<run>``: per-frame object errors; ``forces/<run>/<finger>``: summed
-  contact force per finger.
+  contact force per finger (two hands: ``forces/<run>/<side>/<finger>``);
+* an articulated object: ``metrics/E_a/<run>`` (the frame's largest joint error, deg or cm) and
+  ``articulation/<joint>/<run>`` and ``articulation/<joint>/recorded``: every joint's value (deg or cm).
 """
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -127,17 +131,30 @@ def _log(rec: Any, pb: Playback) -> None:
         _log_contacts(rec, run, traj.contacts, pb.num_frames, frames)
         rec.send_columns(f"metrics/E_t/{run}", indexes=[frames], columns=rr.Scalars.columns(scalars=traj.e_t_cm))
         rec.send_columns(f"metrics/E_r/{run}", indexes=[frames], columns=rr.Scalars.columns(scalars=traj.e_r_deg))
-        for finger, values in contact_force_per_finger(traj.contacts, pb.num_frames).items():
-            rec.send_columns(f"forces/{run}/{finger}", indexes=[frames], columns=rr.Scalars.columns(scalars=values))
-    # The recorded object: each geom carried by the recorded body pose at its fixed place in the body frame.
-    body = scene.object_body_id
+        # One hand: ``forces/<run>/<finger>``; two: ``forces/<run>/<side>/<finger>``, each hand on its own.
+        sides = [None] if len(scene.hands) < 2 else list(scene.hands)
+        for side in sides:
+            where = f"forces/{run}" if side is None else f"forces/{run}/{side}"
+            for finger, values in contact_force_per_finger(traj.contacts, pb.num_frames, side).items():
+                rec.send_columns(f"{where}/{finger}", indexes=[frames], columns=rr.Scalars.columns(scalars=values))
+        if traj.e_a is not None:
+            rec.send_columns(f"metrics/E_a/{run}", indexes=[frames], columns=rr.Scalars.columns(scalars=traj.e_a))
+        if traj.articulation is not None:
+            _log_joints(rec, pb, traj.articulation, run, frames)
+    if pb.articulation_ref is not None:
+        _log_joints(rec, pb, pb.articulation_ref, "recorded", frames)
+    # The recorded object: each geom carried by its part's recorded pose at its fixed place in the part's frame.
     mujoco.mj_kinematics(model, data)
-    r_body = data.xmat[body].reshape(3, 3)
-    ref = pb.object_pose_ref[: pb.num_frames]
-    r_ref = quat_to_matrix(ref[:, 3:])
+    bodies = [int(b) for b in scene.object_part_body_ids] or [int(scene.object_body_id)]
+    ref_parts = pb.part_poses_ref[: pb.num_frames]
     for g in drawn_objects:
+        part = max(int(scene.geom_part[g]), 0) if len(scene.geom_part) else 0
+        body = bodies[part]
+        r_body = data.xmat[body].reshape(3, 3)
         local_pos = r_body.T @ (data.geom_xpos[g] - data.xpos[body])
         local_rot = r_body.T @ data.geom_xmat[g].reshape(3, 3)
+        ref = ref_parts[:, part]
+        r_ref = quat_to_matrix(ref[:, 3:])
         rec.send_columns(f"world/recorded/object/{name[g]}", indexes=[frames],
                          columns=rr.Transform3D.columns(translation=ref[:, :3] + r_ref @ local_pos,
                                                         mat3x3=r_ref @ local_rot))  # fmt: skip
@@ -153,6 +170,17 @@ def _log(rec: Any, pb: Playback) -> None:
                 strips=strips, colors=np.tile(_COLOURS["ghost"][:3], (n, 1)), radii=np.full(n, 0.002)
             ).partition([len(bones)] * len(kp)),
         )
+
+
+def _log_joints(rec: Any, pb: Playback, values: FloatArray, run: str, frames: Any) -> None:
+    """Every joint's value per frame, in its display unit (deg or cm), as ``articulation/<joint>/<run>``."""
+    import rerun as rr
+
+    for k, joint in enumerate(pb.sequence.object.joints):
+        shown = np.asarray(values[: pb.num_frames, k], dtype=np.float64) * joint.display_scale()
+        entity = re.sub(r"[^A-Za-z0-9_.-]", "_", joint.name)  # a joint's name is free text; a path is not
+        rec.send_columns(f"articulation/{entity}/{run}", indexes=[frames],
+                         columns=rr.Scalars.columns(scalars=shown))  # fmt: skip
 
 
 def _geom_poses(

@@ -8,8 +8,10 @@ It loads ``scene.xml``, restores the settled start state from ``controls.npz``, 
 (hinge servo targets ``ctrl``, the wrist's mocap pose ``mocap_pos`` / ``mocap_quat`` and which welds are on,
 ``eq_active``: the object is held where it starts until the hand comes) at every physics step,
 reads the object's pose at every video frame, and prints how far it lands from the simulated and the
-recorded object trajectories in ``trajectories.npz``. Exit status 1 when the replay leaves the simulated
-trajectory by more than 1 mm or 1 degree (a different MuJoCo build can round differently).
+recorded object trajectories in ``trajectories.npz``; for an articulated object (``object_joints`` in
+``export.json``) also every joint's value against the simulated and recorded ones (deg, or cm for a sliding
+joint). Exit status 1 when the replay leaves the simulated trajectory by more than 1 mm or 1 degree, or a
+joint's value by more than 1 degree or 1 mm (a different MuJoCo build can round differently).
 
 This file is copied verbatim into every export by ``hoi-refine export``; it imports nothing of hoi-refine.
 """
@@ -36,6 +38,12 @@ def rotation_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def replay(folder: Path) -> np.ndarray:
     """The object's body pose (F, 7: x y z qw qx qy qz) at every frame of a replay of the stored controls."""
+    return replay_with_joints(folder)[0]
+
+
+def replay_with_joints(folder: Path) -> tuple[np.ndarray, np.ndarray]:
+    """The object's body pose (F, 7) and its joints' values (F, J: rad or m; J = 0 for a rigid object) at every
+    frame of a replay of the stored controls."""
     meta = json.loads((folder / "export.json").read_text())
     model = mujoco.MjModel.from_xml_path(str(folder / "scene.xml"))
     data = mujoco.MjData(model)
@@ -45,12 +53,16 @@ def replay(folder: Path) -> np.ndarray:
     eq_active = c["eq_active"] if "eq_active" in c.files else np.repeat(model.eq_active0[None], len(ctrl), axis=0)
     substeps, frames = int(meta["substeps_per_frame"]), int(meta["frames"])
     body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, meta["object_body"])
+    joint_ids = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, j["mjcf"]) for j in meta.get("object_joints", [])]
+    qadr = np.array([model.jnt_qposadr[j] for j in joint_ids], dtype=np.int64)
     mujoco.mj_resetData(model, data)
     mujoco.mj_setState(model, data, c["start_state"], mujoco.mjtState.mjSTATE_FULLPHYSICS)
     data.qacc_warmstart[:] = c["start_warmstart"]
     mujoco.mj_forward(model, data)
     poses = np.empty((frames, 7))
+    joints = np.empty((frames, len(qadr)))
     poses[0] = np.concatenate([data.xpos[body], data.xquat[body]])
+    joints[0] = data.qpos[qadr]
     for i in range(ctrl.shape[0]):
         data.ctrl[:] = ctrl[i]
         data.mocap_pos[:] = mocap_pos[i]
@@ -62,12 +74,13 @@ def replay(folder: Path) -> np.ndarray:
             # mj_step leaves xpos/xquat at the state before the step: recompute at the frame's state.
             mujoco.mj_kinematics(model, data)
             poses[frame] = np.concatenate([data.xpos[body], data.xquat[body]])
-    return poses
+            joints[frame] = data.qpos[qadr]
+    return poses, joints
 
 
 def main(argv: list[str]) -> int:
     folder = Path(argv[1]) if len(argv) > 1 else Path(__file__).resolve().parent
-    poses = replay(folder)
+    poses, joints = replay_with_joints(folder)
     t = np.load(folder / "trajectories.npz")
     ok = False
     for name in ("object_pose_sim", "object_pose_ref"):
@@ -79,7 +92,20 @@ def main(argv: list[str]) -> int:
               f"rotation error max {rot.max():.4f} deg (mean {rot.mean():.4f})")
         if name == "object_pose_sim":
             ok = pos_mm.max() <= TOLERANCE_MM and rot.max() <= TOLERANCE_DEG
+    specs = json.loads((folder / "export.json").read_text()).get("object_joints", [])
+    for k, spec in enumerate(specs):
+        for name in ("object_articulation_sim", "object_articulation_ref"):
+            if name not in t.files:
+                continue
+            err = np.abs(joints[:, k] - t[name][:, k]) * float(spec["scale"])
+            what = "simulated (stored)" if name == "object_articulation_sim" else "recorded"
+            print(f"joint {spec['name']} vs {what}: error max {err.max():.4f} {spec['unit']} (mean {err.mean():.4f})")
+            if name == "object_articulation_sim":
+                # 1 degree, or 1 mm (0.1 cm) for a sliding joint.
+                ok = ok and err.max() <= (TOLERANCE_DEG if spec["unit"] == "deg" else TOLERANCE_MM / 10.0)
     np.save(folder / "replayed_object_pose.npy", poses)
+    if specs:
+        np.save(folder / "replayed_object_articulation.npy", joints)
     print("OK: the replay follows the stored trajectory" if ok else "MISMATCH beyond 1 mm / 1 deg")
     return 0 if ok else 1
 

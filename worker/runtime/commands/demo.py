@@ -2,6 +2,8 @@
 
 By default through a local deployment (``hoi-refine up`` in a child process, the example submitted over HTTP:
 ``worker.runtime.demo_client``); ``--local`` refines in this process, ``--raw`` only replays the observation.
+``--example`` picks the built-in example (``worker.example.catalogue``): the one-hand box by default, or the
+two-handed hinged box.
 """
 
 from __future__ import annotations
@@ -30,6 +32,9 @@ def register(subparsers: Any) -> None:
     d.add_argument("--out-dir", type=Path, default=Path("var/demo"),
                    help="where the demo saves the result, contacts, video and plots (default var/demo)")  # fmt: skip
     d.add_argument("--out", type=Path, default=None, help="with --raw: also write the raw-replay result (.npz)")
+    d.add_argument("--example", choices=("box", "hinged_box"), default="box",
+                   help="the built-in example: box (one hand lifts a box; the default) or hinged_box (two hands, one "
+                   "holding a box while the other opens its hinged block)")  # fmt: skip
     d.set_defaults(func=cmd_demo)
 
 
@@ -44,44 +49,46 @@ def _free_port() -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     if args.local:
-        return run_local_demo(out_dir=args.out_dir)
+        return run_local_demo(out_dir=args.out_dir, example=args.example)
     if not args.raw:
         from worker.runtime.demo_client import run_demo as run_service_demo
 
         if args.api:
-            return run_service_demo(base_url=args.api, api_key=args.key, out_dir=args.out_dir)
-        return run_service_demo(out_dir=args.out_dir, port=_free_port())
+            return run_service_demo(base_url=args.api, api_key=args.key, out_dir=args.out_dir, example=args.example)
+        return run_service_demo(out_dir=args.out_dir, port=_free_port(), example=args.example)
     from rich.console import Console
 
     from worker.commands.replay import run_replay
-    from worker.example import example_sequence
+    from worker.example.catalogue import example_named
 
+    example = example_named(args.example)
     console = Console()
     console.print(
-        "[bold]hoi-refine demo[/]: the built-in synthetic grasp-and-lift (a right hand pinches a 0.2 kg box and "
-        "lifts it 20 cm in 2.4 s; the observed hand has hovering/penetrating fingers and jitter). Raw replay: "
-        "the simulated hand follows the retargeted observation with no optimisation; the object moves only "
-        "through contact."
+        f"[bold]hoi-refine demo[/]: {example.description}. Raw replay: the simulated hands follow the retargeted "
+        "observation with no optimisation; the object moves only through contact."
     )
-    run_replay(example_sequence(), args.out)
+    run_replay(example.build(), args.out)
     return 0
 
 
-def run_local_demo(threads: int = 2, short: bool = False, out_dir: Path | str = Path("var/demo")) -> int:
-    """Refine the built-in example in this process, print raw vs refined, and save the result, its video and
-    its plots under ``out_dir`` (``hoi-refine demo --local``)."""
+def run_local_demo(threads: int = 2, short: bool = False, out_dir: Path | str = Path("var/demo"), example: str = "box",
+                   options: Any = None) -> int:
+    """Refine the built-in example ``example`` in this process (``options``: ``JobOptions``, default the
+    product's), print raw vs refined, and save the result, its video and its plots under ``out_dir`` (``hoi-refine
+    demo --local``)."""
     from common.job_options import JobOptions
     from common.settings import get_settings
     from worker.commands.progress import ProgressBar
     from worker.commands.refine import print_refine_metrics
-    from worker.example import example_sequence, short_example_sequence
+    from worker.example.catalogue import example_named
     from worker.refine.run import refine_sequence
     from worker.visual import render_video, resimulate, write_plots
 
-    seq = short_example_sequence() if short else example_sequence()
+    chosen = example_named(example)
+    seq = chosen.build_short() if short else chosen.build()
     bar = ProgressBar()
     cache_dir = get_settings().resolved_cache_dir()
-    outcome = refine_sequence(seq, JobOptions(), threads=threads, progress=bar, cache_dir=cache_dir)
+    outcome = refine_sequence(seq, options or JobOptions(), threads=threads, progress=bar, cache_dir=cache_dir)
     bar.finish()
     print(f"refined the built-in example {seq.name!r} ({seq.num_frames} frames)")
     print_refine_metrics(outcome.summary)
