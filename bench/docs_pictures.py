@@ -5,8 +5,11 @@ does, and writes ``docs/dexycb_frame.png`` (the first frame where the simulated 
 ``docs/dexycb_errors.png`` (the ``errors.png`` plot). The dashboard screenshot comes from the browser test
 (``HOI_REFINE_UPDATE_DOCS=1``, tests/acceptance/test_dashboard_browser.py).
 
-    .venv/bin/python bench/docs_pictures.py [--sequence PATH | --result PATH]
+    .venv/bin/python bench/docs_pictures.py [--sequence PATH | --result PATH] [--prefix NAME]
     .venv/bin/python bench/docs_pictures.py --arctic RESULT [--frame F] [--camera AZIMUTH,ELEVATION,DISTANCE]
+
+``--prefix allegro --result R.npz`` writes ``docs/allegro_frame.png`` / ``_errors.png`` from a robot hand's result
+(issue #55: ``hoi-refine refine SEQ --hand allegro``).
 
 ``--arctic`` takes a refinement result of an ARCTIC sequence (``bench/arctic.py`` writes them under var/arctic/)
 and writes ``docs/arctic_frame.png``: the refined replay at frame F (default: the frame where the joint is
@@ -39,6 +42,7 @@ def main() -> int:
     parser.add_argument("--sequence", type=Path, default=None, help="DexYCB development NPZ to refine")
     parser.add_argument("--result", type=Path, default=None, help="an existing refinement result instead")
     parser.add_argument("--out", type=Path, default=ROOT / "docs", help="folder for the pictures (default docs/)")
+    parser.add_argument("--prefix", default="dexycb", help="file name prefix (default dexycb)")
     parser.add_argument("--arctic", type=Path, default=None, help="an ARCTIC refinement result: docs/arctic_frame.png")
     parser.add_argument("--frame", type=int, default=None, help="with --arctic: the frame (0-based)")
     parser.add_argument("--camera", default="210,-20,0.5", help="with --arctic: AZIMUTH,ELEVATION,DISTANCE")
@@ -72,11 +76,11 @@ def main() -> int:
         frames, _ = read_mp4(video)
         z = pb.trajectories["refined"].object_pose[:, 2]
         best = int(np.argmax(z >= z[0] + 0.6 * (z.max() - z[0])))  # well into the lift
-        Image.fromarray(frames[best]).save(args.out / "dexycb_frame.png")
+        Image.fromarray(frames[best]).save(args.out / f"{args.prefix}_frame.png")
         plots = write_plots(blob, Path(tmp) / "plots")
-        shutil.copy(next(p for p in plots if p.name == "errors.png"), args.out / "dexycb_errors.png")
-    print(f"wrote {args.out / 'dexycb_frame.png'} (frame {best + 1} of {pb.num_frames}) and "
-          f"{args.out / 'dexycb_errors.png'} ({pb.summary.get('sequence')})")
+        shutil.copy(next(p for p in plots if p.name == "errors.png"), args.out / f"{args.prefix}_errors.png")
+    print(f"wrote {args.out / (args.prefix + '_frame.png')} (frame {best + 1} of {pb.num_frames}) and "
+          f"{args.out / (args.prefix + '_errors.png')} ({pb.summary.get('sequence')})")
     return 0
 
 

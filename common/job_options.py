@@ -7,7 +7,9 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from common.hand_description import HandDescription, packed_model_problems
 
 #: Loss terms of DESIGN §1.5; each weight may be set (0 disables the term, for ablations).
 LossName = Literal[
@@ -20,6 +22,7 @@ LossName = Literal[
     "hand_velocity",
     "penetration",
     "grasp_reach",
+    "robot_joints",
     "object_articulation",
 ]
 LOSS_NAMES: tuple[str, ...] = LossName.__args__  # type: ignore[attr-defined]
@@ -51,6 +54,12 @@ class JobOptions(BaseModel):
         "mean, another sweep over its windows in which each keyframe sees the later ones; kept only if better, "
         "and repeated from it while kept and still above that level (at most 10 sweeps)",
     )
+    hand: HandDescription | None = Field(
+        default=None,
+        description="The hand that executes the motion: None, the built-in human hand; a packed robot hand "
+        "description (common.hand_description: model_xml, actuated joints, keypoint correspondence; "
+        "`hoi-refine hand pack allegro|leap|FILE` makes one)",
+    )
     two_hands: Literal["per_hand", "joint"] = Field(
         default="per_hand",
         description="With two hands: 'per_hand' runs a CMA-ES per hand on paired rollouts, each minimising the "
@@ -64,6 +73,19 @@ class JobOptions(BaseModel):
         "refined), plots, a Rerun recording and a plain-MuJoCo export, served under /v1/jobs/{id}/video etc. "
         "(the service only; no effect on the result)",
     )
+
+    @field_validator("hand")
+    @classmethod
+    def _packed_hand(cls, value: HandDescription | None) -> HandDescription | None:
+        if value is None:
+            return value
+        if value.model_xml is None:
+            raise ValueError("model: a path cannot travel with a job: pack the description (hoi-refine hand pack), "
+                             "which inlines the model as model_xml")
+        problems = packed_model_problems(value, "hand")
+        if problems:
+            raise ValueError("; ".join(str(p) for p in problems))
+        return value
 
     def model_post_init(self, __context: object) -> None:
         for name, weight in self.loss_weights.items():

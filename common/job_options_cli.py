@@ -7,10 +7,13 @@ the bulk client; ``JobOptions`` (``common.job_options``) stays the single contra
 from __future__ import annotations
 
 import argparse
+import json
+from pathlib import Path
 
 from pydantic import ValidationError
 
-from common.errors import InputError
+from common.errors import FieldProblem, InputError
+from common.hand_description import HandDescription, HandDescriptionError, check_packed, parse_hand_description
 from common.job_options import LOSS_NAMES, JobOptions
 
 
@@ -61,9 +64,23 @@ def add_job_option_arguments(parser: argparse.ArgumentParser, queue: bool = Fals
     if queue:
         g.add_argument("--priority", type=int, default=0, help="queue priority, -100..100 (higher runs first)")
         g.add_argument(
+            "--hand", type=Path, default=None, dest="hand_file",
+            help="a packed robot hand description (JSON; `hoi-refine hand pack allegro|leap|FILE --out F` makes one) "
+            "that every job's motion is refined for; default the built-in human hand",
+        )  # fmt: skip
+        g.add_argument(
             "--no-preview", dest="preview_video", action="store_false",
             help="skip the preview the worker renders after a job succeeds (video, plots, recording, export)",
         )  # fmt: skip
+
+
+def load_packed_hand(path: Path) -> HandDescription:
+    """A packed hand description file (JSON), checked (``HandDescriptionError`` naming the field)."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise HandDescriptionError([FieldProblem("hand", f"cannot read {path}: {exc}")]) from None
+    return check_packed(parse_hand_description(data))
 
 
 def job_options_from_args(args: argparse.Namespace) -> JobOptions:
@@ -80,6 +97,7 @@ def job_options_from_args(args: argparse.Namespace) -> JobOptions:
             polish=getattr(args, "polish", True),
             priority=getattr(args, "priority", 0),
             preview_video=getattr(args, "preview_video", True),
+            hand=load_packed_hand(args.hand_file) if getattr(args, "hand_file", None) else None,
         )
     except ValidationError as exc:
         problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'options'}: {e['msg']}" for e in exc.errors())

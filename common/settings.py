@@ -33,6 +33,9 @@ class Settings(BaseSettings):
     ycb_dir: Path | None = None
     #: Folder with MANO_RIGHT.pkl / MANO_LEFT.pkl (optional; licensed, never shipped).
     mano_dir: Path | None = None
+    #: Folder the shipped robot hands' models are read from (``--hand allegro|leap``): a checkout of the public
+    #: dex-urdf repository (``robots/hands/...``). Never shipped.
+    robot_dir: Path | None = None
     #: Sequences longer than this are rejected at validation.
     max_frames: int = Field(default=3000, gt=0)
 

@@ -218,6 +218,12 @@ class JobError(BaseModel):
     worker: str | None = None
 
 
+def hand_name(options: dict[str, Any]) -> str:
+    """The name of a job's hand (``JobOptions.hand``): "human" without a robot description."""
+    hand = (options or {}).get("hand")
+    return str(hand.get("name", "robot")) if isinstance(hand, dict) else "human"
+
+
 class JobPublic(BaseModel):
     id: str
     batch_id: str | None = None
@@ -231,6 +237,8 @@ class JobPublic(BaseModel):
     priority: int
     num_frames: int
     options: dict[str, Any]
+    #: The hand that executes the motion (issue #55): "human" (the built-in hand) or the robot description's name.
+    hand: str = "human"
     cancel_requested: bool
     created_at: datetime
     queued_at: datetime
@@ -264,7 +272,8 @@ class JobPublic(BaseModel):
         return cls(
             id=job.id, batch_id=job.batch_id, name=job.name, state=job.state,
             attempt=job.attempt, max_attempts=job.max_attempts, priority=job.priority, num_frames=job.num_frames,
-            options=job.options, cancel_requested=job.cancel_requested, created_at=job.created_at,
+            options=job.options, hand=hand_name(job.options), cancel_requested=job.cancel_requested,
+            created_at=job.created_at,
             queued_at=job.queued_at, started_at=job.started_at, finished_at=job.finished_at,
             updated_at=job.updated_at, progress=progress, errors=[JobError.model_validate(e) for e in job.errors],
             summary=_with_preview_urls(job.id, job.summary), outcome=OutcomePublic.from_record(job),

@@ -26,6 +26,7 @@ def register(subparsers: Any) -> None:
     add_object_dir_argument(p)
     p.add_argument("--threads", type=int, default=1, help="simulation threads (default 1)")
     add_job_option_arguments(p)
+    add_hand_arguments(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument(
         "--no-wall-clock",
@@ -42,9 +43,10 @@ def _refine(args: argparse.Namespace) -> int:
     from worker.refine.run import refine_sequence
 
     options = job_options_from_args(args)  # before loading: a bad flag should not wait for a slow load
+    settings = get_settings()
+    options = with_hand(options, args, settings.robot_dir)
     seq = load_sequence(args.sequence, object_dir=args.object_dir)
     bar = None if args.quiet else ProgressBar()
-    settings = get_settings()
     outcome = refine_sequence(seq, options, threads=args.threads, progress=bar,
                               cache_dir=settings.resolved_cache_dir(), mano_dir=settings.mano_dir)
     args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -54,6 +56,26 @@ def _refine(args: argparse.Namespace) -> int:
     print_refine_metrics(outcome.summary)
     print(f"wrote {args.out}")
     return 0
+
+
+def add_hand_arguments(p: argparse.ArgumentParser) -> None:
+    """``--hand`` and ``--robot-dir`` (issue #55)."""
+    p.add_argument(
+        "--hand", default=None,
+        help="the hand that executes the motion: human (default, the built-in hand), allegro, leap (shipped "
+        "correspondences; the models are read from --robot-dir) or a hand description file (JSON/YAML: model, "
+        "actuated joints, keypoint correspondence; common/hand_description.py)",
+    )  # fmt: skip
+    p.add_argument("--robot-dir", type=Path, default=None,
+                   help="folder holding the robot models (a dex-urdf checkout); default HOI_REFINE_ROBOT_DIR")
+
+
+def with_hand(options: Any, args: argparse.Namespace, robot_dir: Path | None) -> Any:
+    """``options`` with ``--hand``'s description, packed (the model compiled and inlined)."""
+    from worker.robot import resolve_hand
+
+    hand = resolve_hand(args.hand, args.robot_dir or robot_dir)
+    return options if hand is None else options.model_copy(update={"hand": hand})
 
 
 def print_refine_metrics(summary: dict[str, Any]) -> None:

@@ -27,6 +27,8 @@ from worker.hand.reference import HandReference
 from worker.refine.evaluator import ParallelEvaluator
 from worker.refine.prepare import Prepared, prepare, settled_start
 from worker.refine.replay import ReplayJob, ReplayRecord, replay_all
+from worker.robot.metrics import robot_motion_metrics
+from worker.robot.reference import RobotReference
 from worker.simulation.config import SimConfig
 from worker.simulation.metrics import compute_metrics, scalar_metrics
 from worker.simulation.replay import articulation_frames
@@ -119,8 +121,9 @@ def _replays(prep: Prepared, jobs: list[ReplayJob], threads: int) -> tuple[list[
 
 
 def replay_metrics(prep: Prepared, rec: ReplayRecord) -> dict[str, Any]:
-    """``compute_metrics`` of a replay against the prepared references (with plausibility when it has contacts)."""
-    return compute_metrics(
+    """``compute_metrics`` of a replay against the prepared references (with plausibility when it has contacts);
+    a robot hand's also carry ``robot``: per side, the margins and smoothness of ``worker.robot.metrics``."""
+    m = compute_metrics(
         rec.object_pose,
         prep.obj_targets_pose(),
         rec.keypoints,
@@ -128,7 +131,17 @@ def replay_metrics(prep: Prepared, rec: ReplayRecord) -> dict[str, Any]:
         {r.side: r.valid for r in prep.references},
         rec.contact_frames,
         articulation_frames(prep.seq, rec.articulation),
+        {side: tuple(t.fingertips) for side, t in prep.hand_targets.items()},
     )
+    if rec.joints:
+        m["robot"] = {}
+        for r in prep.references:
+            assert isinstance(r, RobotReference)
+            emb = r.embodiment
+            m["robot"][r.side] = robot_motion_metrics(
+                rec.joints[r.side], rec.command[r.side], rec.joint_force[r.side], emb.q_limits,
+                emb.velocity_limits, emb.effort_limits, float(prep.seq.fps))
+    return m
 
 
 def build_arrays(
@@ -165,6 +178,11 @@ def build_arrays(
         arrays[f"{s}_keypoints_sim"] = final.keypoints[s]
         arrays[f"{s}_keypoints_ref"] = ref.keypoints
         arrays[f"{s}_valid"] = ref.valid
+        if isinstance(ref, RobotReference):  # a robot hand (issue #55): its joints as simulated and retargeted
+            arrays[f"{s}_q_sim"] = final.joints[s]
+            arrays[f"{s}_actuator_force_peak"] = final.joint_force[s]
+            arrays[f"{s}_q_retarget"] = ref.q
+            arrays[f"{s}_human_keypoints"] = ref.human_keypoints
         if getattr(ref, "from_mano", False):
             # The refined hand as MANO parameters (issue #6): exact because the scene used the MANO geometry.
             hand = prep.seq.hand(s)

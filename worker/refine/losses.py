@@ -49,6 +49,10 @@ scale so the default weights read as "how much one scale unit of error costs":
   dev120 (paper's protocol): success 90.8 % unchanged (first attempt 85.0 -> 87.5 %), E_t 1.17 -> 0.76 cm, E_r
   4.45 -> 3.38 deg, penetration 0.39 -> 0.46 mm (sequence maxima 1.47 -> 1.69 mm mean, worst 4.3 -> 8.6 mm);
   ``bench/results/left_hands_thin.md``.
+* ``robot_joints`` (robot hands only, issue #55): mean over the actuated joints of ((q_sim - q_ret) / 0.1 rad)^2,
+  with q_ret the retargeted joint angles: keeps the robot near its retargeted motion in joint space, where
+  ``hand_joints`` (the robot's keypoint sites against their retargeted positions) leaves the joints the sites do not
+  pin free. Weight 0.1 (``ROBOT_WEIGHTS``).
 
 * ``object_articulation`` (an articulated object only, issue #52): per joint |a_sim - a_ref| / 0.04 rad (or / 1 cm
   for a sliding part), the scale of ``object_pose``'s rotation and position parts, plus (max(0, |a_sim - a_ref| -
@@ -87,7 +91,10 @@ DEFAULT_WEIGHTS: dict[str, float] = {
     "grasp_reach": 3.0,
     "object_articulation": 1.0,
 }
-assert set(DEFAULT_WEIGHTS) == set(LOSS_NAMES)
+#: Terms only a robot hand has (``HandKeypointTargets.joint_targets``), added to the defaults for one.
+ROBOT_WEIGHTS: dict[str, float] = {"robot_joints": 0.1}
+assert set(DEFAULT_WEIGHTS) | set(ROBOT_WEIGHTS) == set(LOSS_NAMES)
+JOINT_SCALE = 0.1  # rad
 
 POSE_ETA = 0.5
 ROT_SCALE = 0.04  # rad
@@ -114,8 +121,9 @@ ARTICULATION_SCALE = {"revolute": ROT_SCALE, "prismatic": POS_SCALE}
 ARTICULATION_MARGIN = {"revolute": (np.radians(10.0), np.radians(2.5)), "prismatic": (0.02, 0.005)}
 
 
-def resolve_weights(overrides: Mapping[Any, float] | None) -> dict[str, float]:
-    out = dict(DEFAULT_WEIGHTS)
+def resolve_weights(overrides: Mapping[Any, float] | None, robot: bool = False) -> dict[str, float]:
+    """The default weights (with ``ROBOT_WEIGHTS`` for a robot hand) with ``overrides`` applied."""
+    out = dict(DEFAULT_WEIGHTS) | (ROBOT_WEIGHTS if robot else {})
     for name, value in (overrides or {}).items():
         if name not in out:
             raise ValueError(f"unknown loss weight {name!r}; known: {', '.join(LOSS_NAMES)}")
@@ -177,6 +185,8 @@ class HandKeypointTargets:
     distal: DistalSegments | None = None
     #: object-frame points (..., 3) -> distance to the object surface (...,) (``distance_grid.DistanceGrid``)
     surface: Callable[[FloatArray], FloatArray] | None = None
+    #: (T, H) the retargeted joint angles of a robot hand (``robot_joints``); None: the human hand.
+    joint_targets: FloatArray | None = None
     #: An articulated object: the part each contact target is on (T, n_tips), its parts' surfaces (then
     #: ``contact_local`` is in that part's frame and ``surface`` is unused).
     contact_part: npt.NDArray[np.int64] | None = None
@@ -298,6 +308,8 @@ class WindowRecord:
     #: (F,) factor on the rotation part of ``object_pose`` per frame (``SimWindowProblem.lookahead_rotation_weight``
     #: on the frames a window simulates past the keyframe after the optimised one); None: 1 on every frame.
     rotation_weight: FloatArray | None = None
+    #: side -> (C, F, H) actuated joint positions (empty: not recorded; the ``robot_joints`` term reads them)
+    joints: dict[str, FloatArray] = field(default_factory=dict)
     #: An articulated object: joint values (C, F, J) and every part's world pose (C, F, P, 3) / (C, F, P, 4), base
     #: first; None for a rigid one.
     articulation: FloatArray | None = None
@@ -379,7 +391,7 @@ def hand_terms(rec: WindowRecord, side: str, ref: HandKeypointTargets) -> dict[s
             local = quat_rotate(quat_conj(rec.obj_quat[:, grip])[:, :, None], pts - rec.obj_pos[:, grip][:, :, None])
             gaps = np.clip(ref.distal.gaps(local, ref.surface) - REACH_TOLERANCE, 0.0, REACH_CAP)  # (C, G, 5)
             reach = ((gaps[..., 0] + gaps[..., 1:].min(axis=-1)) / POS_SCALE).sum(axis=1)
-    return {
+    out = {
         "hand_joints": joints,
         "fingertip_contact": contact,
         "control_consistency": consistency,
@@ -387,6 +399,10 @@ def hand_terms(rec: WindowRecord, side: str, ref: HandKeypointTargets) -> dict[s
         "penetration": pen,
         "grasp_reach": reach,
     }
+    if ref.joint_targets is not None and side in rec.joints:
+        dq = (rec.joints[side] - ref.joint_targets[f][None]) / JOINT_SCALE
+        out["robot_joints"] = (np.mean(dq**2, axis=2) * valid).sum(axis=1)
+    return out
 
 
 def window_losses(
@@ -405,7 +421,7 @@ def window_losses(
         shared = shared + terms["object_articulation"]
     per_hand: dict[str, FloatArray] = {}
     for side, ref in hands.items():
-        ht = {k: weights[k] * v for k, v in hand_terms(rec, side, ref).items()}
+        ht = {k: weights.get(k, 0.0) * v for k, v in hand_terms(rec, side, ref).items()}
         per_hand[side] = shared + sum(ht.values())
         for k, v in ht.items():
             terms[k] = terms.get(k, 0.0) + v

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -16,7 +17,7 @@ from common.job_options import JobOptions
 from common.primitive_surface import object_surface_points, part_surface_points
 from common.sequence import FINGERTIP_INDICES, ObjectSpec, Sequence
 from worker.hand.mano.pose import mano_pca_basis
-from worker.hand.model import FINGER_BASE_KEYPOINT, JOINT_LIMITS, MIRROR_SIGNS, HandGeometry
+from worker.hand.model import FINGER_BASE_KEYPOINT, MIRROR_SIGNS, HandGeometry
 from worker.hand.pose_basis import load_pose_basis
 from worker.hand.reference import HandReference
 from worker.hand.retarget import retarget_sequence
@@ -36,6 +37,9 @@ from worker.refine.losses import (
 )
 from worker.refine.problem import SimLayout
 from worker.refine.spline import default_keyframe_interval
+from worker.robot.basis import robot_basis, robot_distal
+from worker.robot.reference import RobotReference
+from worker.robot.retarget import robot_references
 from worker.simulation.config import SimConfig
 from worker.simulation.rest_pose import moved_frame
 from worker.simulation.scene import Scene, build_scene
@@ -67,7 +71,7 @@ class Prepared:
     seq: Sequence
     options: JobOptions
     interval: int
-    references: list[HandReference]
+    references: list[HandReference] | list[Any]  # RobotReference for a robot hand (``worker.robot``)
     scene: Scene
     layout: SimLayout
     spaces: dict[str, HandControlSpace]
@@ -155,7 +159,7 @@ def prepare(
     cache_dir: Path | None = None,
     mano_dir: Path | None = None,
     mirror_left: bool | None = None,
-    references: list[HandReference] | None = None,
+    references: list[HandReference] | list[Any] | None = None,
 ) -> Prepared:
     """``rotation_pivot``: ``ROTATION_PIVOT`` when None (``verify`` passes the one a result was made with).
     ``cache_dir``: where convex parts are cached (None: memory only); ``mano_dir``: the MANO model folder
@@ -170,10 +174,19 @@ def prepare(
     config = config or SimConfig()
     if references is None:
         references = retarget_sequence(seq, mano_dir=mano_dir)
+        if options.hand is not None:  # a robot hand: the recorded hand retargeted to it (issue #55)
+            references = robot_references(references, options.hand)
     scene = build_scene(seq, references, config, cache_dir=cache_dir)
     layout = SimLayout.from_scene(scene)
     interval = options.keyframe_interval or default_keyframe_interval(seq.fps)
-    bases, provenance = pose_basis(references, seq, mano_dir, mirror_left)
+    robots = [r for r in references if isinstance(r, RobotReference)]
+    bases: dict[Any, PoseBasis10]
+    if robots:
+        bases = {r.side: PoseBasis10(*robot_basis(r)) for r in robots}
+        provenance = f"robot {robots[0].embodiment.description.name}: PCA of the retargeted joint motion"
+    else:
+        bases, provenance = pose_basis([r for r in references if isinstance(r, HandReference)], seq, mano_dir,
+                                       mirror_left)
     pivot_kind = rotation_pivot or ROTATION_PIVOT
     if pivot_kind not in PIVOTS:
         raise ValueError(f"rotation_pivot must be one of {', '.join(PIVOTS)}, got {pivot_kind!r}")
@@ -194,7 +207,7 @@ def prepare(
             q_ref=lead_values(r.q, finger_lead),
             wrist_pos=wrist_pos,
             wrist_quat=wrist_quat,
-            q_limits=np.asarray(JOINT_LIMITS, dtype=np.float64),
+            q_limits=np.asarray(scene.hands[r.side].q_limits, dtype=np.float64),
             basis=bases[r.side],
             interval=interval,
             substeps=scene.substeps_per_frame,
@@ -207,7 +220,7 @@ def prepare(
 
 
 def _hand_targets(
-    seq: Sequence, references: list[HandReference], pose: FloatArray, config: SimConfig
+    seq: Sequence, references: list[Any], pose: FloatArray, config: SimConfig
 ) -> dict[str, HandKeypointTargets]:
     """Each hand's targets against a rigid object."""
     samples = _surface_samples(seq.object, config.primitive_surface_spacing_m)
@@ -215,17 +228,26 @@ def _hand_targets(
     surface_grid = DistanceGrid(samples)
     hands: dict[str, HandKeypointTargets] = {}
     for r in references:
-        mask, local = contact_targets(r.keypoints, r.valid, pose[:, :3], pose[:, 3:], surface, FINGERTIP_INDICES)
+        tips, distal, joint_targets = _hand_kind(r)
+        mask, local = contact_targets(r.keypoints, r.valid, pose[:, :3], pose[:, 3:], surface, tips)
         hands[r.side] = HandKeypointTargets(
-            r.keypoints, r.valid, FINGERTIP_INDICES, mask, local,
+            r.keypoints, r.valid, tips, mask, local,
             grip=grip_frames(pose, mask, round(GRIP_LEAD_S * seq.fps)),
-            distal=distal_segments(r.geometry), surface=surface_grid,
+            distal=distal, surface=surface_grid, joint_targets=joint_targets,
         )  # fmt: skip
     return hands
 
 
+def _hand_kind(r: Any) -> tuple[tuple[int, ...], DistalSegments | None, FloatArray | None]:
+    """A hand's fingertip keypoints, distal segments and joint targets: the human hand's, or a robot's (its
+    fingertip sites, ``robot_distal_segments``, its retargeted joints for ``robot_joints``)."""
+    if isinstance(r, RobotReference):
+        return r.embodiment.fingertips, robot_distal_segments(r), r.q.copy()
+    return FINGERTIP_INDICES, distal_segments(r.geometry), None
+
+
 def _part_hand_targets(
-    seq: Sequence, references: list[HandReference], pose: FloatArray, obj: ObjectTargets, config: SimConfig
+    seq: Sequence, references: list[Any], pose: FloatArray, obj: ObjectTargets, config: SimConfig
 ) -> dict[str, HandKeypointTargets]:
     """Each hand's targets against an articulated object: every fingertip's target on the part it touches, in
     that part's frame, and the reach measured to the nearest part (``losses.PartSurfaces``). Fills ``obj``'s
@@ -238,14 +260,15 @@ def _part_hand_targets(
     surfaces = PartSurfaces([SurfaceDistance(s) for s in samples], [DistanceGrid(s) for s in samples])
     hands: dict[str, HandKeypointTargets] = {}
     for r in references:
+        tips, distal, joint_targets = _hand_kind(r)
         mask, local, part = part_contact_targets(r.keypoints, r.valid, parts[..., :3], parts[..., 3:],
-                                                 surfaces.exact, FINGERTIP_INDICES)  # fmt: skip
+                                                 surfaces.exact, tips)  # fmt: skip
         # The grip follows the part the hand holds: a hand on a lid grips from when the lid starts to move.
         moved = _part_moved_pose(parts, part, mask)
         hands[r.side] = HandKeypointTargets(
-            r.keypoints, r.valid, FINGERTIP_INDICES, mask, local,
+            r.keypoints, r.valid, tips, mask, local,
             grip=grip_frames(moved, mask, round(GRIP_LEAD_S * seq.fps)),
-            distal=distal_segments(r.geometry), contact_part=part, parts=surfaces,
+            distal=distal, contact_part=part, parts=surfaces, joint_targets=joint_targets,
         )  # fmt: skip
     return hands
 
@@ -271,6 +294,15 @@ def distal_segments(geometry: HandGeometry) -> DistalSegments:
     base = np.asarray(FINGER_BASE_KEYPOINT)
     return DistalSegments(tuple(int(b) for b in base + 2), tuple(int(b) for b in base + 3), end,
                           geometry.radii[:, 2].copy())
+
+
+def robot_distal_segments(ref: RobotReference) -> DistalSegments | None:
+    """A robot's fingertip segments for ``grasp_reach`` (``worker.robot.basis.robot_distal``)."""
+    found = robot_distal(ref)
+    if found is None:
+        return None
+    dips, tips, radius = found
+    return DistalSegments(dips, tips, np.ones(len(tips)), np.full(len(tips), radius))
 
 
 def pivot_track(kind: str, keypoints: FloatArray, joint_weights: FloatArray) -> FloatArray | None:

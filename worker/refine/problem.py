@@ -40,6 +40,8 @@ class HandLayout:
     body_ids: frozenset[int]
     #: sensordata index of the hand's object-contact distance sensor (-1: the model has none, no penetration)
     penetration_sensor_adr: int = -1
+    #: (H,) qpos addresses of the actuated joints (None: not recorded; a robot's ``robot_joints`` term reads them)
+    joint_qpos_adrs: IntArray | None = None
 
     def penetration(self, sens: FloatArray) -> FloatArray:
         """(...,) the hand's deepest penetration into the object (m, >= 0) from sensordata (..., ns)."""
@@ -121,6 +123,7 @@ class SimLayout:
                 keypoint_sensor_adrs=np.asarray(h.keypoint_sensor_adr)[:, None] + np.arange(3),
                 body_ids=frozenset(int(b) for b in h.body_ids),
                 penetration_sensor_adr=int(h.penetration_sensor_adr),
+                joint_qpos_adrs=np.asarray(h.qpos_adr),
             )
             for side, h in scene.hands.items()
         }
@@ -192,6 +195,8 @@ class SimWindowProblem:
         self.layout, self.spaces, self.obj, self.hand_targets = layout, spaces, obj, hands
         self.weights, self.evaluator, self.initial = weights, evaluator, initial
         self.sides = tuple(spaces)
+        # Hands whose joint positions the losses read (robot hands: ``HandKeypointTargets.joint_targets``).
+        self._robot_sides = {s for s, t in hands.items() if t.joint_targets is not None}
         self.first_window = 1  # keyframe 0 stays zero: the settled frame-0 state is the reference's
         self.lookahead = lookahead
         # Factor on the object's rotation error over the frames past keyframe j + 1 (``keyframe_window``'s
@@ -354,6 +359,10 @@ class SimWindowProblem:
         after, at = self._frame_steps(f0, f1)
         sens = sensors[:, at]
         qvel = states[:, after, 1 + self._nq : 1 + self._nq + self._nv]
+        joints = {}
+        for side, h in self.layout.hands.items():
+            if h.joint_qpos_adrs is not None and side in self._robot_sides:
+                joints[side] = states[:, after][..., 1 + h.joint_qpos_adrs]
         obj_pos, obj_quat, obj_vel = self.layout.object_from_sensors(sens)
         arti = part_pos = part_quat = None
         if self.layout.n_joints:
@@ -371,6 +380,7 @@ class SimWindowProblem:
             rotation_weight=None if j is None else np.where(
                 frames > (j + 1) * self.interval, self.lookahead_rotation_weight, 1.0
             ),
+            joints=joints,
             articulation=arti,
             part_pos=part_pos,
             part_quat=part_quat,

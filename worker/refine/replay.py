@@ -8,7 +8,7 @@ repeats that replay), so neither imports the other.
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import mujoco
 import numpy as np
@@ -45,6 +45,12 @@ class ReplayRecord:
     steps: int
     #: Per-frame penetration / hand / table contact flags (``worker.simulation.metrics``); None without contacts.
     contact_frames: ContactFrames | None = None
+    #: side -> (F, H) actuated joint positions, and the largest |actuator force| over each frame's physics steps
+    #: (frame 0: its own state); robot hands only (``worker.robot.metrics``).
+    joints: dict[str, FloatArray] = field(default_factory=dict)
+    joint_force: dict[str, FloatArray] = field(default_factory=dict)
+    #: side -> (F, H) the servo targets reached at each frame (robot hands only).
+    command: dict[str, FloatArray] = field(default_factory=dict)
     #: (F, J) an articulated object's joint values; None for a rigid one.
     articulation: FloatArray | None = None
 
@@ -61,12 +67,20 @@ def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyfra
     n_frames = prep.num_frames
     sensors = np.empty((n_frames, layout.model.nsensordata))
     recorder = ContactRecorder(prep.scene) if record_contacts else None
+    robots = {side: h for side, h in prep.scene.hands.items() if prep.hand_targets[side].joint_targets is not None}
+    joints = {side: np.zeros((n_frames, len(h.qpos_adr))) for side, h in robots.items()}
+    force = {side: np.zeros((n_frames, len(h.actuator_ids))) for side, h in robots.items()}
 
     def hook(i: int, d: mujoco.MjData) -> None:
         if i % s == 0:  # contacts and sensors of this step were computed at the frame's state
             sensors[i // s] = d.sensordata
             if recorder is not None:
                 recorder.add(d, i // s)
+            for side, h in robots.items():
+                joints[side][i // s] = d.qpos[h.qpos_adr]
+        for side, h in robots.items():  # the step towards frame i // s + 1 (its forces were computed at step i)
+            f = min(i // s + (i % s > 0 or i == 0), n_frames - 1)
+            np.maximum(force[side][f], np.abs(d.actuator_force[h.actuator_ids]), out=force[side][f])
         if on_step is not None:
             on_step(i, d)
 
@@ -80,6 +94,10 @@ def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyfra
         contacts=recorder.columns() if recorder is not None else empty_contact_columns(),
         steps=control.shape[1],
         contact_frames=recorder.frames(n_frames) if recorder is not None else None,
+        joints=joints,
+        joint_force=force,
+        command={side: control[0][np.maximum(np.arange(n_frames) * s - 1, 0)][:, h.actuator_ids]
+                 for side, h in robots.items()},
         articulation=articulation,
     )
 
@@ -116,5 +134,6 @@ def window_problem(prep: Prepared, evaluator: ParallelEvaluator, start: SimState
                    lookahead_rotation_weight: float = LOOKAHEAD_ROTATION_WEIGHT) -> SimWindowProblem:
     """The window problem of a prepared sequence (``weights`` empty: the job's own)."""
     return SimWindowProblem(prep.layout, prep.spaces, prep.obj_targets, prep.hand_targets,
-                            weights or resolve_weights(prep.options.loss_weights), evaluator, start, LOOKAHEAD,
+                            weights or resolve_weights(prep.options.loss_weights, robot=prep.options.hand is not None),
+                            evaluator, start, LOOKAHEAD,
                             lookahead_rotation_weight)

@@ -200,7 +200,7 @@ def refine_sequence(
 
     attempts: list[dict[str, Any]] = []
     tried: list[dict[str, FloatArray]] = []
-    weights = resolve_weights(options.loss_weights)
+    weights = resolve_weights(options.loss_weights, robot=options.hand is not None)
 
     def run(on: _Geometry, settings: CmaSettings, rotation_weight: float,
             start_keyframes: dict[str, FloatArray] | None = None) -> _Attempt:

@@ -4,8 +4,10 @@ Tracking, per protocol:
 
 * E_t (cm): mean over frames of the object position error;
 * E_r (deg): mean over frames of the geodesic angle between simulated and reference object rotations;
-* E_j (cm): mean over valid frames and all 21 joints of the hand keypoint error (all hands pooled);
-* E_ft (cm): the same over the 5 fingertips; with two hands also each hand's own (``per_hand``);
+* E_j (cm): mean over valid frames and all 21 joints of the hand keypoint error (all hands pooled; a robot hand's
+  keypoint sites against their retargeted positions, issue #55);
+* E_ft (cm): the same over the 5 fingertips (a robot's own fingertips: the distance to the retargeted ones); with
+  two hands also each hand's own (``per_hand``);
 * success: every frame has position error <= 3 cm and rotation error <= 30 deg;
 * E_a (deg, or cm for a prismatic joint), an articulated object only (issue #52): mean over frames of the largest
   joint error of the frame; success then also needs every frame's error of every joint within
@@ -98,9 +100,12 @@ def compute_metrics(
     valid: Mapping[str, npt.NDArray[np.bool_]],
     contacts: ContactFrames | None = None,
     articulation: ArticulationFrames | None = None,
+    fingertips: Mapping[str, tuple[int, ...]] | None = None,
 ) -> dict[str, Any]:
     """Metrics of one trajectory. Poses (F,7) world x y z qw qx qy qz; keypoints side -> (F,21,3); valid
-    side -> (F,). Returns the all-frames figures ``E_t`` (cm), ``E_r`` (deg), ``E_j`` (cm), ``E_ft`` (cm),
+    side -> (F,); a robot hand's keypoints are (F,J,3), its keypoint sites, with ``fingertips[side]`` the indices
+    of its fingertips among them (default: the 21 human keypoints and ``FINGERTIP_INDICES``). Returns the
+    all-frames figures ``E_t`` (cm), ``E_r`` (deg), ``E_j`` (cm), ``E_ft`` (cm),
     ``success`` (bool), ``max_E_t``, ``max_E_r``, ``frames`` (and with ``contacts`` the plausibility figures of the
     module docstring), the same for the paper's protocol under ``paper``, and ``per_frame`` (dict of (F,) arrays
     ``PER_FRAME_KEYS`` — hand errors NaN on frames where no hand is valid). ``scalar_metrics`` gives the JSON part.
@@ -115,20 +120,21 @@ def compute_metrics(
     e_r = rotation_error_deg(object_pose_sim[:, 3:], object_pose_ref[:, 3:])
     j_sum, j_cnt = np.zeros(n), np.zeros(n)
     ft_sum, ft_cnt = np.zeros(n), np.zeros(n)
-    tips = list(FINGERTIP_INDICES)
     hand_sums: dict[str, tuple[FloatArray, ...]] = {}
     for side, sim in keypoints_sim.items():
         ref, ok = keypoints_ref[side], np.asarray(valid[side], dtype=bool)
-        if sim.shape != (n, 21, 3) or ref.shape != (n, 21, 3) or ok.shape != (n,):
+        tips = list((fingertips or {}).get(side, FINGERTIP_INDICES))
+        n_kp = sim.shape[1] if sim.ndim == 3 else -1
+        if sim.shape != (n, n_kp, 3) or ref.shape != (n, n_kp, 3) or ok.shape != (n,):
             raise ValueError(
-                f"keypoints_sim[{side!r}], keypoints_ref[{side!r}] must be ({n}, 21, 3) and valid[{side!r}] "
+                f"keypoints_sim[{side!r}], keypoints_ref[{side!r}] must be ({n}, J, 3) alike and valid[{side!r}] "
                 f"({n},); got {sim.shape}, {ref.shape}, {ok.shape}"
             )
-        err = 100.0 * np.linalg.norm(sim - ref, axis=2)  # (F,21) cm
-        hand_sums[side] = (np.where(ok, err.sum(axis=1), 0.0), np.where(ok, 21, 0),
+        err = 100.0 * np.linalg.norm(sim - ref, axis=2)  # (F,J) cm
+        hand_sums[side] = (np.where(ok, err.sum(axis=1), 0.0), np.where(ok, n_kp, 0),
                            np.where(ok, err[:, tips].sum(axis=1), 0.0), np.where(ok, len(tips), 0))  # fmt: skip
         j_sum += np.where(ok, err.sum(axis=1), 0.0)
-        j_cnt += np.where(ok, 21, 0)
+        j_cnt += np.where(ok, n_kp, 0)
         ft_sum += np.where(ok, err[:, tips].sum(axis=1), 0.0)
         ft_cnt += np.where(ok, len(tips), 0)
     with np.errstate(invalid="ignore", divide="ignore"):

@@ -3,9 +3,12 @@
 ``build_scene(seq, references, config)`` compiles one ``MjModel`` and returns a ``Scene`` with index handles,
 so callers never look names up in loops:
 
-* per hand (``scene.hands[side]``): ``actuator_ids`` (45,) and ``qpos_adr`` / ``dof_adr`` (45,) in HINGE_NAMES
-  order, ``mocap_id``, ``root_qpos_adr`` (palm free joint), ``keypoint_site_ids`` (21,), ``keypoint_sensor_adr``
-  (21,) into ``sensordata`` (framepos, world), ``body_ids`` / ``body_names`` (palm + 15 segments),
+* per hand (``scene.hands[side]``): ``actuator_ids`` (H,) and ``qpos_adr`` / ``dof_adr`` (H,) of its actuated
+  joints in control order (H = 45 hinges in HINGE_NAMES order for the human hand, a robot's own joints otherwise:
+  ``worker.simulation.hand_fragment``), ``q_limits`` (H, 2), ``mocap_id``, ``root_qpos_adr`` (root free joint),
+  ``keypoint_site_ids`` (J,), ``keypoint_sensor_adr`` (J,) into ``sensordata`` (framepos, world) and
+  ``keypoint_ids`` (J,) which of the 21 human keypoints each stands for (all 21 in order for the human hand),
+  ``body_ids`` / ``body_names`` (the root ``{side}_palm`` first, then every body under it),
   ``penetration_sensor_adr`` (the hand's deepest object contact, ``penetration_sensor_xml``);
 * object: ``object_body_id``, ``object_qpos_adr`` (7 values from there: pos, quat wxyz), ``object_dof_adr``
   (6: linear world, angular *body* frame — MuJoCo's free-joint convention), ``object_geom_ids``,
@@ -38,17 +41,9 @@ import numpy as np
 from common.geometry import FloatArray, IntArray
 from common.primitive_surface import posed_surface_points
 from common.sequence import Sequence
-from worker.hand.model import HINGE_NAMES
 from worker.hand.reference import HandReference
 from worker.simulation.config import SimConfig
-from worker.simulation.hand_mjcf import (
-    hand_actuator_xml,
-    hand_asset_xml,
-    hand_body_names,
-    hand_equality_xml,
-    hand_sensor_xml,
-    hand_worldbody_xml,
-)
+from worker.simulation.hand_fragment import HandFragment, hand_fragment
 from worker.simulation.object_model import (
     OBJECT_BODY,
     OBJECT_HOLD,
@@ -81,6 +76,10 @@ class HandHandles:
     keypoint_sensor_adr: IntArray
     body_ids: IntArray
     body_names: tuple[str, ...]
+    #: (J,) which human keypoint (``common.sequence.JOINT_NAMES``) each keypoint site stands for.
+    keypoint_ids: IntArray = field(default_factory=lambda: np.arange(21))
+    #: (H, 2) the actuated joints' ranges (the servos' control ranges).
+    q_limits: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
     #: sensordata index of ``{side}_penetration``: the signed distance of the hand's deepest contact with the
     #: object (<= 0 while penetrating, 0 without a contact), read by the refinement's penetration loss.
     penetration_sensor_adr: int = -1
@@ -163,6 +162,46 @@ def _ids(model: mujoco.MjModel, kind: mujoco.mjtObj, names: list[str]) -> IntArr
     return out
 
 
+def hand_handles(model: mujoco.MjModel, fragment: HandFragment) -> HandHandles:
+    """One hand's handles, found by the names its fragment promises (``worker.simulation.hand_fragment``)."""
+    s = fragment.side
+    names = [f"{s}_{h}" for h in fragment.joint_names]
+    joint_ids = _ids(model, mujoco.mjtObj.mjOBJ_JOINT, names)
+    palm = int(_ids(model, mujoco.mjtObj.mjOBJ_BODY, [f"{s}_palm"])[0])
+    # The root first, then its subtree in model order (for the human hand: palm, then the 15 segments).
+    body_ids = np.array([palm] + [b for b in range(palm + 1, model.nbody) if _under(model, b, palm)], dtype=np.int64)
+    mocap_body = int(_ids(model, mujoco.mjtObj.mjOBJ_BODY, [f"{s}_mocap"])[0])
+    root = int(_ids(model, mujoco.mjtObj.mjOBJ_JOINT, [f"{s}_root"])[0])
+    kp_names = [f"{s}_kp{j}" for j in range(len(fragment.keypoint_ids))]
+    sensors = _ids(model, mujoco.mjtObj.mjOBJ_SENSOR, kp_names)
+    penetration = int(_ids(model, mujoco.mjtObj.mjOBJ_SENSOR, [f"{s}_penetration"])[0])
+    return HandHandles(
+        side=s,
+        actuator_ids=_ids(model, mujoco.mjtObj.mjOBJ_ACTUATOR, names),
+        qpos_adr=model.jnt_qposadr[joint_ids].astype(np.int64),
+        dof_adr=model.jnt_dofadr[joint_ids].astype(np.int64),
+        mocap_id=int(model.body_mocapid[mocap_body]),
+        palm_body_id=palm,
+        root_qpos_adr=int(model.jnt_qposadr[root]),
+        root_dof_adr=int(model.jnt_dofadr[root]),
+        keypoint_site_ids=_ids(model, mujoco.mjtObj.mjOBJ_SITE, kp_names),
+        keypoint_sensor_adr=model.sensor_adr[sensors].astype(np.int64),
+        body_ids=body_ids,
+        body_names=tuple(mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, int(b)) or "" for b in body_ids),
+        keypoint_ids=np.asarray(fragment.keypoint_ids, dtype=np.int64),
+        q_limits=np.asarray(fragment.q_limits, dtype=np.float64),
+        penetration_sensor_adr=int(model.sensor_adr[penetration]),
+    )
+
+
+def _under(model: mujoco.MjModel, body: int, root: int) -> bool:
+    while body > 0:
+        if body == root:
+            return True
+        body = int(model.body_parentid[body])
+    return False
+
+
 def penetration_sensor_xml(side: str) -> str:
     """A contact sensor over the hand's contacts with the object: the smallest signed distance among them.
 
@@ -189,7 +228,7 @@ def articulation_sensor_xml(n_parts: int) -> list[str]:
 
 def scene_xml(
     seq: Sequence,
-    references: list[HandReference],
+    references: list[HandReference] | list[Any],
     config: SimConfig,
     start: tuple[FloatArray, SupportPlane],
     *,
@@ -201,44 +240,52 @@ def scene_xml(
     ``hold``: with the (inactive) weld ``object_hold`` of the object to the world at its frame-0 pose."""
     pose0, table = start
     obj = object_mjcf(seq.object, config, pose0[:3], pose0[3:], cache_dir=cache_dir)
-    hands_body = "\n".join(hand_worldbody_xml(r.geometry, config, r.wrist_pos[0], r.wrist_quat[0]) for r in references)
+    fragments = [hand_fragment(r, config) for r in references]
+    xml = _scene_document(config, table, fragments, obj.assets, obj.body, object_hold_xml(config) if hold else "",
+                          articulation_sensor_xml(len(seq.object.parts)))
+    return xml, obj.collision, obj.num_geoms
+
+
+def _scene_document(config: SimConfig, table: SupportPlane, fragments: list[HandFragment], object_assets: str,
+                    object_body: str, object_equality: str, object_sensors: list[str]) -> str:
+    """The scene MJCF from the hands' fragments and the object's parts."""
     sensors = [
         f'<framepos name="object_pos" objtype="body" objname="{OBJECT_BODY}"/>',
         f'<framequat name="object_quat" objtype="body" objname="{OBJECT_BODY}"/>',
         f'<framelinvel name="object_linvel" objtype="body" objname="{OBJECT_BODY}"/>',
         f'<frameangvel name="object_angvel" objtype="body" objname="{OBJECT_BODY}"/>',
-    ] + [hand_sensor_xml(r.side) for r in references] + [penetration_sensor_xml(r.side) for r in references]
-    sensors += articulation_sensor_xml(len(seq.object.parts))
-    xml = f"""<mujoco model="hoi-refine-scene">
+    ] + [f.sensors for f in fragments] + [penetration_sensor_xml(f.side) for f in fragments]
+    sensors += object_sensors
+    return f"""<mujoco model="hoi-refine-scene">
   <compiler angle="radian" autolimits="true"/>
   {option_xml(config)}
   <size memory="8M"/>
   <asset>
-{obj.assets}
-{chr(10).join(hand_asset_xml(r.geometry) for r in references)}
+{object_assets}
+{chr(10).join(f.assets for f in fragments)}
   </asset>
   <worldbody>
     {table_geom_xml(config, table)}
-{hands_body}
-{obj.body}
+{chr(10).join(f.worldbody for f in fragments)}
+{object_body}
   </worldbody>
   <equality>
-{chr(10).join(hand_equality_xml(r.side, config) for r in references)}
-{object_hold_xml(config) if hold else ""}
+{chr(10).join(f.equality for f in fragments)}
+{object_equality}
   </equality>
   <actuator>
-{chr(10).join(hand_actuator_xml(r.side, config) for r in references)}
+{chr(10).join(f.actuators for f in fragments)}
   </actuator>
   <sensor>
 {chr(10).join(sensors)}
   </sensor>
 </mujoco>
 """
-    return xml, obj.collision, obj.num_geoms
 
 
 def build_scene(
-    seq: Sequence, references: list[HandReference], config: SimConfig | None = None, *, cache_dir: Path | None = None
+    seq: Sequence, references: list[HandReference] | list[Any], config: SimConfig | None = None, *,
+    cache_dir: Path | None = None,
 ) -> Scene:
     """Compile the scene for a sequence and its retargeted hands (one ``HandReference`` per hand). ``cache_dir``:
     where a mesh object's convex parts are cached on disk (None: memory only)."""
@@ -262,33 +309,9 @@ def build_scene(
     hold_eq = int(mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_EQUALITY, OBJECT_HOLD)) if release > 0 else -1
     hands: dict[str, HandHandles] = {}
     body_side: dict[int, str] = {}
-    for r in references:
-        s = r.side
-        names = [f"{s}_{h}" for h in HINGE_NAMES]
-        joint_ids = _ids(model, mujoco.mjtObj.mjOBJ_JOINT, names)
-        bodies = hand_body_names(s)
-        body_ids = _ids(model, mujoco.mjtObj.mjOBJ_BODY, bodies)
-        palm = int(body_ids[0])
-        mocap_body = int(_ids(model, mujoco.mjtObj.mjOBJ_BODY, [f"{s}_mocap"])[0])
-        root = int(_ids(model, mujoco.mjtObj.mjOBJ_JOINT, [f"{s}_root"])[0])
-        sensors = _ids(model, mujoco.mjtObj.mjOBJ_SENSOR, [f"{s}_kp{j}" for j in range(21)])
-        penetration = int(_ids(model, mujoco.mjtObj.mjOBJ_SENSOR, [f"{s}_penetration"])[0])
-        hands[s] = HandHandles(
-            side=s,
-            actuator_ids=_ids(model, mujoco.mjtObj.mjOBJ_ACTUATOR, names),
-            qpos_adr=model.jnt_qposadr[joint_ids].astype(np.int64),
-            dof_adr=model.jnt_dofadr[joint_ids].astype(np.int64),
-            mocap_id=int(model.body_mocapid[mocap_body]),
-            palm_body_id=palm,
-            root_qpos_adr=int(model.jnt_qposadr[root]),
-            root_dof_adr=int(model.jnt_dofadr[root]),
-            keypoint_site_ids=_ids(model, mujoco.mjtObj.mjOBJ_SITE, [f"{s}_kp{j}" for j in range(21)]),
-            keypoint_sensor_adr=model.sensor_adr[sensors].astype(np.int64),
-            body_ids=body_ids,
-            body_names=tuple(bodies),
-            penetration_sensor_adr=int(model.sensor_adr[penetration]),
-        )
-        body_side.update({int(b): s for b in body_ids})
+    for fragment in (hand_fragment(r, config) for r in references):
+        hands[fragment.side] = hand_handles(model, fragment)
+        body_side.update({int(b): fragment.side for b in hands[fragment.side].body_ids})
     obj_joint = int(_ids(model, mujoco.mjtObj.mjOBJ_JOINT, [OBJECT_JOINT])[0])
     obj_sensor = int(_ids(model, mujoco.mjtObj.mjOBJ_SENSOR, ["object_pos"])[0])
     geom_ids = _ids(model, mujoco.mjtObj.mjOBJ_GEOM, [f"object_{i}" for i in range(ngeom)])

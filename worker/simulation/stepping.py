@@ -25,11 +25,10 @@ import mujoco
 import numpy as np
 
 from common.geometry import FloatArray, quat_to_matrix, slerp
-from worker.hand.model import JOINT_LOWER, JOINT_UPPER
 from worker.hand.reference import HandReference
 from worker.simulation.contacts import ContactRecorder
 from worker.simulation.metrics import ContactFrames
-from worker.simulation.scene import Scene
+from worker.simulation.scene import HandHandles, Scene
 
 PHYSICS_SPEC = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
 STATE_SPEC = PHYSICS_SPEC | int(mujoco.mjtState.mjSTATE_WARMSTART)
@@ -37,7 +36,8 @@ STATE_SPEC = PHYSICS_SPEC | int(mujoco.mjtState.mjSTATE_WARMSTART)
 
 @dataclass
 class HandTargets:
-    """Per-frame targets of one hand: ``q`` (F,45), ``wrist_pos`` (F,3), ``wrist_quat`` (F,4) wxyz."""
+    """Per-frame targets of one hand: ``q`` (F,H) its actuated joints (45 hinges for the human hand),
+    ``wrist_pos`` (F,3), ``wrist_quat`` (F,4) wxyz."""
 
     q: FloatArray
     wrist_pos: FloatArray
@@ -50,7 +50,9 @@ class HandTargets:
 
     def __post_init__(self) -> None:
         f = self.q.shape[0]
-        for name, shape in (("q", (f, 45)), ("wrist_pos", (f, 3)), ("wrist_quat", (f, 4))):
+        if self.q.ndim != 2:
+            raise ValueError(f"HandTargets.q must have shape (F, H), got {self.q.shape}")
+        for name, shape in (("wrist_pos", (f, 3)), ("wrist_quat", (f, 4))):
             if getattr(self, name).shape != shape:
                 raise ValueError(f"HandTargets.{name} must have shape {shape}, got {getattr(self, name).shape}")
 
@@ -147,11 +149,17 @@ def substep_controls(scene: Scene, targets: Mapping[Any, HandTargets]) -> Contro
         t = targets[side]
         hinge = lead_values(t.q, finger_lead)
         q = (1 - alpha)[:, None] * hinge[f] + alpha[:, None] * hinge[f + 1]
-        ctrl[:, h.actuator_ids] = np.clip(q, JOINT_LOWER, JOINT_UPPER)
+        lower, upper = joint_bounds(h)
+        ctrl[:, h.actuator_ids] = np.clip(q, lower, upper)
         wrist_pos, wrist_quat = lead_track(t.wrist_pos, t.wrist_quat, lead)
         mocap_pos[:, h.mocap_id] = (1 - alpha)[:, None] * wrist_pos[f] + alpha[:, None] * wrist_pos[f + 1]
         mocap_quat[:, h.mocap_id] = slerp(wrist_quat[f], wrist_quat[f + 1], alpha)
     return Controls(ctrl=ctrl, mocap_pos=mocap_pos, mocap_quat=mocap_quat)
+
+
+def joint_bounds(h: HandHandles) -> tuple[FloatArray, FloatArray]:
+    """The actuated joints' limits of a hand (the human hand's are ``JOINT_LOWER`` / ``JOINT_UPPER``)."""
+    return h.q_limits[:, 0], h.q_limits[:, 1]
 
 
 def state_size(scene: Scene, spec: int = STATE_SPEC) -> int:
@@ -182,7 +190,7 @@ def pose_hands(scene: Scene, data: mujoco.MjData, targets: Mapping[Any, HandTarg
     """Put every hand exactly at its target pose of ``frame`` (root, hinges, mocap and servo targets)."""
     for side, h in scene.hands.items():
         t = targets[side]
-        q = np.clip(t.q[frame], JOINT_LOWER, JOINT_UPPER)
+        q = np.clip(t.q[frame], *joint_bounds(h))
         data.qpos[h.root_qpos_adr : h.root_qpos_adr + 3] = t.wrist_pos[frame]
         data.qpos[h.root_qpos_adr + 3 : h.root_qpos_adr + 7] = t.wrist_quat[frame]
         data.qpos[h.qpos_adr] = q
@@ -263,8 +271,8 @@ def rollout(
     n_frames = steps // spf + 1
     rec: dict[str, FloatArray] = {"pose": np.zeros((n_frames, 7)), "vel": np.zeros((n_frames, 6)),
                                   "articulation": np.zeros((n_frames, len(scene.object_joint_qpos_adr)))}
-    for side in scene.hands:
-        rec[side] = np.zeros((n_frames, 21, 3))
+    for side, h in scene.hands.items():
+        rec[side] = np.zeros((n_frames, len(h.keypoint_site_ids), 3))
     states = np.zeros((n_frames, state_size(scene))) if record_states else None
     recorder = ContactRecorder(scene) if record_contacts else None
 

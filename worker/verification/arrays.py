@@ -7,6 +7,7 @@ from typing import Any
 import numpy as np
 
 from common.geometry import quat_to_matrix, rotation_error_deg
+from common.hand_description import parse_hand_description
 from common.result_format import CONTACT_KEYS, PART_CONTACT_KEYS
 from worker.simulation.contacts import contact_frames
 from worker.simulation.metrics import ArticulationFrames, compute_metrics, scalar_metrics
@@ -244,13 +245,15 @@ def check_stored_metrics(
                                           np.flatnonzero(arrays["object_table_contact"]), n)
             except ValueError as exc:
                 report.failures.append(f"contact_frame: {exc}")
+        hand = (summary.get("options") or {}).get("hand")  # a robot hand: its fingertip sites (issue #55)
+        tips = None if hand is None else {s: parse_hand_description(hand).fingertip_sites() for s in kp_sim}
         arti = None
         arti_sim = arrays.get("object_articulation_sim" if name == "refined" else "raw_object_articulation_sim")
         arti_ref = arrays.get("object_articulation_ref")
         if joint_kinds and arti_sim is not None and arti_ref is not None:
             arti = ArticulationFrames(arti_sim, arti_ref, joint_kinds)
         try:
-            m = compute_metrics(pose, ref, kp_sim, kp_ref, valid, contacts, arti)
+            m = compute_metrics(pose, ref, kp_sim, kp_ref, valid, contacts, arti, tips)
         except ValueError as exc:
             report.failures.append(f"metrics.{name}: the stored arrays do not fit together ({exc})")
             continue

@@ -83,6 +83,14 @@ def write_recording(playback: Playback, out: Path | str | None = None, spawn: bo
     return out
 
 
+def hand_bones(keypoint_ids: np.ndarray) -> np.ndarray:
+    """(B, 2) the skeleton's bones between keypoint sites a hand has (a robot places a subset of the 21, issue
+    #55), as indices into its sites."""
+    where = {int(k): i for i, k in enumerate(keypoint_ids)}
+    return np.array([(where[a], where[b]) for a, b in SKELETON if a in where and b in where], dtype=np.int64
+                    ).reshape(-1, 2)
+
+
 def _log(rec: Any, pb: Playback) -> None:
     # Whole columns per entity (``send_columns``), not one ``log`` call per entity and frame: the recording is
     # made after every job, and row-by-row logging was thousands of Python calls for a few hundred frames.
@@ -150,9 +158,9 @@ def _log(rec: Any, pb: Playback) -> None:
         rec.send_columns(f"world/recorded/object/{name[g]}", indexes=[frames],
                          columns=rr.Transform3D.columns(translation=ref[:, :3] + r_ref @ local_pos,
                                                         mat3x3=r_ref @ local_rot))  # fmt: skip
-    bones = np.array(SKELETON)
     for side, all_kp in pb.keypoints_ref.items():
         kp = all_kp[: pb.num_frames]
+        bones = hand_bones(scene.hands[side].keypoint_ids)
         strips: Any = np.stack([kp[:, bones[:, 0]], kp[:, bones[:, 1]]], axis=2).reshape(-1, 2, 3)  # (F * bones, 2, 3)
         n = len(strips)
         rec.send_columns(
