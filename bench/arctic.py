@@ -24,6 +24,8 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
@@ -160,6 +162,42 @@ def table(rows: list[dict[str, Any]], proto: str) -> list[str]:
     return lines
 
 
+def first_failure(result: Path) -> str:
+    """The first frame (paper's protocol) past a success limit in a stored result, which limit and by how much."""
+    if not result.is_file():
+        return "-"
+    from common.result_format import read_arrays
+    from worker.simulation.metrics import PAPER_FIRST_FRAME, SUCCESS_POSITION_CM, SUCCESS_ROTATION_DEG
+
+    a = read_arrays(result.read_bytes())
+    e_t, e_r = a["metrics_refined_e_t_cm"], a["metrics_refined_e_r_deg"]
+    e_a = a.get("metrics_refined_e_a")
+    ok_a = a.get("metrics_refined_a_ok")
+    for f in range(PAPER_FIRST_FRAME, len(e_t)):
+        past = []
+        if e_t[f] > SUCCESS_POSITION_CM:
+            past.append(f"E_t {e_t[f]:.1f} cm")
+        if e_r[f] > SUCCESS_ROTATION_DEG:
+            past.append(f"E_r {e_r[f]:.0f} deg")
+        if ok_a is not None and e_a is not None and ok_a[f] == 0:
+            past.append(f"E_a {e_a[f]:.0f} deg")
+        if past:
+            bad = np.flatnonzero((e_t[PAPER_FIRST_FRAME:] > SUCCESS_POSITION_CM)
+                                 | (e_r[PAPER_FIRST_FRAME:] > SUCCESS_ROTATION_DEG)
+                                 | (np.zeros_like(e_t[PAPER_FIRST_FRAME:], dtype=bool) if ok_a is None
+                                    else ok_a[PAPER_FIRST_FRAME:] == 0))  # fmt: skip
+            return f"frame {f}: {', '.join(past)} ({bad.size} frames past a limit)"
+    return "none"
+
+
+def failures(rows: list[dict[str, Any]], args: argparse.Namespace) -> list[str]:
+    lines = ["| sequence | first frame past a limit (refined, paper's protocol) |", "|---|---|"]
+    for r in rows:
+        result = args.results / f"{r['sequence'].replace('/', '_')}_{r['two_hands']}.result.npz"
+        lines.append(f"| {r['sequence']} | {first_failure(result)} |")
+    return lines
+
+
 def comparison(by_mode: dict[str, list[dict[str, Any]]]) -> list[str]:
     """Per-hand vs joint CMA-ES on the sequences both ran (paper's protocol)."""
     names = sorted(set.intersection(*(set(r["sequence"] for r in rows) for rows in by_mode.values())))
@@ -184,13 +222,16 @@ def comparison(by_mode: dict[str, list[dict[str, Any]]]) -> list[str]:
 
 
 def render(rows: list[dict[str, Any]], by_mode: dict[str, list[dict[str, Any]]], args: argparse.Namespace) -> str:
+    digests = getattr(args, "digests", None)
+    made = f" (rows made by common/ + worker/ digests {digests})" if digests else ""
     out = [
         "# Two hands and articulated objects on ARCTIC (issue #52)",
         "",
         f"Written {datetime.now(UTC):%Y-%m-%d %H:%M} UTC by `bench/arctic.py` ({args.two_hands}); "
-        f"{args.provenance}. Sequences: every dexmachina-processed ARCTIC sequence whose object folder has its URDF "
-        f"({len(rows)}). Goals (paper's protocol): most succeed, E_t <= {GOALS['E_t']} cm, E_r <= {GOALS['E_r']} deg, "
-        f"E_a <= {GOALS['E_a']} deg, penetration max <= {GOALS['pen_max']} mm, <= 15 min per sequence on 2 threads.",
+        f"{args.provenance}{made}. Sequences: every dexmachina-processed ARCTIC sequence whose object folder has "
+        f"its URDF ({len(rows)}). Goals (paper's protocol): most succeed, E_t <= {GOALS['E_t']} cm, E_r <= "
+        f"{GOALS['E_r']} deg, E_a <= {GOALS['E_a']} deg, penetration max <= {GOALS['pen_max']} mm, <= 15 min per "
+        "sequence on 2 threads.",
         "",
         "## Paper's protocol (frames 10 onward)",
         "",
@@ -199,6 +240,10 @@ def render(rows: list[dict[str, Any]], by_mode: dict[str, list[dict[str, Any]]],
         "## All frames",
         "",
         *table(rows, "all"),
+        "",
+        "## Where the refined sequences fail",
+        "",
+        *failures(rows, args),
     ]
     if len(by_mode) > 1:
         out += ["", "## One CMA-ES per hand vs one over both hands (refined, paper's protocol)", "",
@@ -218,13 +263,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"no usable ARCTIC sequence under {args.arctic}", file=sys.stderr)
         return 2
     by_mode: dict[str, list[dict[str, Any]]] = {}
-    if args.compare:
+    if args.compare:  # each mode's newest cached run, whatever code made it (the header names it)
         for mode in ("per_hand", "joint"):
-            cache = cache_root / mode / digest
+            runs = sorted((cache_root / mode).glob("*/"), key=lambda d: d.stat().st_mtime)
+            if not runs:
+                continue
+            cache = runs[-1]
             rows = [json.loads((cache / f"{p.parent.name}_{p.stem}.json").read_text()) for p in paths
                     if (cache / f"{p.parent.name}_{p.stem}.json").is_file()]
             if rows:
                 by_mode[mode] = rows
+                args.digests = {**getattr(args, "digests", {}), mode: cache.name}
         rows = by_mode.get(args.two_hands, [])
     else:
         rows = []
