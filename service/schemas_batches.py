@@ -66,7 +66,12 @@ class BatchActionPublic(BaseModel):
 
 class WebhookCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    url: AnyHttpUrl
+    url: AnyHttpUrl = Field(
+        description="http:// or https:// URL whose host is a public address: a host that is, or resolves to, a "
+        "loopback, private, link-local, multicast, unspecified or reserved address (IPv4 or IPv6) is refused "
+        "with 422 unless the operator allows it (HOI_REFINE_WEBHOOK_ALLOW_TARGETS); checked again at each "
+        "delivery, which never follows redirects"
+    )
     event_types: list[WebhookEventType] = Field(
         default_factory=list, description="Event types to send; empty = all"
     )

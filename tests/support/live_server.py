@@ -1,5 +1,6 @@
 """Loopback HTTP servers for tests that need real sockets: the app under uvicorn in a thread (server-sent
-events must stream, which the in-process TestClient does not do) and a webhook receiver."""
+events must stream, which the in-process TestClient does not do), a webhook receiver, and receivers that
+answer too much or too slowly."""
 
 from __future__ import annotations
 
@@ -54,9 +55,12 @@ class Receiver:
 
 
 @contextmanager
-def webhook_receiver(statuses: list[int] | None = None, hang: bool = False) -> Iterator[Receiver]:
+def webhook_receiver(
+    statuses: list[int] | None = None, hang: bool = False, location: str | None = None
+) -> Iterator[Receiver]:
     """A loopback receiver: answers each request with the next of ``statuses`` (then 200). ``hang``: every
-    request is held until ``receiver.release`` is set (a stuck endpoint)."""
+    request is held until ``receiver.release`` is set (a stuck endpoint). ``location``: sent as the Location
+    header of every answer (a redirect, with a 3xx status)."""
     rec = Receiver(statuses=list(statuses or []))
 
     class Handler(BaseHTTPRequestHandler):
@@ -69,6 +73,8 @@ def webhook_receiver(statuses: list[int] | None = None, hang: bool = False) -> I
             if hang:
                 rec.release.wait(60)
             self.send_response(status)
+            if location is not None:
+                self.send_header("location", location)
             self.send_header("content-length", "0")
             self.end_headers()
 
@@ -87,3 +93,76 @@ def webhook_receiver(statuses: list[int] | None = None, hang: bool = False) -> I
         server.shutdown()
         server.server_close()
         thread.join(timeout=10)
+
+
+@dataclass
+class RawReceiver:
+    """A loopback TCP server that reads a request and then misbehaves; counts requests and bytes it sent."""
+
+    url: str = ""
+    requests: int = 0
+    bytes_sent: int = 0
+    stop: threading.Event = field(default_factory=threading.Event)
+    arrived: threading.Condition = field(default_factory=threading.Condition)
+
+    def wait_for(self, count: int, timeout: float = 30.0) -> None:
+        with self.arrived:
+            if not self.arrived.wait_for(lambda: self.requests >= count, timeout):
+                raise AssertionError(f"receiver got {self.requests} requests, expected {count}")
+
+
+@contextmanager
+def misbehaving_receiver(kind: str) -> Iterator[RawReceiver]:
+    """``endless``: answers 200 and then a body that never ends (as fast as the client reads); ``dribble``:
+    sends its status line and headers one byte every 50 ms, never finishing them. Either stops when the client
+    hangs up."""
+    rec = RawReceiver()
+    chunk = b"x" * 65536 if kind == "endless" else b""
+    dribble = b"HTTP/1.1 200 OK\r\n" + b"x-slow: " + b"z" * 10_000_000
+
+    def serve(conn: socket.socket) -> None:
+        with conn:
+            request = b""
+            while b"\r\n\r\n" not in request and (data := conn.recv(65536)):
+                request += data
+            with rec.arrived:
+                rec.requests += 1
+                rec.arrived.notify_all()
+            try:
+                if kind == "endless":
+                    conn.sendall(b"HTTP/1.1 200 OK\r\ncontent-length: 100000000000\r\n\r\n")
+                    while not rec.stop.is_set():
+                        conn.sendall(chunk)
+                        rec.bytes_sent += len(chunk)
+                else:
+                    for byte in dribble:
+                        if rec.stop.wait(0.05):
+                            break
+                        conn.sendall(bytes([byte]))
+                        rec.bytes_sent += 1
+            except OSError:
+                pass  # the client hung up: what a bounded client does
+
+    listener = socket.create_server(("127.0.0.1", 0))
+    listener.settimeout(0.2)
+    rec.url = f"http://127.0.0.1:{listener.getsockname()[1]}/hook"
+
+    def accept() -> None:
+        while not rec.stop.is_set():
+            try:
+                conn, _ = listener.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            conn.settimeout(30)
+            threading.Thread(target=serve, args=(conn,), daemon=True).start()
+
+    thread = threading.Thread(target=accept, daemon=True)
+    thread.start()
+    try:
+        yield rec
+    finally:
+        rec.stop.set()
+        thread.join(timeout=10)
+        listener.close()
