@@ -15,40 +15,59 @@ from pydantic import BaseModel, ConfigDict, Field
 from common.job_options import JobOptions
 from common.job_state import JobState
 from common.queue_types import JobRecord
+from common.safe_text import FREE_TEXT_PATTERN, MAX_META_ENTRIES, MAX_META_KEY_CHARS, MAX_META_VALUE_CHARS, TEXT_PATTERN
+from common.sequence import MAX_ABS_VALUE, MAX_FPS, MAX_MASS_KG, MAX_NAME_CHARS, MIN_FRAMES
 
 VertexIndex = Annotated[int, Field(ge=0, le=2**31 - 1)]
-Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+#: Every number of a per-frame array or a mesh (``common.sequence`` refuses larger magnitudes).
+Coordinate = Annotated[float, Field(ge=-MAX_ABS_VALUE, le=MAX_ABS_VALUE)]
+Vec3 = Annotated[list[Coordinate], Field(min_length=3, max_length=3)]
+#: Names may hold no control or bidi formatting character (``common.safe_text``); the server checks that itself,
+#: naming the code point, so the pattern is stated in the schema only.
+Name = Annotated[str, Field(max_length=MAX_NAME_CHARS, json_schema_extra={"pattern": TEXT_PATTERN})]
+Meta = Annotated[
+    dict[
+        Annotated[str, Field(max_length=MAX_META_KEY_CHARS, json_schema_extra={"pattern": TEXT_PATTERN})],
+        Annotated[str, Field(max_length=MAX_META_VALUE_CHARS, json_schema_extra={"pattern": FREE_TEXT_PATTERN})],
+    ],
+    Field(max_length=MAX_META_ENTRIES),
+]
 
 
 class PrimitiveIn(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     kind: Literal["box", "cylinder", "sphere", "capsule"]
-    size: list[float] = Field(
-        min_length=1, max_length=3, description="box half-extents (3); cylinder/capsule (radius, half-length); sphere r"
-    )
+    size: list[Annotated[float, Field(gt=0, le=5)]] = Field(
+        min_length=1, max_length=3,
+        description="metres: box half-extents (3); cylinder/capsule (radius, half-length); sphere r (1)",
+    )  # fmt: skip
 
 
 class MeshIn(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-    vertices: list[Annotated[list[float], Field(min_length=3, max_length=3)]] = Field(min_length=4)
-    faces: list[Annotated[list[VertexIndex], Field(min_length=3, max_length=3)]] = Field(min_length=4)
+    vertices: list[Vec3] = Field(min_length=4, description="metres; the mesh at most 5 m across and not flat")
+    faces: list[Annotated[list[VertexIndex], Field(min_length=3, max_length=3)]] = Field(
+        min_length=4, description="vertex indices, each below the number of vertices"
+    )
 
 
 class ObjectIn(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-    name: str = "object"
-    mass_kg: float = Field(gt=0, le=1000)
-    friction: float | None = Field(default=None, ge=0)
-    primitive: PrimitiveIn | None = None
-    mesh: MeshIn | None = None
+    name: Name = "object"
+    mass_kg: float = Field(gt=0, le=MAX_MASS_KG)
+    friction: float | None = Field(default=None, gt=0, le=10)
+    primitive: PrimitiveIn | None = Field(default=None, description="exactly one of primitive and mesh")
+    mesh: MeshIn | None = Field(default=None, description="exactly one of primitive and mesh")
 
 
 class ManoIn(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-    global_orient: list[list[float]]
-    hand_pose: list[list[float]]
-    trans: list[list[float]]
-    betas: list[float] = Field(default_factory=lambda: [0.0] * 10)
+    global_orient: list[Vec3] = Field(min_length=MIN_FRAMES, description="(T, 3) axis-angle")
+    hand_pose: list[list[Coordinate]] = Field(
+        min_length=MIN_FRAMES, description="(T, 45) axis-angle, or (T, 1-45) PCA coefficients"
+    )
+    trans: list[Vec3] = Field(min_length=MIN_FRAMES, description="(T, 3) metres")
+    betas: list[Coordinate] = Field(default_factory=lambda: [0.0] * 10)
     pose_format: Literal["axis_angle", "pca"] = "axis_angle"
     flat_hand_mean: bool = False
 
@@ -56,11 +75,15 @@ class ManoIn(BaseModel):
 class HandIn(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     side: Literal["right", "left"]
-    valid: list[bool]
-    keypoints: list[Annotated[list[Vec3], Field(min_length=21, max_length=21)]] | None = Field(
-        default=None, description="(T, 21, 3) metres"
+    valid: list[bool] = Field(
+        min_length=MIN_FRAMES,
+        json_schema_extra={"contains": {"const": True}},
+        description="(T,) per frame: is the hand tracked? At least one frame must be",
     )
-    mano: ManoIn | None = None
+    keypoints: list[Annotated[list[Vec3], Field(min_length=21, max_length=21)]] | None = Field(
+        default=None, min_length=MIN_FRAMES, description="(T, 21, 3) metres; a hand needs keypoints or MANO parameters"
+    )
+    mano: ManoIn | None = Field(default=None, description="MANO parameters (the server needs the MANO model files)")
 
 
 class JobCreate(BaseModel):
@@ -69,19 +92,21 @@ class JobCreate(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     format: Literal["hoi-refine-sequence"] = "hoi-refine-sequence"
     format_version: Literal[1] = 1
-    name: str = "sequence"
-    fps: float = Field(gt=0, le=1000)
+    name: Annotated[Name, Field(min_length=1)] = "sequence"
+    fps: float = Field(gt=0, le=MAX_FPS)
     frame_start: int = Field(default=0, ge=0, le=2**31 - 1)
     object: ObjectIn
-    object_pose: list[Annotated[list[float], Field(min_length=7, max_length=7)]] = Field(
-        min_length=1, description="(T, 7): x y z qw qx qy qz per frame"
+    object_pose: list[Annotated[list[Coordinate], Field(min_length=7, max_length=7)]] = Field(
+        min_length=MIN_FRAMES,
+        description="(T, 7): x y z qw qx qy qz per frame, the quaternion of unit length; T is every per-frame "
+        "array's length, at most the server's HOI_REFINE_MAX_FRAMES",
     )
-    hands: list[HandIn] = Field(min_length=1, max_length=2)
-    world_from_camera: list[Annotated[list[float], Field(min_length=4, max_length=4)]] | None = Field(
+    hands: list[HandIn] = Field(min_length=1, max_length=2, description="at most one per side")
+    world_from_camera: list[Annotated[list[Coordinate], Field(min_length=4, max_length=4)]] | None = Field(
         default=None, min_length=4, max_length=4, description="4x4 rigid transform source -> world"
     )
-    up: Vec3 | None = None
-    meta: dict[str, str] = Field(default_factory=dict)
+    up: Vec3 | None = Field(default=None, description="non-zero; ignored when world_from_camera is given")
+    meta: Meta = Field(default_factory=dict)
     options: JobOptions = Field(default_factory=JobOptions)
     batch_id: str | None = Field(default=None, max_length=32, description="Submit into this batch (POST /v1/batches)")
 
@@ -153,7 +178,9 @@ def _eta(progress: ProgressPublic, elapsed_s: float) -> float | None:
 class JobsPublic(BaseModel):
     data: list[JobPublic]
     count: int
-    next_page_token: str | None = Field(description="Pass as page_token for the next page; null on the last page")
+    next_page_token: str | None = Field(
+        description="Opaque token issued by the service: pass it as page_token for the next page; null on the last page"
+    )
 
 
 class JobEventPublic(BaseModel):

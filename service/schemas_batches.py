@@ -56,7 +56,9 @@ class BatchPublic(BaseModel):
 class BatchesPublic(BaseModel):
     data: list[BatchPublic]
     count: int
-    next_page_token: str | None = Field(description="Pass as page_token for the next page; null on the last page")
+    next_page_token: str | None = Field(
+        description="Opaque token issued by the service: pass it as page_token for the next page; null on the last page"
+    )
 
 
 class BatchActionPublic(BaseModel):
