@@ -80,6 +80,9 @@ class Settings(BaseSettings):
     #: Host names and address ranges that webhooks may target although they are not public, comma-separated
     #: (e.g. ``hooks.internal,10.8.0.0/16,127.0.0.1``); empty: public addresses only (``common.webhook_targets``).
     webhook_allow_targets: str = ""
+    #: CA certificates (PEM file) that https webhook receivers' certificates are verified against instead of the
+    #: public ones (certifi): for receivers with certificates from an internal CA.
+    webhook_ca_file: Path | None = None
     #: Attempts before a delivery is given up (FAILED in the delivery log).
     webhook_max_attempts: int = Field(default=8, gt=0)
     #: Base of the exponential backoff between attempts (doubling, capped at one hour).

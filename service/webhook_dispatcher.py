@@ -19,6 +19,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import ssl
 import time
 
 import httpx
@@ -47,8 +48,10 @@ class WebhookDispatcher:
         total = self.settings.webhook_timeout_seconds
         timeout = httpx.Timeout(total, connect=min(total, self.settings.webhook_connect_timeout_seconds))
         limits = httpx.Limits(max_connections=MAX_IN_FLIGHT, max_keepalive_connections=0)
+        ca_file = self.settings.webhook_ca_file
+        verify: ssl.SSLContext | bool = True if ca_file is None else ssl.create_default_context(cafile=str(ca_file))
         async with httpx.AsyncClient(timeout=timeout, limits=limits, follow_redirects=False, trust_env=False,
-                                     headers={"user-agent": USER_AGENT}) as http:  # fmt: skip
+                                     verify=verify, headers={"user-agent": USER_AGENT}) as http:  # fmt: skip
             while not self._stop.is_set():
                 try:
                     await self.tick(http)

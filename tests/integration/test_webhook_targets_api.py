@@ -7,6 +7,8 @@ resolver, which these tests replace (``app.state.webhooks.targets.resolver``); n
 from __future__ import annotations
 
 import ipaddress
+import ssl
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -14,27 +16,37 @@ import pytest
 from common.settings import Settings
 from common.webhook_targets import IPAddress
 from tests.support.api import json_body, run_job, wait_until
-from tests.support.live_server import misbehaving_receiver, webhook_receiver
+from tests.support.live_server import misbehaving_receiver, throwaway_certificates, webhook_receiver
 from tests.support.queue_fixtures import BACKENDS, ApiHarness
 
 pytestmark = pytest.mark.parametrize("empty_db_url", BACKENDS, indirect=True)
 
 RECEIVER = "receiver.test"
+#: Also allowed and resolving to loopback, but not the name on the test receiver's certificate.
+OTHER = "other.test"
 #: Where names resolve to in these tests; a name missing here does not resolve.
 NAMES: dict[str, list[str]] = {}
 
 
+@pytest.fixture(scope="module")
+def certificates(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, ssl.SSLContext] | None:
+    """A test CA and a server certificate for ``RECEIVER`` (None without the openssl command)."""
+    return throwaway_certificates(tmp_path_factory.mktemp("tls"), RECEIVER)
+
+
 @pytest.fixture
-def api_settings() -> Settings:
-    """A fast dispatcher with small bounds; only the named test receiver is allowed besides public addresses."""
+def api_settings(certificates: tuple[Path, ssl.SSLContext] | None) -> Settings:
+    """A fast dispatcher with small bounds; only the named test receivers are allowed besides public addresses,
+    and https receivers are verified against the test CA."""
     return Settings(webhook_poll_seconds=0.05, webhook_backoff_seconds=0.05, webhook_timeout_seconds=2.0,
                     webhook_connect_timeout_seconds=1.0, webhook_max_response_bytes=4096, webhook_max_attempts=2,
-                    webhook_allow_targets=RECEIVER)  # fmt: skip
+                    webhook_allow_targets=f"{RECEIVER},{OTHER}",
+                    webhook_ca_file=None if certificates is None else certificates[0])  # fmt: skip
 
 
 @pytest.fixture(autouse=True)
 def names(api: ApiHarness) -> dict[str, list[str]]:
-    table = {RECEIVER: ["127.0.0.1"], "public.example": ["151.101.1.69"]}
+    table = {RECEIVER: ["127.0.0.1"], OTHER: ["127.0.0.1"], "public.example": ["151.101.1.69"]}
 
     def resolve(host: str, port: int) -> list[IPAddress]:
         if host not in table:
@@ -104,6 +116,23 @@ def test_the_allow_setting_lets_a_named_receiver_through(api: ApiHarness) -> Non
         headers, _ = rec.requests[0]
         assert headers["host"] == url.split("/")[2]  # the URL's host, although the connection went to 127.0.0.1
         assert settled(api, hook["id"])["state"] == "DELIVERED"
+
+
+def test_https_to_a_pinned_address_verifies_the_urls_host_name(
+    api: ApiHarness, certificates: tuple[Path, ssl.SSLContext] | None
+) -> None:
+    """The connection goes to the checked address, and TLS still checks the certificate against the URL's host:
+    the receiver's certificate names receiver.test, so the same receiver under another allowed name fails."""
+    if certificates is None:
+        pytest.skip("no openssl command to make test certificates")
+    with webhook_receiver(tls=certificates[1]) as rec:
+        good = register(api, to_receiver(rec.url), event_types=["job.succeeded"]).json()
+        wrong = register(api, rec.url.replace("127.0.0.1", OTHER), event_types=["job.succeeded"]).json()
+        succeed_one_job(api)
+        assert settled(api, good["id"])["state"] == "DELIVERED"
+        failed = settled(api, wrong["id"])
+        assert failed["state"] == "FAILED" and all("CERTIFICATE_VERIFY_FAILED" in a["error"] for a in failed["log"])
+        assert len(rec.requests) == 1 and rec.requests[0][0]["host"] == to_receiver(rec.url).split("/")[2]
 
 
 def test_a_name_rebound_to_loopback_after_registration_is_refused_at_delivery(

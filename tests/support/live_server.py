@@ -5,12 +5,15 @@ answer too much or too slowly."""
 from __future__ import annotations
 
 import socket
+import ssl
+import subprocess
 import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
 from typing import Any
 
 import uvicorn
@@ -56,11 +59,12 @@ class Receiver:
 
 @contextmanager
 def webhook_receiver(
-    statuses: list[int] | None = None, hang: bool = False, location: str | None = None
+    statuses: list[int] | None = None, hang: bool = False, location: str | None = None,
+    tls: ssl.SSLContext | None = None,
 ) -> Iterator[Receiver]:
     """A loopback receiver: answers each request with the next of ``statuses`` (then 200). ``hang``: every
     request is held until ``receiver.release`` is set (a stuck endpoint). ``location``: sent as the Location
-    header of every answer (a redirect, with a 3xx status)."""
+    header of every answer (a redirect, with a 3xx status). ``tls``: serves https with this server context."""
     rec = Receiver(statuses=list(statuses or []))
 
     class Handler(BaseHTTPRequestHandler):
@@ -83,7 +87,9 @@ def webhook_receiver(
 
     server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
     server.daemon_threads = True
-    rec.url = f"http://127.0.0.1:{server.server_address[1]}/hook"
+    if tls is not None:
+        server.socket = tls.wrap_socket(server.socket, server_side=True)
+    rec.url = f"{'https' if tls else 'http'}://127.0.0.1:{server.server_address[1]}/hook"
     thread = threading.Thread(target=server.serve_forever, daemon=True)
     thread.start()
     try:
@@ -166,3 +172,25 @@ def misbehaving_receiver(kind: str) -> Iterator[RawReceiver]:
         rec.stop.set()
         thread.join(timeout=10)
         listener.close()
+
+
+def throwaway_certificates(folder: Path, name: str) -> tuple[Path, ssl.SSLContext] | None:
+    """A throwaway CA (its PEM file) and a server context whose certificate names ``name``, made with the
+    ``openssl`` command; None when it is missing."""
+    def openssl(*args: str) -> None:
+        subprocess.run(["openssl", *args], cwd=folder, check=True, capture_output=True, timeout=60)
+
+    try:
+        openssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "ca.key", "-out", "ca.pem", "-days", "2",
+                "-subj", "/CN=hoi-refine test CA", "-addext", "basicConstraints=critical,CA:TRUE",
+                "-addext", "keyUsage=critical,keyCertSign,cRLSign")  # fmt: skip
+    except FileNotFoundError:
+        return None
+    (folder / "server.ext").write_text(f"subjectAltName=DNS:{name}\nextendedKeyUsage=serverAuth\n")
+    openssl("req", "-newkey", "rsa:2048", "-nodes", "-keyout", "server.key", "-out", "server.csr",
+            "-subj", f"/CN={name}")  # fmt: skip
+    openssl("x509", "-req", "-in", "server.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial",
+            "-out", "server.pem", "-days", "2", "-extfile", "server.ext")  # fmt: skip
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    context.load_cert_chain(folder / "server.pem", folder / "server.key")
+    return folder / "ca.pem", context
