@@ -20,6 +20,7 @@ LossName = Literal[
     "hand_velocity",
     "penetration",
     "grasp_reach",
+    "object_articulation",
 ]
 LOSS_NAMES: tuple[str, ...] = LossName.__args__  # type: ignore[attr-defined]
 
@@ -49,6 +50,12 @@ class JobOptions(BaseModel):
         description="After the attempts, when the best one's object error is above half the published method's "
         "mean, another sweep over its windows in which each keyframe sees the later ones; kept only if better, "
         "and repeated from it while kept and still above that level (at most 10 sweeps)",
+    )
+    two_hands: Literal["per_hand", "joint"] = Field(
+        default="per_hand",
+        description="With two hands: 'per_hand' runs a CMA-ES per hand on paired rollouts, each minimising the "
+        "object's terms plus its own hand's (the published method); 'joint' one CMA-ES over both hands' keyframes "
+        "minimising the object's terms once plus both hands'",
     )
     priority: int = Field(default=0, ge=-100, le=100, description="Higher runs first (queue only)")
     preview_video: bool = Field(

@@ -21,18 +21,21 @@ ROWS: tuple[tuple[str, str, str, str], ...] = (
     ("E_r", "object rotation error E_r", "deg", "{:.2f}"),
     ("E_j", "hand joint error E_j", "cm", "{:.2f}"),
     ("E_ft", "fingertip error E_ft", "cm", "{:.2f}"),
+    ("E_a", "articulation error E_a (largest joint; cm if sliding)", "deg", "{:.2f}"),
     ("max_E_t", "worst-frame position error", "cm", "{:.2f}"),
     ("max_E_r", "worst-frame rotation error", "deg", "{:.1f}"),
     ("paper.E_t", "E_t, paper's protocol (frames 10+)", "cm", "{:.2f}"),
     ("paper.E_r", "E_r, paper's protocol (frames 10+)", "deg", "{:.2f}"),
     ("paper.E_j", "E_j, paper's protocol (frames 10+)", "cm", "{:.2f}"),
     ("paper.E_ft", "E_ft, paper's protocol (frames 10+)", "cm", "{:.2f}"),
+    ("paper.E_a", "E_a, paper's protocol (frames 10+)", "deg", "{:.2f}"),
     ("penetration_mean_mm", "penetration: mean per-frame maximum", "mm", "{:.2f}"),
     ("penetration_max_mm", "penetration: sequence maximum", "mm", "{:.2f}"),
     ("hand_only_fraction", "lifted frames held by the hand alone", "", "{:.0%}"),
 )
-#: Rows shown only when a column has them (older results, or the raw replay for the first attempt).
-OPTIONAL_PREFIXES: tuple[str, ...] = ("max_", "paper.", "penetration_", "hand_only")
+#: Rows shown only when a column has them (older results, the raw replay for the first attempt, a rigid object's
+#: results for E_a).
+OPTIONAL_PREFIXES: tuple[str, ...] = ("max_", "paper.", "penetration_", "hand_only", "E_a")
 SUCCESS_LABEL = "success (every frame E_t <= 3 cm, E_r <= 30 deg)"
 #: Success rows after the first: key, label.
 SUCCESS_ROWS: tuple[tuple[str, str], ...] = (

@@ -24,6 +24,8 @@ if TYPE_CHECKING:
 SPACING_M = 0.005
 #: Upper bound on the number of points (a large primitive gets a coarser grid instead).
 MAX_POINTS = 20_000
+#: Largest gap between the points sampled on an articulated object's part meshes (``part_surface_points``).
+MESH_SPACING_M = 0.005
 
 
 def object_surface_points(obj: ObjectSpec, spacing: float = SPACING_M) -> FloatArray:
@@ -35,6 +37,48 @@ def object_surface_points(obj: ObjectSpec, spacing: float = SPACING_M) -> FloatA
         return verts
     assert obj.primitive is not None and obj.size is not None
     return np.concatenate([verts, primitive_surface_points(obj.primitive, obj.size, spacing)])
+
+
+def posed_surface_points(obj: ObjectSpec, values: FloatArray | None, spacing: float = SPACING_M) -> FloatArray:
+    """The surface points of every part of an articulated object (``part_surface_points``), in the base part's
+    frame with its joints at ``values`` (J,); a rigid object's own ``object_surface_points``."""
+    if not obj.parts:
+        return object_surface_points(obj, spacing)
+    from common.geometry import quat_rotate
+
+    assert values is not None
+    poses = obj.part_poses(np.array([0.0, 0, 0, 1, 0, 0, 0]), np.asarray(values, dtype=np.float64))
+    chunks = [quat_rotate(poses[k, 3:], part_surface_points(shape, spacing)) + poses[k, :3]
+              for k, shape in enumerate(obj.part_shapes())]  # fmt: skip
+    return np.concatenate(chunks)
+
+
+def part_surface_points(shape: ObjectSpec, spacing: float = SPACING_M) -> FloatArray:
+    """An articulated object's part: a primitive's ``object_surface_points``, a mesh's vertices plus every triangle
+    covered by a grid at most ``MESH_SPACING_M`` apart (``mesh_surface_points``). Parts get the dense mesh
+    sampling because part meshes come coarse (ARCTIC's have edges up to 12 cm, where vertices alone read a
+    fingertip on a face as centimetres away); a rigid object keeps its vertices (``object_surface_points``), as the
+    figures of bench/results/refine_dev120.md were made with."""
+    if shape.mesh_vertices is None or shape.mesh_faces is None:
+        return object_surface_points(shape, spacing)
+    return mesh_surface_points(shape.mesh_vertices, shape.mesh_faces, MESH_SPACING_M)
+
+
+def mesh_surface_points(vertices: FloatArray, faces: np.ndarray, spacing: float) -> FloatArray:
+    """(N, 3) a mesh's vertices and points covering each triangle at most ``spacing`` apart (a barycentric grid of
+    n + 1 points along its longest edge), coarser for a large mesh so ``MAX_POINTS`` bounds the count."""
+    tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces)]  # (F, 3, 3)
+    longest = np.max(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2), axis=1)
+    area = float(0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
+    spacing = max(spacing, float(np.sqrt(area / MAX_POINTS)))
+    out = [np.asarray(vertices, dtype=np.float64)]
+    steps = np.ceil(longest / spacing).astype(np.int64)
+    for n in np.unique(steps[steps >= 2]):
+        i, j = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
+        keep = i + j <= n
+        bary = np.stack([i[keep], j[keep], n - i[keep] - j[keep]], axis=1) / n  # (P, 3) barycentric weights
+        out.append(np.einsum("pk,fkd->fpd", bary, tri[steps == n]).reshape(-1, 3))
+    return np.concatenate(out)
 
 
 def primitive_surface_points(kind: str, size: FloatArray, spacing: float = SPACING_M) -> FloatArray:

@@ -16,6 +16,9 @@ result has (F = frames, N = contacts over all frames):
   ``contact_body`` (N,) str hand body name, ``contact_pos_world`` (N,3), ``contact_pos_object`` (N,3),
   ``contact_normal`` (N,3) world (from object to hand), ``contact_force`` (N,3) world,
   ``contact_torque`` (N,3) world, ``contact_depth`` (N,) penetration in metres (>= 0).
+* an articulated object (``common.articulation``) adds ``object_articulation_sim`` / ``_ref`` (F,J) joint values
+  (radians / metres) and ``contact_part`` (N,) str: the object part touched, whose frame ``contact_pos_object``
+  is then given in.
 
 Members are written by ``common.npz_writer`` in a fixed order — ``summary_json``, ``timings_json``, then the
 arrays sorted by key — with fixed zip timestamps, so equal results give equal bytes; without the wall clock
@@ -54,6 +57,10 @@ CONTACT_KEYS: tuple[str, ...] = (
     "contact_torque",
     "contact_depth",
 )
+
+
+#: Contact columns of an articulated object's result only.
+PART_CONTACT_KEYS: tuple[str, ...] = ("contact_part",)
 
 
 def is_wall_clock(key: str) -> bool:

@@ -1,4 +1,5 @@
-"""The in-memory sequence: one object, one or two hands, per-frame poses, and the world frame.
+"""The in-memory sequence: one object (rigid, or articulated: ``common.articulation``), one or two hands, per-frame
+poses, and the world frame.
 
 A ``Sequence`` is self-contained (the object mesh is held as vertices + faces, never as a path) so it can
 travel through the queue and be re-run anywhere. Arrays are NumPy; every constructor path goes through
@@ -11,12 +12,13 @@ origin is put under the frame-0 object and the table at the object's lowest fram
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
 import numpy.typing as npt
 
+from common.articulation import DEFAULT_BASE_PART, ObjectJoint, part_poses, validate_joints
 from common.errors import FieldProblem, SequenceValidationError
 from common.geometry import FloatArray, IntArray
 from common.safe_text import meta_problems, shown, text_problem
@@ -57,7 +59,8 @@ MAX_NAME_CHARS = 200
 
 @dataclass
 class ObjectSpec:
-    """The manipulated object: a primitive or a triangle mesh (object frame), with its mass."""
+    """The manipulated object: a primitive or a triangle mesh (object frame), with its mass. An articulated object
+    is this shape as its base part (named ``base_part``) plus ``parts`` hung from it by joints."""
 
     name: str
     mass_kg: float
@@ -66,10 +69,41 @@ class ObjectSpec:
     mesh_vertices: FloatArray | None = None
     mesh_faces: IntArray | None = None
     friction: float | None = None
+    parts: list[ObjectPart] = field(default_factory=list)
+    base_part: str = DEFAULT_BASE_PART
 
     @property
     def is_mesh(self) -> bool:
         return self.mesh_vertices is not None
+
+    @property
+    def articulated(self) -> bool:
+        return bool(self.parts)
+
+    @property
+    def joints(self) -> list[ObjectJoint]:
+        return [p.joint for p in self.parts]
+
+    @property
+    def part_names(self) -> list[str]:
+        """The base part's name, then every further part's (the order of ``part_poses``)."""
+        return [self.base_part] + [p.shape.name for p in self.parts]
+
+    def parent_indices(self) -> list[int]:
+        """Each further part's parent as an index into ``part_names`` (0: the base)."""
+        index = {name: i for i, name in enumerate(self.part_names)}
+        return [index[p.joint.parent] for p in self.parts]
+
+    def part_shapes(self) -> list[ObjectSpec]:
+        """Every part's shape, base first (the base is this object without its parts)."""
+        return [replace(self, parts=[])] + [p.shape for p in self.parts]
+
+    def part_poses(self, base_pose: FloatArray, values: FloatArray | None) -> FloatArray:
+        """(..., P, 7) world poses of the parts (base first) for base poses (..., 7) and joint values (..., J)."""
+        if not self.parts:
+            return np.asarray(base_pose, dtype=np.float64)[..., None, :].copy()
+        assert values is not None
+        return part_poses(base_pose, self.joints, self.parent_indices(), values)
 
     def surface_vertices(self) -> FloatArray:
         """Vertices of the object's surface in the object frame (primitives are tessellated)."""
@@ -88,6 +122,14 @@ class ObjectSpec:
         else:
             mesh = trimesh.creation.capsule(radius=s[0], height=2 * s[1], count=[16, 16])
         return np.asarray(mesh.vertices, dtype=np.float64)
+
+
+@dataclass
+class ObjectPart:
+    """A part of an articulated object beyond its base: its shape and mass, and the joint to its parent."""
+
+    shape: ObjectSpec  # name, mass_kg and a mesh or primitive (its own ``parts`` stay empty)
+    joint: ObjectJoint
 
 
 @dataclass
@@ -125,6 +167,8 @@ class Sequence:
     world_from_source: FloatArray | None = None  # (4, 4)
     up: FloatArray | None = None  # (3,), used when world_from_source is absent
     meta: dict[str, str] = field(default_factory=dict)
+    #: (T, J) recorded joint values of an articulated object (radians / metres), None for a rigid one.
+    articulation: FloatArray | None = None
 
     @property
     def num_frames(self) -> int:
@@ -146,13 +190,22 @@ class Sequence:
         if self.up is not None:
             rot = _rotation_taking(self.up / np.linalg.norm(self.up), np.array([0.0, 0.0, 1.0]))
         # Origin under the frame-0 object; table at its lowest frame-0 point (resting start).
-        verts0 = _transform_points(self.object.surface_vertices(), self.object_pose[0])
+        verts0 = _transform_points(self._frame0_vertices(), self.object_pose[0])
         world_verts0 = verts0 @ rot.T
         origin = rot @ self.object_pose[0, :3]
         out = np.eye(4)
         out[:3, :3] = rot
         out[:3, 3] = [-origin[0], -origin[1], -world_verts0[:, 2].min()]
         return out
+
+    def _frame0_vertices(self) -> FloatArray:
+        """The object's surface vertices in its base frame, every part posed at its frame-0 joint values."""
+        obj = self.object
+        if not obj.parts or self.articulation is None:
+            return obj.surface_vertices()
+        poses = obj.part_poses(np.array([0.0, 0, 0, 1, 0, 0, 0]), self.articulation[0])
+        return np.concatenate([_transform_points(shape.surface_vertices(), poses[k])
+                               for k, shape in enumerate(obj.part_shapes())])  # fmt: skip
 
     def object_pose_world(self) -> FloatArray:
         """(T, 7) object poses in the world frame, quaternions scalar first and sign-continuous."""
@@ -200,6 +253,7 @@ class Sequence:
                         f"(norm {norms[bad[0]]:.4f}; {bad.size} frames in all)",
                     )
         _validate_object(problems, self.object)
+        _validate_parts(problems, self.object, self.articulation, t)
 
         if not self.hands:
             add("hands", "at least one hand is required")
@@ -262,49 +316,61 @@ def _check_array(
     return int(arr.shape[0]) if arr.ndim else 0
 
 
-def _validate_object(problems: list[FieldProblem], obj: ObjectSpec) -> None:
-    add = lambda f, p: problems.append(FieldProblem(f, p))  # noqa: E731
+def _validate_object(problems: list[FieldProblem], obj: ObjectSpec, f: str = "object") -> None:
+    """The shape and mass of the object (or of one part, ``f`` naming it)."""
+    add = lambda name, p: problems.append(FieldProblem(name, p))  # noqa: E731
     if (why := text_problem(obj.name, MAX_NAME_CHARS)) is not None:
-        add("object.name", why)
+        add(f"{f}.name", why)
     if not _is_real(obj.mass_kg) or not 0 < obj.mass_kg <= MAX_MASS_KG:
-        add("object.mass_kg", f"must be a number of kilograms in (0, {MAX_MASS_KG:g}], got {shown(obj.mass_kg)}")
+        add(f"{f}.mass_kg", f"must be a number of kilograms in (0, {MAX_MASS_KG:g}], got {shown(obj.mass_kg)}")
     if obj.friction is not None and (not _is_real(obj.friction) or not 0 < obj.friction <= 10):
-        add("object.friction", f"must be in (0, 10] when given, got {shown(obj.friction)}")
+        add(f"{f}.friction", f"must be in (0, 10] when given, got {shown(obj.friction)}")
     has_mesh = obj.mesh_vertices is not None or obj.mesh_faces is not None
     if has_mesh == (obj.primitive is not None):
-        add("object", "give exactly one of a mesh (vertices + faces) or a primitive with sizes")
+        add(f, "give exactly one of a mesh (vertices + faces) or a primitive with sizes")
         return
     if obj.primitive is not None:
         if obj.primitive not in PRIMITIVE_SIZE_LEN:
-            add("object.primitive", f"must be one of {sorted(PRIMITIVE_SIZE_LEN)}, got {shown(obj.primitive)}")
+            add(f"{f}.primitive", f"must be one of {sorted(PRIMITIVE_SIZE_LEN)}, got {shown(obj.primitive)}")
             return
         n = PRIMITIVE_SIZE_LEN[obj.primitive]
-        if _check_array(problems, "object.size", obj.size, (n,)) is not None:
+        if _check_array(problems, f"{f}.size", obj.size, (n,)) is not None:
             assert obj.size is not None
             if np.any(obj.size <= 0) or np.any(obj.size > 5.0):
-                add("object.size", f"sizes must be in (0, 5] metres, got {obj.size.tolist()}")
+                add(f"{f}.size", f"sizes must be in (0, 5] metres, got {obj.size.tolist()}")
         return
-    nv = _check_array(problems, "object.mesh.vertices", obj.mesh_vertices, (None, 3))
-    nf = _check_array(problems, "object.mesh.faces", obj.mesh_faces, (None, 3))
+    nv = _check_array(problems, f"{f}.mesh.vertices", obj.mesh_vertices, (None, 3))
+    nf = _check_array(problems, f"{f}.mesh.faces", obj.mesh_faces, (None, 3))
     if nv is None or nf is None:
         return
     assert obj.mesh_vertices is not None and obj.mesh_faces is not None
     if nv < 4 or nf < 4:
-        add("object.mesh", f"is empty or degenerate: {nv} vertices, {nf} faces (need >= 4 of each)")
+        add(f"{f}.mesh", f"is empty or degenerate: {nv} vertices, {nf} faces (need >= 4 of each)")
         return
     if obj.mesh_faces.min() < 0 or obj.mesh_faces.max() >= nv:
-        add("object.mesh.faces", f"index out of range [0, {nv})")
+        add(f"{f}.mesh.faces", f"index out of range [0, {nv})")
         return
     extent = np.ptp(obj.mesh_vertices, axis=0)
     if np.min(extent) < 1e-5:
-        add("object.mesh", f"is degenerate (flat): bounding-box extents {extent.tolist()} m")
+        add(f"{f}.mesh", f"is degenerate (flat): bounding-box extents {extent.tolist()} m")
         return
     if np.max(extent) > 5.0:
-        add("object.mesh", f"is {np.max(extent):.1f} m across; meshes must be in metres")
+        add(f"{f}.mesh", f"is {np.max(extent):.1f} m across; meshes must be in metres")
     v = obj.mesh_vertices[obj.mesh_faces]
     areas = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
     if areas.sum() < 1e-8:
-        add("object.mesh", "is degenerate: total surface area is zero")
+        add(f"{f}.mesh", "is degenerate: total surface area is zero")
+
+
+def _validate_parts(problems: list[FieldProblem], obj: ObjectSpec, articulation: object, t: int | None) -> None:
+    """An articulated object's further parts (shape, mass, joint) and its recorded joint values."""
+    if (why := text_problem(obj.base_part, MAX_NAME_CHARS)) is not None or not obj.base_part:
+        problems.append(FieldProblem("object.base_part", why or "must not be empty"))
+    for k, part in enumerate(obj.parts):
+        if part.shape.parts:
+            problems.append(FieldProblem(f"object.parts[{k}]", "a part holds no parts of its own (use joint.parent)"))
+        _validate_object(problems, part.shape, f"object.parts[{k}]")
+    validate_joints(problems, obj.joints, obj.part_names, articulation, t)
 
 
 def _validate_hand(problems: list[FieldProblem], name: str, hand: HandTrack, t: int | None) -> None:

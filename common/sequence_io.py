@@ -9,8 +9,13 @@ Native NPZ (``format == "hoi-refine-sequence"``, ``format_version == 1``), keys:
   S_valid (T,), [S_keypoints (T,21,3)],
   [S_mano_global_orient (T,3), S_mano_hand_pose (T,45|n), S_mano_trans (T,3), S_mano_betas (10,),
    S_mano_pose_format, S_mano_flat_hand_mean].
-Native JSON: the same content nested, see ``sequence_to_json_dict``; ``object.mesh_file`` may name an
-OBJ/PLY/STL/GLB file relative to the JSON file instead of inline ``object.mesh``.
+Version 2 (an articulated object, ``common.articulation``) adds object_base_part, and per jointed part k (J of them)
+  object_part_names (J,), object_part_mass_kg (J,), object_part{k}_mesh_vertices + _mesh_faces | object_part{k}_
+  primitive + _size, object_joint_names / _types ('revolute'|'prismatic') / _parents (J,), object_joint_axes (J,3),
+  object_joint_origin_pos (J,3), object_joint_origin_quat (J,4) wxyz, object_joint_limits (J,2),
+  [object_joint_damping (J,), object_joint_friction (J,)], object_articulation (T,J) joint values per frame.
+Native JSON: the same content nested, see ``sequence_to_json_dict``; ``object.mesh_file`` (and a part's
+``mesh_file``) may name an OBJ/PLY/STL/GLB file relative to the JSON file instead of inline ``mesh``.
 The DexYCB development NPZs in ``shared/data/dexycb`` are read by ``common.dexycb``.
 
 Reading is done for untrusted bytes: NPZ through ``common.sequence_npz`` (headers checked before anything is
@@ -28,6 +33,7 @@ from typing import Any, cast
 
 import numpy as np
 
+from common.articulation import MAX_PARTS, ObjectJoint
 from common.dexycb import sequence_from_dexycb_npz
 from common.dexycb_native import is_dexycb_sequence_dir, load_dexycb_native
 from common.errors import FieldProblem, SequenceValidationError, UnsupportedFormatError
@@ -38,13 +44,21 @@ from common.sequence import (
     PRIMITIVE_SIZE_LEN,
     HandTrack,
     ManoParams,
+    ObjectPart,
     ObjectSpec,
     Sequence,
 )
-from common.sequence_npz import FORMAT_NAME, FORMAT_VERSION, ParseLimits, native_sequence, open_npz
-
-# ---------------------------------------------------------------------- NPZ
-
+from common.sequence_npz import (
+    ARTICULATED_FORMAT_VERSION,
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    READABLE_VERSIONS,
+    ParseLimits,
+    articulated_arrays,
+    native_sequence,
+    open_npz,
+    shape_arrays,
+)
 
 # ---------------------------------------------------------------------- NPZ
 
@@ -53,7 +67,7 @@ def sequence_to_npz_bytes(seq: Sequence) -> bytes:
     """Serialise to the native NPZ format (compressed, deterministic: ``common.npz_writer``)."""
     arrays: dict[str, Any] = {
         "format": np.array(FORMAT_NAME),
-        "format_version": np.array(FORMAT_VERSION),
+        "format_version": np.array(ARTICULATED_FORMAT_VERSION if seq.object.parts else FORMAT_VERSION),
         "name": np.array(seq.name),
         "fps": np.array(float(seq.fps)),
         "frame_start": np.array(int(seq.frame_start)),
@@ -66,12 +80,9 @@ def sequence_to_npz_bytes(seq: Sequence) -> bytes:
     obj = seq.object
     if obj.friction is not None:
         arrays["object_friction"] = np.array(float(obj.friction))
-    if obj.primitive is not None:
-        arrays["object_primitive"] = np.array(obj.primitive)
-        arrays["object_size"] = obj.size
-    else:
-        arrays["object_mesh_vertices"] = obj.mesh_vertices
-        arrays["object_mesh_faces"] = obj.mesh_faces
+    arrays.update(shape_arrays(obj, "object"))
+    if obj.parts:
+        arrays.update(articulated_arrays(seq))
     if seq.world_from_source is not None:
         arrays["world_from_camera"] = seq.world_from_source
     elif seq.up is not None:
@@ -119,15 +130,12 @@ def sequence_from_npz_bytes(
 def sequence_to_json_dict(seq: Sequence) -> dict[str, Any]:
     """The native JSON form (mesh inline), suitable for ``POST /v1/jobs``."""
     obj = seq.object
-    obj_d: dict[str, Any] = {"name": obj.name, "mass_kg": obj.mass_kg}
+    obj_d = _shape_json(obj)
     if obj.friction is not None:
         obj_d["friction"] = obj.friction
-    if obj.primitive is not None:
-        assert obj.size is not None
-        obj_d["primitive"] = {"kind": obj.primitive, "size": obj.size.tolist()}
-    else:
-        assert obj.mesh_vertices is not None and obj.mesh_faces is not None
-        obj_d["mesh"] = {"vertices": obj.mesh_vertices.tolist(), "faces": obj.mesh_faces.tolist()}
+    if obj.parts:
+        obj_d["base_part"] = obj.base_part
+        obj_d["parts"] = [{**_shape_json(p.shape), "joint": _joint_json(p.joint)} for p in obj.parts]
     hands = []
     for h in seq.hands:
         hd: dict[str, Any] = {"side": h.side, "valid": h.valid.tolist()}
@@ -146,7 +154,7 @@ def sequence_to_json_dict(seq: Sequence) -> dict[str, Any]:
         hands.append(hd)
     out: dict[str, Any] = {
         "format": FORMAT_NAME,
-        "format_version": FORMAT_VERSION,
+        "format_version": ARTICULATED_FORMAT_VERSION if obj.parts else FORMAT_VERSION,
         "name": seq.name,
         "fps": seq.fps,
         "frame_start": seq.frame_start,
@@ -159,6 +167,31 @@ def sequence_to_json_dict(seq: Sequence) -> dict[str, Any]:
         out["world_from_camera"] = seq.world_from_source.tolist()
     elif seq.up is not None:
         out["up"] = seq.up.tolist()
+    if seq.articulation is not None:
+        out["articulation"] = seq.articulation.tolist()
+    return out
+
+
+def _shape_json(obj: ObjectSpec) -> dict[str, Any]:
+    out: dict[str, Any] = {"name": obj.name, "mass_kg": obj.mass_kg}
+    if obj.primitive is not None:
+        assert obj.size is not None
+        out["primitive"] = {"kind": obj.primitive, "size": obj.size.tolist()}
+    else:
+        assert obj.mesh_vertices is not None and obj.mesh_faces is not None
+        out["mesh"] = {"vertices": obj.mesh_vertices.tolist(), "faces": obj.mesh_faces.tolist()}
+    return out
+
+
+def _joint_json(joint: ObjectJoint) -> dict[str, Any]:
+    out: dict[str, Any] = {
+        "name": joint.name, "type": joint.kind, "parent": joint.parent, "axis": np.asarray(joint.axis).tolist(),
+        "origin": {"pos": np.asarray(joint.origin_pos).tolist(), "quat": np.asarray(joint.origin_quat).tolist()},
+        "limits": np.asarray(joint.limits).tolist(),
+    }  # fmt: skip
+    for key in ("damping", "friction"):
+        if getattr(joint, key) is not None:
+            out[key] = getattr(joint, key)
     return out
 
 
@@ -217,38 +250,78 @@ def sequence_from_json_dict(
         raise SequenceValidationError.single("body", "must be a JSON object")
     if doc.get("format", FORMAT_NAME) != FORMAT_NAME:
         raise SequenceValidationError.single("format", f"expected {FORMAT_NAME!r}")
-    if doc.get("format_version", FORMAT_VERSION) != FORMAT_VERSION:
-        raise SequenceValidationError.single("format_version", f"this build reads version {FORMAT_VERSION}")
+    version = doc.get("format_version", FORMAT_VERSION)
+    if isinstance(version, bool) or version not in READABLE_VERSIONS:
+        raise SequenceValidationError.single(
+            "format_version", f"this build reads versions {', '.join(map(str, READABLE_VERSIONS))}"
+        )
 
     od = need(doc, "object", "object")
     if od is not None and not isinstance(od, dict):
         problems.append(FieldProblem("object", "must be an object"))
     od = od if isinstance(od, dict) else {}
-    obj = ObjectSpec(
-        name=text(od.get("name"), "object.name", "object"),
-        mass_kg=num(need(od, "mass_kg", "object.mass_kg"), "object.mass_kg"),
-        friction=None if od.get("friction") is None else num(od["friction"], "object.friction"),
-    )
-    if "primitive" in od:
-        prim = od["primitive"]
-        kind = prim.get("kind") if isinstance(prim, dict) else None
-        if not isinstance(kind, str) or kind not in PRIMITIVE_SIZE_LEN:
-            problems.append(FieldProblem("object.primitive.kind", f"must be one of {sorted(PRIMITIVE_SIZE_LEN)}"))
-        else:
-            obj.primitive = cast(Any, kind)
-            obj.size = arr(need(prim, "size", "object.primitive.size"), "object.primitive.size")
-    if "mesh" in od:
-        mesh = od["mesh"] if isinstance(od["mesh"], dict) else {}
-        obj.mesh_vertices = arr(need(mesh, "vertices", "object.mesh.vertices"), "object.mesh.vertices")
-        obj.mesh_faces = arr(need(mesh, "faces", "object.mesh.faces"), "object.mesh.faces", np.int64)
-    if "mesh_file" in od:
-        if not isinstance(od["mesh_file"], str):
-            problems.append(FieldProblem("object.mesh_file", "must be a path (string)"))
-        else:
-            mesh_path = Path(od["mesh_file"])
-            if not mesh_path.is_absolute() and base_dir is not None:
-                mesh_path = base_dir / mesh_path
-            obj.mesh_vertices, obj.mesh_faces = load_mesh_file(mesh_path)
+
+    def shape(d: dict[str, Any], f: str) -> ObjectSpec:
+        out = ObjectSpec(
+            name=text(d.get("name"), f"{f}.name", "object"),
+            mass_kg=num(need(d, "mass_kg", f"{f}.mass_kg"), f"{f}.mass_kg"),
+            friction=None if d.get("friction") is None else num(d["friction"], f"{f}.friction"),
+        )
+        if "primitive" in d:
+            prim = d["primitive"]
+            kind = prim.get("kind") if isinstance(prim, dict) else None
+            if not isinstance(kind, str) or kind not in PRIMITIVE_SIZE_LEN:
+                problems.append(FieldProblem(f"{f}.primitive.kind", f"must be one of {sorted(PRIMITIVE_SIZE_LEN)}"))
+            else:
+                out.primitive = cast(Any, kind)
+                out.size = arr(need(prim, "size", f"{f}.primitive.size"), f"{f}.primitive.size")
+        if "mesh" in d:
+            mesh = d["mesh"] if isinstance(d["mesh"], dict) else {}
+            out.mesh_vertices = arr(need(mesh, "vertices", f"{f}.mesh.vertices"), f"{f}.mesh.vertices")
+            out.mesh_faces = arr(need(mesh, "faces", f"{f}.mesh.faces"), f"{f}.mesh.faces", np.int64)
+        if "mesh_file" in d:
+            if not isinstance(d["mesh_file"], str):
+                problems.append(FieldProblem(f"{f}.mesh_file", "must be a path (string)"))
+            else:
+                mesh_path = Path(d["mesh_file"])
+                if not mesh_path.is_absolute() and base_dir is not None:
+                    mesh_path = base_dir / mesh_path
+                out.mesh_vertices, out.mesh_faces = load_mesh_file(mesh_path)
+        return out
+
+    def joint(d: Any, f: str) -> ObjectJoint:
+        if not isinstance(d, dict):
+            problems.append(FieldProblem(f, "must be an object (name, type, parent, axis, origin, limits)"))
+            d = {}
+        origin = d.get("origin", {})
+        if not isinstance(origin, dict):
+            problems.append(FieldProblem(f"{f}.origin", "must be an object {pos, quat}"))
+            origin = {}
+        return ObjectJoint(
+            name=text(need(d, "name", f"{f}.name"), f"{f}.name", ""),
+            kind=cast(Any, text(need(d, "type", f"{f}.type"), f"{f}.type", "")),
+            parent=text(need(d, "parent", f"{f}.parent"), f"{f}.parent", ""),
+            axis=arr(need(d, "axis", f"{f}.axis"), f"{f}.axis"),
+            origin_pos=arr(origin.get("pos", [0.0, 0.0, 0.0]), f"{f}.origin.pos"),
+            origin_quat=arr(origin.get("quat", [1.0, 0.0, 0.0, 0.0]), f"{f}.origin.quat"),
+            limits=arr(need(d, "limits", f"{f}.limits"), f"{f}.limits"),
+            damping=None if d.get("damping") is None else num(d["damping"], f"{f}.damping"),
+            friction=None if d.get("friction") is None else num(d["friction"], f"{f}.friction"),
+        )
+
+    obj = shape(od, "object")
+    if "base_part" in od:
+        obj.base_part = text(od["base_part"], "object.base_part", "base")
+    part_docs = od.get("parts", [])
+    if not isinstance(part_docs, list):
+        problems.append(FieldProblem("object.parts", "must be a list"))
+        part_docs = []
+    for k, pd in enumerate(part_docs[: MAX_PARTS + 1]):  # one more than allowed is enough to say so
+        f = f"object.parts[{k}]"
+        if not isinstance(pd, dict):
+            problems.append(FieldProblem(f, "must be an object (name, mass_kg, mesh or primitive, joint)"))
+            continue
+        obj.parts.append(ObjectPart(shape(pd, f), joint(need(pd, "joint", f"{f}.joint"), f"{f}.joint")))
 
     hands = []
     hand_docs = need(doc, "hands", "hands")
@@ -301,11 +374,12 @@ def sequence_from_json_dict(
         problems.append(FieldProblem("meta", "must be an object whose values are strings"))
         meta = {}
     name = text(doc.get("name"), "name", "sequence")
+    articulation = arr(doc.get("articulation"), "articulation")
     if problems:
         raise SequenceValidationError(problems)
     seq = Sequence(
         name=name, fps=fps, frame_start=frame_start, object=obj, object_pose=pose, hands=hands,
-        world_from_source=world, up=up, meta=dict(meta),
+        world_from_source=world, up=up, meta=dict(meta), articulation=articulation,
     )  # fmt: skip
     return seq.validate(max_frames=max_frames)
 
@@ -345,8 +419,10 @@ def _flat_head(value: list[Any], depth: int = 0) -> list[Any]:
 # ---------------------------------------------------------------------- files
 
 
-def load_sequence(path: Path | str, max_frames: int | None = None) -> Sequence:
-    """Read a sequence file, choosing the format by suffix (``.npz`` or ``.json``), or a DexYCB sequence folder."""
+def load_sequence(path: Path | str, max_frames: int | None = None, object_dir: Path | None = None) -> Sequence:
+    """Read a sequence file, choosing the format by suffix (``.npz`` or ``.json``; ``.npy``: an ARCTIC recording,
+    ``common.arctic``, whose object folder ``object_dir`` overrides the one its layout implies), or a DexYCB
+    sequence folder."""
     path = Path(path)
     if path.is_dir() or path.name == "meta.yml":
         # DexYCB native layout: <root>/<subject>/<sequence>/{meta.yml,pose.npz}
@@ -363,7 +439,13 @@ def load_sequence(path: Path | str, max_frames: int | None = None) -> Sequence:
         return seq
     if suffix == ".json":
         return sequence_from_json_bytes(path.read_bytes(), base_dir=path.parent, max_frames=max_frames)
-    raise UnsupportedFormatError(f"{path.name}: unknown sequence format {suffix!r} (expected .npz or .json)")
+    if suffix == ".npy":
+        from common.arctic import load_arctic
+
+        return load_arctic(path, object_dir=object_dir, max_frames=max_frames)
+    raise UnsupportedFormatError(
+        f"{path.name}: unknown sequence format {suffix!r} (expected .npz, .json or an ARCTIC .npy)"
+    )
 
 
 def save_sequence(seq: Sequence, path: Path | str) -> None:

@@ -10,9 +10,9 @@ from common.job_options import JobOptions
 from common.result_format import content_digest, read_summary
 from common.sequence_io import sequence_to_npz_bytes
 from tests.support.queue_fixtures import BACKENDS, ApiHarness
-from worker.refine.verify import check_result
 from worker.runtime.jobs import RefineJob, verification
 from worker.runtime.loop import WorkerLoop
+from worker.verification import check_result
 
 BACKEND = pytest.mark.parametrize("empty_db_url", BACKENDS, indirect=True)
 

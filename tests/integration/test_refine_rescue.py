@@ -17,8 +17,8 @@ from common.sequence import ObjectSpec, Sequence
 from tests.support.synthetic_push import push_sequence
 from worker.refine.prepare import prepare
 from worker.refine.run import RefineOutcome, attempt_rank, refine_sequence, rescue_due
-from worker.refine.verify import check_result
 from worker.simulation.config import SimConfig
+from worker.verification import check_result
 
 #: Two attempts of a tiny budget, no polish: the rescue's cost in a test is two more.
 QUICK = JobOptions(seed=0, popsize=4, max_generations=2, restarts=1, polish=False)

@@ -17,7 +17,7 @@ from common.errors import ResultMismatchError
 from common.job_options import JobOptions
 from common.result_format import read_arrays, read_summary, write_result_npz
 from worker.refine.run import RefineOutcome, refine_sequence
-from worker.refine.verify import check_result, verify_result
+from worker.verification import check_result, verify_result
 
 ROOT = Path(__file__).resolve().parents[2]
 #: The sequence of the issue: an honest result of it failed verify by 0.066 mm.

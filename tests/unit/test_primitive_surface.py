@@ -96,6 +96,6 @@ def test_the_refinement_reads_the_configured_points() -> None:
     from worker.refine.prepare import _surface_samples
 
     seq = short_example_sequence()
-    assert np.array_equal(_surface_samples(seq, 0.0), seq.object.surface_vertices())  # the default: as before
-    dense = _surface_samples(seq, SPACING_M)
+    assert np.array_equal(_surface_samples(seq.object, 0.0), seq.object.surface_vertices())  # the default: as before
+    dense = _surface_samples(seq.object, SPACING_M)
     assert len(dense) > 100 * len(seq.object.surface_vertices())

@@ -9,9 +9,9 @@ import pytest
 
 from worker.refine.prepare import MIRROR_LEFT_HAND, ROTATION_PIVOT
 from worker.refine.result import sim_config_from_summary
-from worker.refine.verify import EARLIER_DEFAULTS, _config
-from worker.refine.verify_report import VerifyReport
 from worker.simulation.config import SimConfig
+from worker.verification.check import EARLIER_DEFAULTS, _config
+from worker.verification.report import VerifyReport
 
 
 def _stored(**sim: Any) -> dict[str, Any]:

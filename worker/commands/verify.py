@@ -1,5 +1,5 @@
 """``hoi-refine verify RESULT.npz``: recompute everything a result claims from its embedded sequence and stored
-controls (``worker.refine.verify``), fail naming each field that differs, flag a non-default physics config, and
+controls (``worker.verification.check``), fail naming each field that differs, flag a non-default physics config, and
 print the largest deviation and the digests."""
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ def register(subparsers: Any) -> None:
         "simulated keypoints, wrist track, contacts, per-frame and summary metrics on both protocols, success) "
         "and fails naming each field that differs and by how much. A physics config other than the product's "
         "defaults fails unless --allow-config. On the machine that made the result the replay is bit-identical; "
-        "on another x86_64 host it is compared within physical tolerances (worker/refine/verify_report.py). "
+        "on another x86_64 host it is compared within physical tolerances (worker/verification/report.py). "
         "Prints the largest trajectory deviation, a SHA-256 over everything checked, and the result's content "
         "sha256 (every member but the wall-clock timings), which two runs with the same input, options and seed "
         "share.",
@@ -38,7 +38,7 @@ def _verify(args: argparse.Namespace) -> int:
     from common.errors import ResultMismatchError
     from common.result_format import content_digest
     from common.sequence_io import load_sequence
-    from worker.refine.verify import check_result
+    from worker.verification import check_result
 
     seq = load_sequence(args.sequence) if args.sequence else None
     blob = args.result.read_bytes()

@@ -18,8 +18,9 @@ Modules, in pipeline order:
                  ``verify`` call the same function);
 * ``result``     the result summary (and the visual tools' rebuild of a result's problem);
 * ``environment`` what a result records of the environment that made it (packages, CPU kind);
-* ``verify``     ``verify_result`` / ``check_result`` (with ``verify_arrays``, ``verify_summary``,
-                 ``verify_report``): recompute and compare everything a result claims.
+
+``verify`` (recompute and compare everything a result claims) is its own sub-package, ``worker.verification``,
+above this one: it calls ``derive`` and reads ``prepare``.
 """
 
 import warnings
@@ -31,7 +32,6 @@ from worker.refine.evaluator import ParallelEvaluator  # noqa: E402  (after the 
 from worker.refine.prepare import Prepared  # noqa: E402
 from worker.refine.replay import ReplayRecord  # noqa: E402
 from worker.refine.run import RefineOutcome, refine_sequence  # noqa: E402
-from worker.refine.verify import verify_result  # noqa: E402
 from worker.refine.windowed import RefineProgress  # noqa: E402
 
 # Not re-exported: the functions named like their modules (``prepare``, ``replay``): a package attribute of that
@@ -43,5 +43,4 @@ __all__ = [
     "RefineProgress",
     "ReplayRecord",
     "refine_sequence",
-    "verify_result",
 ]

@@ -29,6 +29,7 @@ from worker.refine.prepare import Prepared, prepare, settled_start
 from worker.refine.replay import ReplayJob, ReplayRecord, replay_all
 from worker.simulation.config import SimConfig
 from worker.simulation.metrics import compute_metrics, scalar_metrics
+from worker.simulation.replay import articulation_frames
 
 
 @dataclass
@@ -126,6 +127,7 @@ def replay_metrics(prep: Prepared, rec: ReplayRecord) -> dict[str, Any]:
         {r.side: r.keypoints for r in prep.references},
         {r.side: r.valid for r in prep.references},
         rec.contact_frames,
+        articulation_frames(prep.seq, rec.articulation),
     )
 
 
@@ -149,6 +151,10 @@ def build_arrays(
     }
     if final.contact_frames is not None:
         arrays["object_table_contact"] = final.contact_frames.table
+    if final.articulation is not None and raw.articulation is not None and prep.seq.articulation is not None:
+        arrays["object_articulation_sim"] = final.articulation
+        arrays["object_articulation_ref"] = prep.seq.articulation
+        arrays["raw_object_articulation_sim"] = raw.articulation
     for ref in prep.references:
         s = ref.side
         q, p, r = prep.spaces[s].frame_controls(keyframes[s])

@@ -50,6 +50,13 @@ scale so the default weights read as "how much one scale unit of error costs":
   4.45 -> 3.38 deg, penetration 0.39 -> 0.46 mm (sequence maxima 1.47 -> 1.69 mm mean, worst 4.3 -> 8.6 mm);
   ``bench/results/left_hands_thin.md``.
 
+* ``object_articulation`` (an articulated object only, issue #52): per joint |a_sim - a_ref| / 0.04 rad (or / 1 cm
+  for a sliding part), the scale of ``object_pose``'s rotation and position parts, plus (max(0, |a_sim - a_ref| -
+  10 deg) / 2.5 deg)^2 (2 cm / 5 mm for a sliding part): like ``object_excursion``, a guard for the per-frame
+  success limit (15 deg / 3 cm, ``worker.simulation.metrics.SUCCESS_ARTICULATION``) that a sum does not protect.
+  With several parts, the contact terms (``fingertip_contact``, ``grasp_reach``) measure each fingertip against the
+  part it touches in the recording and each distal segment against the nearest part, in that part's frame.
+
 Each weight can be set to 0 (ablation) through ``JobOptions.loss_weights`` / ``--weights``.
 """
 
@@ -78,6 +85,7 @@ DEFAULT_WEIGHTS: dict[str, float] = {
     "hand_velocity": 0.01,
     "penetration": 0.3,
     "grasp_reach": 3.0,
+    "object_articulation": 1.0,
 }
 assert set(DEFAULT_WEIGHTS) == set(LOSS_NAMES)
 
@@ -101,6 +109,9 @@ REACH_TOLERANCE = 0.002
 REACH_CAP = 0.03
 EXCURSION_POS, EXCURSION_POS_SCALE = 0.02, 0.005  # m: free margin, then quadratic per 5 mm
 EXCURSION_ROT, EXCURSION_ROT_SCALE = np.radians(20.0), np.radians(5.0)  # rad
+#: ``object_articulation``'s scale, free margin and excursion scale per joint kind (rad or m).
+ARTICULATION_SCALE = {"revolute": ROT_SCALE, "prismatic": POS_SCALE}
+ARTICULATION_MARGIN = {"revolute": (np.radians(10.0), np.radians(2.5)), "prismatic": (0.02, 0.005)}
 
 
 def resolve_weights(overrides: Mapping[Any, float] | None) -> dict[str, float]:
@@ -166,6 +177,10 @@ class HandKeypointTargets:
     distal: DistalSegments | None = None
     #: object-frame points (..., 3) -> distance to the object surface (...,) (``distance_grid.DistanceGrid``)
     surface: Callable[[FloatArray], FloatArray] | None = None
+    #: An articulated object: the part each contact target is on (T, n_tips), its parts' surfaces (then
+    #: ``contact_local`` is in that part's frame and ``surface`` is unused).
+    contact_part: npt.NDArray[np.int64] | None = None
+    parts: PartSurfaces | None = None
 
     def __post_init__(self) -> None:
         t, j, _ = self.keypoints.shape
@@ -184,6 +199,30 @@ class ObjectTargets:
     pos: FloatArray  # (T, 3) world
     quat: FloatArray  # (T, 4) world wxyz
     vel: FloatArray  # (T, 6) world linear, angular
+    #: An articulated object's recorded joint values (T, J) and each joint's kind; None for a rigid one.
+    articulation: FloatArray | None = None
+    joint_kinds: tuple[str, ...] = ()
+
+
+@dataclass
+class PartSurfaces:
+    """An articulated object's parts for the contact terms: per part, object-frame points (..., 3) -> distance to
+    its surface (KD-tree, exact) and the same tabulated (``distance_grid``, fast), base first."""
+
+    exact: list[SurfaceDistance]
+    fast: list[Callable[[FloatArray], FloatArray]]
+
+    def gaps(self, distal: DistalSegments, keypoints: FloatArray, part_pos: FloatArray, part_quat: FloatArray
+             ) -> FloatArray:
+        """(..., 5) ``DistalSegments.gaps`` to the nearest part, from world keypoints (..., J, 3) and part poses
+        (..., P, 3) / (..., P, 4)."""
+        out = None
+        for p, surface in enumerate(self.fast):
+            local = quat_rotate(quat_conj(part_quat[..., p, None, :]), keypoints - part_pos[..., p, None, :])
+            gaps = distal.gaps(local, surface)
+            out = gaps if out is None else np.minimum(out, gaps)
+        assert out is not None
+        return out
 
 
 def contact_targets(
@@ -201,6 +240,30 @@ def contact_targets(
     dist = surface_distance(local.reshape(-1, 3)).reshape(local.shape[:2])
     mask = (dist <= threshold) & valid[:, None]
     return mask, local
+
+
+def part_contact_targets(
+    keypoints: FloatArray,
+    valid: BoolArray,
+    part_pos: FloatArray,
+    part_quat: FloatArray,
+    surfaces: list[SurfaceDistance],
+    fingertips: tuple[int, ...],
+    threshold: float = CONTACT_THRESHOLD,
+) -> tuple[BoolArray, FloatArray, npt.NDArray[np.int64]]:
+    """``contact_targets`` over an articulated object's parts (T, P, 3) / (T, P, 4): each fingertip's nearest
+    part (T, n), whether it is within ``threshold`` of it, and the point in that part's frame."""
+    tips = keypoints[:, list(fingertips)]  # (T, n, 3)
+    dists, locals_ = [], []
+    for p, surface in enumerate(surfaces):
+        local = quat_rotate(quat_conj(part_quat[:, p])[:, None], tips - part_pos[:, p, None])
+        dists.append(surface(local.reshape(-1, 3)).reshape(local.shape[:2]))
+        locals_.append(local)
+    dist = np.stack(dists, axis=-1)  # (T, n, P)
+    part = np.argmin(dist, axis=-1)
+    local = np.take_along_axis(np.stack(locals_, axis=2), part[..., None, None], axis=2)[:, :, 0]
+    mask = (np.min(dist, axis=-1) <= threshold) & valid[:, None]
+    return mask, local, part.astype(np.int64)
 
 
 class SurfaceDistance:
@@ -235,6 +298,11 @@ class WindowRecord:
     #: (F,) factor on the rotation part of ``object_pose`` per frame (``SimWindowProblem.lookahead_rotation_weight``
     #: on the frames a window simulates past the keyframe after the optimised one); None: 1 on every frame.
     rotation_weight: FloatArray | None = None
+    #: An articulated object: joint values (C, F, J) and every part's world pose (C, F, P, 3) / (C, F, P, 4), base
+    #: first; None for a rigid one.
+    articulation: FloatArray | None = None
+    part_pos: FloatArray | None = None
+    part_quat: FloatArray | None = None
 
 
 def object_terms(rec: WindowRecord, ref: ObjectTargets) -> dict[str, FloatArray]:
@@ -248,11 +316,23 @@ def object_terms(rec: WindowRecord, ref: ObjectTargets) -> dict[str, FloatArray]
     excursion = (np.maximum(dpos - EXCURSION_POS, 0.0) / EXCURSION_POS_SCALE) ** 2 + (
         np.maximum(geo - EXCURSION_ROT, 0.0) / EXCURSION_ROT_SCALE
     ) ** 2
-    return {
+    out = {
         "object_pose": pose.sum(axis=1),
         "object_velocity": vel.sum(axis=1),
         "object_excursion": excursion.sum(axis=1),
     }
+    if rec.articulation is not None and ref.articulation is not None:
+        out["object_articulation"] = articulation_term(rec.articulation, ref.articulation[f], ref.joint_kinds)
+    return out
+
+
+def articulation_term(sim: FloatArray, ref: FloatArray, kinds: tuple[str, ...]) -> FloatArray:
+    """(C,) ``object_articulation`` of joint values (C, F, J) against the recording's (F, J)."""
+    scale = np.array([ARTICULATION_SCALE[k] for k in kinds])
+    margin = np.array([ARTICULATION_MARGIN[k][0] for k in kinds])
+    margin_scale = np.array([ARTICULATION_MARGIN[k][1] for k in kinds])
+    err = np.abs(sim - ref[None])
+    return np.asarray((err / scale + (np.maximum(err - margin, 0.0) / margin_scale) ** 2).sum(axis=(1, 2)))
 
 
 def hand_terms(rec: WindowRecord, side: str, ref: HandKeypointTargets) -> dict[str, FloatArray]:
@@ -264,7 +344,12 @@ def hand_terms(rec: WindowRecord, side: str, ref: HandKeypointTargets) -> dict[s
     mask = ref.contact_mask[f]  # (F, n)
     if mask.any():
         tips = kp[:, :, list(ref.fingertips)]
-        local = quat_rotate(quat_conj(rec.obj_quat)[:, :, None], tips - rec.obj_pos[:, :, None])
+        if ref.contact_part is not None and rec.part_pos is not None and rec.part_quat is not None:
+            rows = np.arange(len(f))[:, None]
+            part = ref.contact_part[f]  # (F, n): each target's part, whose frame ``contact_local`` is in
+            local = quat_rotate(quat_conj(rec.part_quat[:, rows, part]), tips - rec.part_pos[:, rows, part])
+        else:
+            local = quat_rotate(quat_conj(rec.obj_quat)[:, :, None], tips - rec.obj_pos[:, :, None])
         d = np.linalg.norm(local - ref.contact_local[f][None], axis=-1) / POS_SCALE  # (C, F, n)
         per_frame = (d * mask).sum(axis=2) / np.maximum(mask.sum(axis=1), 1)
         contact = per_frame.sum(axis=1)
@@ -280,7 +365,14 @@ def hand_terms(rec: WindowRecord, side: str, ref: HandKeypointTargets) -> dict[s
         charged = 1.0 if rec.lifted is None else rec.lifted
         pen = ((depth / PENETRATION_SCALE) ** 2 * charged).sum(axis=1)
     reach = np.zeros(kp.shape[0])
-    if ref.grip is not None and ref.distal is not None and ref.surface is not None:
+    if ref.grip is not None and ref.distal is not None and ref.parts is not None and rec.part_pos is not None:
+        grip = ref.grip[f]
+        if grip.any():
+            assert rec.part_quat is not None
+            gaps = ref.parts.gaps(ref.distal, kp[:, grip], rec.part_pos[:, grip], rec.part_quat[:, grip])
+            gaps = np.clip(gaps - REACH_TOLERANCE, 0.0, REACH_CAP)  # (C, G, 5)
+            reach = ((gaps[..., 0] + gaps[..., 1:].min(axis=-1)) / POS_SCALE).sum(axis=1)
+    elif ref.grip is not None and ref.distal is not None and ref.surface is not None:
         grip = ref.grip[f]
         if grip.any():
             pts = kp[:, grip]  # (C, G, J, 3)
@@ -309,6 +401,8 @@ def window_losses(
     """
     terms = {k: weights[k] * v for k, v in object_terms(rec, obj).items()}
     shared = terms["object_pose"] + terms["object_velocity"] + terms["object_excursion"]
+    if "object_articulation" in terms:
+        shared = shared + terms["object_articulation"]
     per_hand: dict[str, FloatArray] = {}
     for side, ref in hands.items():
         ht = {k: weights[k] * v for k, v in hand_terms(rec, side, ref).items()}

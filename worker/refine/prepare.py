@@ -13,8 +13,8 @@ import numpy as np
 from common.errors import ConfigurationError
 from common.geometry import FloatArray
 from common.job_options import JobOptions
-from common.primitive_surface import object_surface_points
-from common.sequence import FINGERTIP_INDICES, Sequence
+from common.primitive_surface import object_surface_points, part_surface_points
+from common.sequence import FINGERTIP_INDICES, ObjectSpec, Sequence
 from worker.hand.mano.pose import mano_pca_basis
 from worker.hand.model import FINGER_BASE_KEYPOINT, JOINT_LIMITS, MIRROR_SIGNS, HandGeometry
 from worker.hand.pose_basis import load_pose_basis
@@ -28,9 +28,11 @@ from worker.refine.losses import (
     DistalSegments,
     HandKeypointTargets,
     ObjectTargets,
+    PartSurfaces,
     SurfaceDistance,
     contact_targets,
     finite_difference_velocity,
+    part_contact_targets,
 )
 from worker.refine.problem import SimLayout
 from worker.refine.spline import default_keyframe_interval
@@ -177,17 +179,8 @@ def prepare(
         raise ValueError(f"rotation_pivot must be one of {', '.join(PIVOTS)}, got {pivot_kind!r}")
     pose = seq.object_pose_world()
     obj = ObjectTargets(pose[:, :3], pose[:, 3:], finite_difference_velocity(pose[:, :3], pose[:, 3:], seq.fps))
-    samples = _surface_samples(seq, config.primitive_surface_spacing_m)
-    surface = SurfaceDistance(samples)
-    surface_grid = DistanceGrid(samples)
-    hands: dict[str, HandKeypointTargets] = {}
-    for r in references:
-        mask, local = contact_targets(r.keypoints, r.valid, pose[:, :3], pose[:, 3:], surface, FINGERTIP_INDICES)
-        hands[r.side] = HandKeypointTargets(
-            r.keypoints, r.valid, FINGERTIP_INDICES, mask, local,
-            grip=grip_frames(pose, mask, round(GRIP_LEAD_S * seq.fps)),
-            distal=distal_segments(r.geometry), surface=surface_grid,
-        )  # fmt: skip
+    hands = (_part_hand_targets(seq, references, pose, obj, config) if seq.object.parts
+             else _hand_targets(seq, references, pose, config))  # fmt: skip
     # The mocap and the servo targets run ahead of their tracks by the weld's and the servos' lags
     # (``SimConfig.wrist_lead_s`` / ``finger_lead_s``), as in the raw replay (``stepping.substep_controls``);
     # the pivot moves with the wrist so the hand turns about its centre.
@@ -211,6 +204,56 @@ def prepare(
         )
     return Prepared(seq, options, interval, references, scene, layout, spaces, obj, hands, provenance, pivot_kind,
                     mano_dir, mirror_left)
+
+
+def _hand_targets(
+    seq: Sequence, references: list[HandReference], pose: FloatArray, config: SimConfig
+) -> dict[str, HandKeypointTargets]:
+    """Each hand's targets against a rigid object."""
+    samples = _surface_samples(seq.object, config.primitive_surface_spacing_m)
+    surface = SurfaceDistance(samples)
+    surface_grid = DistanceGrid(samples)
+    hands: dict[str, HandKeypointTargets] = {}
+    for r in references:
+        mask, local = contact_targets(r.keypoints, r.valid, pose[:, :3], pose[:, 3:], surface, FINGERTIP_INDICES)
+        hands[r.side] = HandKeypointTargets(
+            r.keypoints, r.valid, FINGERTIP_INDICES, mask, local,
+            grip=grip_frames(pose, mask, round(GRIP_LEAD_S * seq.fps)),
+            distal=distal_segments(r.geometry), surface=surface_grid,
+        )  # fmt: skip
+    return hands
+
+
+def _part_hand_targets(
+    seq: Sequence, references: list[HandReference], pose: FloatArray, obj: ObjectTargets, config: SimConfig
+) -> dict[str, HandKeypointTargets]:
+    """Each hand's targets against an articulated object: every fingertip's target on the part it touches, in
+    that part's frame, and the reach measured to the nearest part (``losses.PartSurfaces``). Fills ``obj``'s
+    articulation targets."""
+    assert seq.articulation is not None
+    obj.articulation = seq.articulation
+    obj.joint_kinds = tuple(j.kind for j in seq.object.joints)
+    parts = seq.object.part_poses(pose, seq.articulation)  # (T, P, 7)
+    samples = [part_surface_points(shape, config.primitive_surface_spacing_m) for shape in seq.object.part_shapes()]
+    surfaces = PartSurfaces([SurfaceDistance(s) for s in samples], [DistanceGrid(s) for s in samples])
+    hands: dict[str, HandKeypointTargets] = {}
+    for r in references:
+        mask, local, part = part_contact_targets(r.keypoints, r.valid, parts[..., :3], parts[..., 3:],
+                                                 surfaces.exact, FINGERTIP_INDICES)  # fmt: skip
+        # The grip follows the part the hand holds: a hand on a lid grips from when the lid starts to move.
+        moved = _part_moved_pose(parts, part, mask)
+        hands[r.side] = HandKeypointTargets(
+            r.keypoints, r.valid, FINGERTIP_INDICES, mask, local,
+            grip=grip_frames(moved, mask, round(GRIP_LEAD_S * seq.fps)),
+            distal=distal_segments(r.geometry), contact_part=part, parts=surfaces,
+        )  # fmt: skip
+    return hands
+
+
+def _part_moved_pose(parts: FloatArray, part: np.ndarray, mask: BoolArray) -> FloatArray:
+    """(T, 7) poses of the part a hand touches most in the recording (the base when it touches none)."""
+    counts = np.bincount(part[mask], minlength=parts.shape[1]) if mask.any() else np.zeros(parts.shape[1])
+    return np.asarray(parts[:, int(np.argmax(counts))])
 
 
 def grip_frames(object_pose: FloatArray, contact_mask: BoolArray, lead: int = 0) -> BoolArray:
@@ -237,11 +280,11 @@ def pivot_track(kind: str, keypoints: FloatArray, joint_weights: FloatArray) -> 
     return np.asarray(np.einsum("tjk,j->tk", keypoints, joint_weights), dtype=np.float64)
 
 
-def _surface_samples(seq: Sequence, primitive_spacing: float) -> FloatArray:
+def _surface_samples(shape: ObjectSpec, primitive_spacing: float) -> FloatArray:
     """Object-frame surface points: a mesh's vertices, edge midpoints and face centroids (dense enough for 1 cm);
     a primitive's from ``object_surface_points``."""
-    verts = object_surface_points(seq.object, primitive_spacing)
-    faces = seq.object.mesh_faces
+    verts = object_surface_points(shape, primitive_spacing)
+    faces = shape.mesh_faces
     if faces is None:
         return verts
     tri = verts[faces]

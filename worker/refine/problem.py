@@ -62,6 +62,22 @@ class SimLayout:
     hands: dict[str, HandLayout]
     hold_eq: int = -1
     release_frame: int = 0
+    #: An articulated object: ``n_joints`` joint values from ``articulation_sensor_adr`` and, per part beyond the
+    #: base, 7 values (position, quaternion of its body frame) from ``part_sensor_adr`` (-1: a rigid object).
+    articulation_sensor_adr: int = -1
+    n_joints: int = 0
+    part_sensor_adr: int = -1
+
+    def parts_from_sensors(self, sens: FloatArray, base_pos: FloatArray, base_quat: FloatArray
+                           ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """An articulated object's joint values (..., J) and part poses (..., P, 3) / (..., P, 4), base first,
+        from sensordata (..., ns) and the base's body-frame pose (``object_from_sensors``)."""
+        a, n = self.articulation_sensor_adr, self.n_joints
+        values = sens[..., a : a + n]
+        rows = sens[..., self.part_sensor_adr : self.part_sensor_adr + 7 * n].reshape((*sens.shape[:-1], n, 7))
+        pos = np.concatenate([base_pos[..., None, :], rows[..., :3]], axis=-2)
+        quat = np.concatenate([base_quat[..., None, :], rows[..., 3:]], axis=-2)
+        return values, pos, quat
 
     def equality_switches(self, steps: IntArray) -> FloatArray:
         """(n, neq) ``eq_active`` for global physics steps ``steps``: the model's own, and the object's hold on
@@ -109,7 +125,8 @@ class SimLayout:
             for side, h in scene.hands.items()
         }
         return SimLayout(scene.model, scene.substeps_per_frame, scene.object_body_id, scene.object_sensor_adr, hands,
-                         scene.object_hold_eq, scene.object_release_frame)
+                         scene.object_hold_eq, scene.object_release_frame, scene.object_articulation_sensor_adr,
+                         len(scene.object_joint_qpos_adr), scene.object_part_sensor_adr)
 
     @staticmethod
     def from_model(
@@ -153,6 +170,10 @@ def _is_descendant(model: mujoco.MjModel, body: int, root: int) -> bool:
     return False
 
 
+#: The key of the one objective over both hands (``SimWindowProblem.combined``).
+COMBINED = "both"
+
+
 class SimWindowProblem:
     """Windowed refinement of one sequence on a compiled model (implements ``windowed.WindowProblem``)."""
 
@@ -176,6 +197,8 @@ class SimWindowProblem:
         # Factor on the object's rotation error over the frames past keyframe j + 1 (``keyframe_window``'s
         # lookahead beyond DESIGN §1.6's window), where keyframe j's candidate is held (``replay.LOOKAHEAD``).
         self.lookahead_rotation_weight = lookahead_rotation_weight
+        #: Whether the losses are one objective over both hands (``joint_hands.JointHandsProblem``).
+        self.combined = False
         first = spaces[self.sides[0]]
         self.n_keyframes = first.n_keyframes
         self.interval, self.substeps, self.num_frames = first.interval, first.substeps, first.num_frames
@@ -210,8 +233,15 @@ class SimWindowProblem:
         control, offsets = self.build_control(keyframes, f0, f1, j, candidates, hold=hold)
         states, sensors = self.evaluator.rollout(state, control)
         rec = self._record(f0, f1, states, sensors, offsets, j)
-        per_hand, _ = window_losses(rec, self.obj, self.hand_targets, self.weights)
-        return per_hand
+        return self._losses(rec)
+
+    def _losses(self, rec: WindowRecord) -> dict[str, FloatArray]:
+        """Each hand's objective, or with ``combined`` one objective ``COMBINED`` over both hands (the object's
+        terms once, plus every hand's terms: ``joint_hands``)."""
+        per_hand, terms = window_losses(rec, self.obj, self.hand_targets, self.weights)
+        if not self.combined:
+            return per_hand
+        return {COMBINED: np.asarray(sum(terms.values()), dtype=np.float64)}
 
     def probe(self, j: int, state: SimState, keyframes: dict[str, FloatArray]) -> tuple[dict[str, float], bool]:
         f0, f1 = self.window(j)
@@ -230,8 +260,7 @@ class SimWindowProblem:
         # ``_record`` reads are copied out.
         states, sensors = self._step_recording(state, control[0], hook, self._recorded_steps(f0, f1))
         rec = self._record(f0, f1, states[None], sensors[None], offsets, j)
-        per_hand, _ = window_losses(rec, self.obj, self.hand_targets, self.weights)
-        return {s: float(v[0]) for s, v in per_hand.items()}, touched
+        return {s: float(v[0]) for s, v in self._losses(rec).items()}, touched
 
     def commit(self, j: int, state: SimState, keyframes: dict[str, FloatArray]) -> SimState:
         f0, _ = self.window(j)
@@ -326,6 +355,9 @@ class SimWindowProblem:
         sens = sensors[:, at]
         qvel = states[:, after, 1 + self._nq : 1 + self._nq + self._nv]
         obj_pos, obj_quat, obj_vel = self.layout.object_from_sensors(sens)
+        arti = part_pos = part_quat = None
+        if self.layout.n_joints:
+            arti, part_pos, part_quat = self.layout.parts_from_sensors(sens, obj_pos, obj_quat)
         return WindowRecord(
             frames=frames,
             obj_pos=obj_pos,
@@ -339,4 +371,7 @@ class SimWindowProblem:
             rotation_weight=None if j is None else np.where(
                 frames > (j + 1) * self.interval, self.lookahead_rotation_weight, 1.0
             ),
+            articulation=arti,
+            part_pos=part_pos,
+            part_quat=part_quat,
         )

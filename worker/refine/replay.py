@@ -45,6 +45,8 @@ class ReplayRecord:
     steps: int
     #: Per-frame penetration / hand / table contact flags (``worker.simulation.metrics``); None without contacts.
     contact_frames: ContactFrames | None = None
+    #: (F, J) an articulated object's joint values; None for a rigid one.
+    articulation: FloatArray | None = None
 
 
 def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyframes: dict[str, FloatArray],
@@ -70,6 +72,7 @@ def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyfra
 
     evaluator.step_python(start, control[0], hook)
     pos, quat, vel = layout.object_from_sensors(sensors)
+    articulation = layout.parts_from_sensors(sensors, pos, quat)[0] if layout.n_joints else None
     return ReplayRecord(
         object_pose=np.concatenate([pos, quat], axis=1),
         object_vel=vel,
@@ -77,6 +80,7 @@ def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyfra
         contacts=recorder.columns() if recorder is not None else empty_contact_columns(),
         steps=control.shape[1],
         contact_frames=recorder.frames(n_frames) if recorder is not None else None,
+        articulation=articulation,
     )
 
 

@@ -1,4 +1,4 @@
-"""The refinement result file (issue #3 item 5); ``verify`` lives in ``worker.refine.verify``.
+"""The refinement result file (issue #3 item 5); ``verify`` lives in ``worker.verification``.
 
 Arrays (``common.result_format`` keys plus; all but the loss history made by ``worker.refine.derive``):
 ``object_pose_ref`` (F,7); per side ``S_keyframes`` (N, 13|16) the optimised offsets,
@@ -40,7 +40,7 @@ from worker.simulation.config import OLDER_SIM_DEFAULTS, SimConfig
 
 RESULT_KIND = "refine"
 #: The visual tools' tolerance on a re-simulated object trajectory (m): on the same build it reproduces bit for
-#: bit (``verify`` has its own, cross-host tolerances: ``worker.refine.verify_report``).
+#: bit (``verify`` has its own, cross-host tolerances: ``worker.verification.report``).
 VERIFY_TOLERANCE_M = 1e-6
 
 
@@ -165,8 +165,8 @@ def verify_result(
     blob: bytes, sequence: Sequence | None = None, *, allow_config: bool = False, cache_dir: Path | None = None,
     mano_dir: Path | None = None,
 ) -> dict[str, Any]:
-    """``worker.refine.verify.verify_result``: recompute everything the result claims (kept here for callers of
-    the earlier API)."""
-    from worker.refine.verify import verify_result as verify
+    """``worker.verification.verify_result``: recompute everything the result claims (kept here for callers of the
+    earlier API)."""
+    from worker.verification import verify_result as verify
 
     return verify(blob, sequence, allow_config=allow_config, cache_dir=cache_dir, mano_dir=mano_dir)

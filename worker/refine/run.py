@@ -27,8 +27,10 @@ from common.sequence import Sequence
 from common.sequence_io import sequence_from_npz_bytes, sequence_to_npz_bytes
 from worker.refine.derive import add_attempt_metrics, attempt_figures, derive_result, replay_metrics
 from worker.refine.evaluator import ParallelEvaluator, SimState
+from worker.refine.joint_hands import JointHandsProblem
 from worker.refine.losses import ROT_SCALE, resolve_weights
 from worker.refine.prepare import DEFAULT_MAX_GENERATIONS, DEFAULT_POPSIZE, Prepared, prepare, settled_start
+from worker.refine.problem import COMBINED
 from worker.refine.replay import LOOKAHEAD_ROTATION_WEIGHT, ReplayRecord, replay, window_problem
 from worker.refine.result import build_summary
 from worker.refine.windowed import CmaSettings, RefineProgress, WindowLog, optimise_windows
@@ -88,15 +90,19 @@ class RefineOutcome:
         return write_result_npz(self.arrays, self.summary, wall_clock=wall_clock)
 
 
-def cma_settings(options: JobOptions, interval: int) -> CmaSettings:
+def cma_settings(options: JobOptions, interval: int, hands: int = 1) -> CmaSettings:
+    """The window loop's settings; its loss levels are per frame of one hand's objective, so with ``hands`` hands
+    they scale with what the window loop sums: every hand's objective (the object's terms counted once per hand)
+    for a CMA-ES per hand, the object's terms once plus every hand's for one over both (``two_hands``)."""
+    per = float(hands) if options.two_hands == "per_hand" else (hands + 1) / 2
     return CmaSettings(
         popsize=options.popsize or DEFAULT_POPSIZE,
         max_generations=options.max_generations or DEFAULT_MAX_GENERATIONS,
         seed=options.seed,
-        skip_loss=SKIP_LOSS_PER_FRAME * 3 * interval,  # a window spans 3 keyframe intervals
-        escalate_loss=ESCALATE_LOSS_PER_FRAME * 3 * interval,
+        skip_loss=SKIP_LOSS_PER_FRAME * 3 * interval * per,  # a window spans 3 keyframe intervals
+        escalate_loss=ESCALATE_LOSS_PER_FRAME * 3 * interval * per,
         stall_generations=STALL_GENERATIONS,
-        stall_below=STALL_LOSS_PER_FRAME * 3 * interval,
+        stall_below=STALL_LOSS_PER_FRAME * 3 * interval * per,
     )
 
 
@@ -203,8 +209,15 @@ def refine_sequence(
         polish = start_keyframes is not None
         problem = window_problem(on.prep, ev, on.start, weights, rotation_weight)
         report = None if progress is None else _with_attempt(progress, len(attempts) + 1)
-        keyframes, logs = optimise_windows(problem, settings, start_keyframes, progress=report,
-                                           should_stop=should_stop, polish=polish)
+        if options.two_hands == "joint" and len(problem.sides) == 2:
+            joint = JointHandsProblem(problem)
+            stacked, logs = optimise_windows(joint, settings, None if start_keyframes is None else
+                                             joint.stack(start_keyframes), progress=report,
+                                             should_stop=should_stop, polish=polish)  # fmt: skip
+            keyframes = joint.split(stacked[COMBINED])
+        else:
+            keyframes, logs = optimise_windows(problem, settings, start_keyframes, progress=report,
+                                               should_stop=should_stop, polish=polish)
         this = _Attempt(keyframes, logs, replay(on.prep, ev, on.start, keyframes, record_contacts=False), settings,
                         rotation_weight, on)
         m = this.metrics = replay_metrics(on.prep, this.final)
@@ -219,8 +232,8 @@ def refine_sequence(
         best: _Attempt | None = None
         for attempt in range(options.restarts + 1):
             seed, rotation_weight = attempt_plan(options.seed, attempt)
-            this = run(on, replace(cma_settings(options, prep.interval), **(cma_overrides or {}), seed=seed),
-                       rotation_weight)
+            settings = cma_settings(options, prep.interval, len(prep.references))
+            this = run(on, replace(settings, **(cma_overrides or {}), seed=seed), rotation_weight)
             if best is None or attempt_rank(this.metrics) > attempt_rank(best.metrics):
                 best = this
             if attempts_done(best.metrics, attempt):

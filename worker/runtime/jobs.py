@@ -103,7 +103,7 @@ def verification(
     (``hoi-refine verify`` prints both). A result that does not verify is still stored, flagged and explained.
     """
     from common.result_format import content_digest
-    from worker.refine.verify import check_result
+    from worker.verification import check_result
 
     report = check_result(blob, cache_dir=cache_dir, mano_dir=mano_dir, threads=threads)
     return {

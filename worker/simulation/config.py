@@ -145,6 +145,19 @@ class SimConfig:
     #: decomposed sequences: SR 82.8 -> 75.9 % on 29; bench/results/refine_dev120_coacd_fine_part.md), while the
     #: sequences that fail on the coarse parts mostly did better on the fine ones (dev120_experiments.md).
     convex_detail: str = "coarse"
+    #: An articulated object's joints (issue #52), unless its file gives a joint's own values: viscous damping
+    #: (N m s/rad, N s/m) and dry friction as a multiple of the largest gravity load the joint carries (the
+    #: part and what hangs from it, weighed at their reach from the axis: N m, or N for a sliding part), so a part
+    #: stays where the hands leave it at any angle, as the lids, covers and caps of the recordings do (a laptop
+    #: screen, a waffle iron's lid), and a hand still moves it with a few times the part's weight. MuJoCo's dry
+    #: friction is a soft constraint that creeps under a steady load; the stiffest reference (``_solref``: MuJoCo
+    #: raises it to two timesteps) and impedance (``_solimp``) with 3x the load hold an ARCTIC laptop's screen
+    #: open at 2.3 rad on its table to 0.008 rad in 5 s, where MuJoCo's defaults (0.02 s, 0.9-0.95) with 1.5x let it
+    #: fall open by 0.5 rad (bench/results/arctic_experiments.md).
+    articulation_damping: float = 0.01
+    articulation_friction_factor: float = 3.0
+    articulation_friction_solref: tuple[float, float] = (0.004, 1.0)
+    articulation_friction_solimp: tuple[float, float, float] = (0.999, 0.999, 0.001)
 
     def __post_init__(self) -> None:
         if self.convex_detail not in CONVEX_DETAILS:

@@ -3,9 +3,10 @@
 For each active hand-object contact: the hand side and body, the contact point in world and object frames,
 the normal (world, pointing from the object to the hand), the 6-D wrench from ``mj_contactForce`` rotated
 out of the contact frame — **exerted by the hand on the object**, world frame, about the contact point — and
-the penetration depth (>= 0). Object-table contacts are not reported as rows; ``frames`` says per frame whether
-the object touched the table (and a hand), and how deep the deepest hand-object contact was
-(``worker.simulation.metrics``).
+the penetration depth (>= 0). With an articulated object, each row also names the part touched
+(``contact_part``), and the object-frame point is in that part's frame. Object-table contacts are not reported
+as rows; ``frames`` says per frame whether the object touched the table (and a hand), and how deep the deepest
+hand-object contact was (``worker.simulation.metrics``).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from typing import TYPE_CHECKING
 import mujoco
 import numpy as np
 
-from common.result_format import CONTACT_KEYS
+from common.result_format import CONTACT_KEYS, PART_CONTACT_KEYS
 
 if TYPE_CHECKING:
     from worker.simulation.metrics import ContactFrames
@@ -33,7 +34,8 @@ class ContactRecorder:
         self._geom_side = [scene.body_side.get(int(model.geom_bodyid[g]), "") for g in range(model.ngeom)]
         names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b) or "" for b in range(model.nbody)]
         self._geom_body = [names[int(model.geom_bodyid[g])] for g in range(model.ngeom)]
-        self._rows: dict[str, list[object]] = {k: [] for k in CONTACT_KEYS}
+        self._parts = scene.articulated
+        self._rows: dict[str, list[object]] = {k: [] for k in CONTACT_KEYS + PART_CONTACT_KEYS}
         self._f6 = np.zeros(6)
         self._table_frames: set[int] = set()
 
@@ -42,6 +44,7 @@ class ContactRecorder:
         model = self.scene.model
         obj = self.scene.object_body_id
         obj_pos, obj_rot = data.xpos[obj], data.xmat[obj].reshape(3, 3)
+        part_names = self.scene.object_part_names
         added = 0
         for i in range(data.ncon):
             c = data.contact[i]
@@ -63,7 +66,13 @@ class ContactRecorder:
             rows["contact_hand"].append(side)
             rows["contact_body"].append(self._geom_body[hand_geom])
             rows["contact_pos_world"].append(np.array(c.pos))
-            rows["contact_pos_object"].append(obj_rot.T @ (c.pos - obj_pos))
+            if self._parts:  # the point in the touched part's frame
+                part = int(self.scene.geom_part[g1 if self._is_object[g1] else g2])
+                body = int(self.scene.object_part_body_ids[part])
+                rows["contact_part"].append(part_names[part])
+                rows["contact_pos_object"].append(data.xmat[body].reshape(3, 3).T @ (c.pos - data.xpos[body]))
+            else:
+                rows["contact_pos_object"].append(obj_rot.T @ (c.pos - obj_pos))
             rows["contact_normal"].append(sign * frame_rot[0])
             # geom1 = object: the returned wrench acts on the hand, so the hand's on the object is its negative.
             rows["contact_force"].append(-sign * force)
@@ -100,7 +109,7 @@ class ContactRecorder:
             "contact_force": vec("contact_force"),
             "contact_torque": vec("contact_torque"),
             "contact_depth": np.asarray(r["contact_depth"], dtype=np.float64).reshape(n),
-        }
+        } | ({"contact_part": np.asarray(r["contact_part"], dtype="<U64").reshape(n)} if self._parts else {})
 
 
 def empty_contact_columns() -> dict[str, np.ndarray]:

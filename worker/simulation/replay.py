@@ -26,7 +26,7 @@ from common.sequence import Sequence
 from worker.hand.mano.pose import reference_mano_arrays
 from worker.hand.reference import HandReference
 from worker.hand.retarget import retarget_sequence
-from worker.simulation.metrics import compute_metrics, scalar_metrics
+from worker.simulation.metrics import ArticulationFrames, compute_metrics, scalar_metrics
 from worker.simulation.scene import Scene, SimConfig, build_scene
 from worker.simulation.stepping import (
     Controls,
@@ -52,6 +52,7 @@ class ReplayResult:
     timings: dict[str, float] = field(default_factory=dict)
     steps: int = 0
     mano_arrays: dict[str, np.ndarray] = field(default_factory=dict)  # S_mano_* of MANO hands
+    articulation_ref: np.ndarray | None = None  # (F, J) recorded joint values of an articulated object
 
     @property
     def contacts(self) -> dict[str, np.ndarray]:
@@ -111,6 +112,7 @@ def raw_replay(
         {r.side: r.keypoints for r in references},
         {r.side: r.valid for r in references},
         record.contact_frames,
+        articulation_frames(seq, record.articulation),
     )
     steps = settle_steps + record.steps
     mano_arrays: dict[str, np.ndarray] = {}
@@ -134,7 +136,15 @@ def raw_replay(
         timings=timings,
         steps=steps,
         mano_arrays=mano_arrays,
+        articulation_ref=seq.articulation,
     )
+
+
+def articulation_frames(seq: Sequence, simulated: np.ndarray | None) -> ArticulationFrames | None:
+    """The joint values a metric compares for an articulated object (None for a rigid one)."""
+    if not seq.object.parts or simulated is None or seq.articulation is None:
+        return None
+    return ArticulationFrames(simulated, seq.articulation, tuple(j.kind for j in seq.object.joints))
 
 
 def replay_summary(result: ReplayResult) -> dict[str, Any]:
@@ -177,6 +187,9 @@ def replay_arrays(result: ReplayResult) -> dict[str, np.ndarray]:
         arrays[f"{s}_keypoints_ref"] = ref.keypoints
         arrays[f"{s}_valid"] = ref.valid
         arrays[f"{s}_ik_residual_mm"] = ref.residual_mm
+    if rec.articulation is not None and result.articulation_ref is not None:
+        arrays["object_articulation_sim"] = rec.articulation
+        arrays["object_articulation_ref"] = result.articulation_ref
     for key, val in result.metrics["per_frame"].items():
         arrays[f"metrics_raw_{key}"] = val
     arrays.update(result.contacts)

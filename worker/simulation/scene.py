@@ -12,6 +12,12 @@ so callers never look names up in loops:
   ``object_sensor_adr`` (13 values from there: framepos 3, framequat 4, framelinvel 3, frameangvel 3, world);
 * ``substeps_per_frame``; ``object_init_pose`` (7,) the frame-0 pose used (the recorded frame 0 or the rest
   pose, ``worker.simulation.rest_pose``) and ``table`` the plane under it (``worker.simulation.table_fit``);
+* an articulated object (``common.articulation``): ``object_part_body_ids`` (P,) base first and
+  ``object_part_names``, ``object_joint_qpos_adr`` / ``object_joint_dof_adr`` (J,), ``object_joint_kinds``,
+  ``object_articulation_sensor_adr`` (J ``jointpos`` values from there), ``object_part_sensor_adr`` (per part
+  beyond the base 7 values: framepos 3, framequat 4 of its body frame), ``object_init_articulation`` (J,) the
+  recorded frame-0 values it starts from, and ``geom_part`` (ngeom,) the part of each object geom (-1 elsewhere);
+  a rigid object has one part and none of the rest (sensor addresses -1);
 * ``object_hold_eq``: the weld ``object_hold`` that holds the object at ``object_init_pose`` (inactive in the
   model; -1 when there is none) and ``object_release_frame``: it is active on the steps before that frame
   (``SimConfig.hold_until_m``, ``SimConfig.unsupported_drift``; ``hold_active``).
@@ -30,7 +36,7 @@ import mujoco
 import numpy as np
 
 from common.geometry import FloatArray, IntArray
-from common.primitive_surface import object_surface_points
+from common.primitive_surface import posed_surface_points
 from common.sequence import Sequence
 from worker.hand.model import HINGE_NAMES
 from worker.hand.reference import HandReference
@@ -43,7 +49,15 @@ from worker.simulation.hand_mjcf import (
     hand_sensor_xml,
     hand_worldbody_xml,
 )
-from worker.simulation.object_model import OBJECT_BODY, OBJECT_HOLD, OBJECT_JOINT, object_hold_xml, object_mjcf
+from worker.simulation.object_model import (
+    OBJECT_BODY,
+    OBJECT_HOLD,
+    OBJECT_JOINT,
+    joint_name,
+    object_hold_xml,
+    object_mjcf,
+    part_body_name,
+)
 from worker.simulation.rest_pose import moved_frame, rest_pose, resting_frames
 from worker.simulation.support_plane import SupportPlane
 from worker.simulation.table_fit import fit_table, option_xml, table_geom_xml
@@ -96,6 +110,19 @@ class Scene:
     object_release_frame: int = 0
     #: How far the object drifts on its table when simulated alone (``table_fit.TableFit.drift``).
     table_drift: float = 0.0
+    object_part_body_ids: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    object_part_names: tuple[str, ...] = ()
+    object_joint_qpos_adr: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    object_joint_dof_adr: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    object_joint_kinds: tuple[str, ...] = ()
+    object_articulation_sensor_adr: int = -1
+    object_part_sensor_adr: int = -1
+    object_init_articulation: FloatArray = field(default_factory=lambda: np.zeros(0))
+    geom_part: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+
+    @property
+    def articulated(self) -> bool:
+        return len(self.object_joint_qpos_adr) > 0
 
     @property
     def sides(self) -> tuple[str, ...]:
@@ -147,6 +174,19 @@ def penetration_sensor_xml(side: str) -> str:
             'reduce="mindist" num="1"/>')
 
 
+def articulation_sensor_xml(n_parts: int) -> list[str]:
+    """An articulated object's sensors (none for a rigid one): every joint's value, then every further part's
+    body-frame position and orientation (the refinement's part-frame contact targets read them)."""
+    values = [f'<jointpos name="object_arti{k}" joint="{joint_name(k)}"/>' for k in range(n_parts)]
+    poses = [
+        line
+        for k in range(1, n_parts + 1)
+        for line in (f'<framepos name="object_p{k}_pos" objtype="xbody" objname="{part_body_name(k)}"/>',
+                     f'<framequat name="object_p{k}_quat" objtype="xbody" objname="{part_body_name(k)}"/>')
+    ]  # fmt: skip
+    return values + poses
+
+
 def scene_xml(
     seq: Sequence,
     references: list[HandReference],
@@ -168,6 +208,7 @@ def scene_xml(
         f'<framelinvel name="object_linvel" objtype="body" objname="{OBJECT_BODY}"/>',
         f'<frameangvel name="object_angvel" objtype="body" objname="{OBJECT_BODY}"/>',
     ] + [hand_sensor_xml(r.side) for r in references] + [penetration_sensor_xml(r.side) for r in references]
+    sensors += articulation_sensor_xml(len(seq.object.parts))
     xml = f"""<mujoco model="hoi-refine-scene">
   <compiler angle="radian" autolimits="true"/>
   {option_xml(config)}
@@ -206,10 +247,11 @@ def build_scene(
         raise ValueError("references must hold at least one HandReference")
     keypoints = [r.keypoints for r in references]
     poses = seq.object_pose_world()
-    surface = object_surface_points(seq.object, config.primitive_surface_spacing_m)
+    arti0 = initial_articulation(seq)
+    surface = posed_surface_points(seq.object, arti0, config.primitive_surface_spacing_m)
     start = rest_pose(poses, surface, keypoints, config.rest_approach_m)
     release = resting_frames(poses, surface, keypoints, config.hold_until_m)  # 0 when there is no hold
-    pose0, table, drift = fit_table(seq, config, start, cache_dir=cache_dir)
+    pose0, table, drift = fit_table(seq, config, start, cache_dir=cache_dir, articulation=arti0)
     if release > 0 and config.unsupported(drift):
         # No table holds the object as recorded (it leaned on something not simulated): released when the hand
         # comes near, it falls before the grasp forms, so it is held until the recording moves it, less the lead.
@@ -249,6 +291,18 @@ def build_scene(
         body_side.update({int(b): s for b in body_ids})
     obj_joint = int(_ids(model, mujoco.mjtObj.mjOBJ_JOINT, [OBJECT_JOINT])[0])
     obj_sensor = int(_ids(model, mujoco.mjtObj.mjOBJ_SENSOR, ["object_pos"])[0])
+    geom_ids = _ids(model, mujoco.mjtObj.mjOBJ_GEOM, [f"object_{i}" for i in range(ngeom)])
+    obj = seq.object
+    n_parts = len(obj.parts)
+    part_bodies = _ids(model, mujoco.mjtObj.mjOBJ_BODY, [part_body_name(k) for k in range(n_parts + 1)])
+    joints = _ids(model, mujoco.mjtObj.mjOBJ_JOINT, [joint_name(k) for k in range(n_parts)])
+    geom_part = np.full(model.ngeom, -1, dtype=np.int64)
+    body_part = {int(b): k for k, b in enumerate(part_bodies)}
+    geom_part[geom_ids] = [body_part[int(model.geom_bodyid[g])] for g in geom_ids]
+    arti_sensor = part_sensor = -1
+    if n_parts:
+        arti_sensor = int(model.sensor_adr[_ids(model, mujoco.mjtObj.mjOBJ_SENSOR, ["object_arti0"])[0]])
+        part_sensor = int(model.sensor_adr[_ids(model, mujoco.mjtObj.mjOBJ_SENSOR, ["object_p1_pos"])[0]])
     return Scene(
         model=model,
         config=config,
@@ -258,7 +312,7 @@ def build_scene(
         object_body_id=int(_ids(model, mujoco.mjtObj.mjOBJ_BODY, [OBJECT_BODY])[0]),
         object_qpos_adr=int(model.jnt_qposadr[obj_joint]),
         object_dof_adr=int(model.jnt_dofadr[obj_joint]),
-        object_geom_ids=_ids(model, mujoco.mjtObj.mjOBJ_GEOM, [f"object_{i}" for i in range(ngeom)]),
+        object_geom_ids=geom_ids,
         object_sensor_adr=int(model.sensor_adr[obj_sensor]),
         table_geom_id=int(_ids(model, mujoco.mjtObj.mjOBJ_GEOM, ["table"])[0]),
         object_init_pose=pose0,
@@ -269,5 +323,23 @@ def build_scene(
         object_hold_eq=hold_eq,
         object_release_frame=release,
         table_drift=drift,
+        object_part_body_ids=part_bodies,
+        object_part_names=tuple(obj.part_names),
+        object_joint_qpos_adr=model.jnt_qposadr[joints].astype(np.int64),
+        object_joint_dof_adr=model.jnt_dofadr[joints].astype(np.int64),
+        object_joint_kinds=tuple(j.kind for j in obj.joints),
+        object_articulation_sensor_adr=arti_sensor,
+        object_part_sensor_adr=part_sensor,
+        object_init_articulation=arti0 if arti0 is not None else np.zeros(0),
+        geom_part=geom_part,
     )
+
+
+def initial_articulation(seq: Sequence) -> FloatArray | None:
+    """The recorded frame-0 joint values, within the limits (None for a rigid object)."""
+    if not seq.object.parts:
+        return None
+    assert seq.articulation is not None
+    limits = np.array([j.limits for j in seq.object.joints], dtype=np.float64)
+    return np.clip(seq.articulation[0], limits[:, 0], limits[:, 1])
 

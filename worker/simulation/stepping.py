@@ -87,6 +87,8 @@ class RolloutRecord:
     contacts: dict[str, np.ndarray] | None = None
     #: Per-frame penetration / hand / table flags (``worker.simulation.metrics``).
     contact_frames: ContactFrames | None = None
+    #: (F, J) an articulated object's joint values per frame ((F, 0) for a rigid one).
+    articulation: FloatArray | None = None
 
 
 
@@ -203,6 +205,8 @@ def initial_state(
     pose_hands(scene, data, targets, 0)
     a = scene.object_qpos_adr
     data.qpos[a : a + 7] = scene.object_init_pose
+    if scene.articulated:
+        data.qpos[scene.object_joint_qpos_adr] = scene.object_init_articulation
     held = scene.object_hold_eq >= 0  # a scene has the weld only when the object rests before the hand comes
     if held:  # the object rests where it starts until the hand comes (``SimConfig.hold_until_m``)
         data.eq_active[scene.object_hold_eq] = 1
@@ -224,6 +228,7 @@ def _record_frame(scene: Scene, data: mujoco.MjData, rec: dict[str, FloatArray],
     rec["vel"][i, 3:] = rot @ data.qvel[d + 3 : d + 6]  # free-joint angular velocity is in the body frame
     for side, h in scene.hands.items():
         rec[side][i] = data.site_xpos[h.keypoint_site_ids]
+    rec["articulation"][i] = data.qpos[scene.object_joint_qpos_adr]
 
 
 def rollout(
@@ -256,7 +261,8 @@ def rollout(
     if steps % spf:
         raise ValueError(f"ctrl must cover whole frames: {steps} steps is not a multiple of {spf}")
     n_frames = steps // spf + 1
-    rec: dict[str, FloatArray] = {"pose": np.zeros((n_frames, 7)), "vel": np.zeros((n_frames, 6))}
+    rec: dict[str, FloatArray] = {"pose": np.zeros((n_frames, 7)), "vel": np.zeros((n_frames, 6)),
+                                  "articulation": np.zeros((n_frames, len(scene.object_joint_qpos_adr)))}
     for side in scene.hands:
         rec[side] = np.zeros((n_frames, 21, 3))
     states = np.zeros((n_frames, state_size(scene))) if record_states else None
@@ -296,4 +302,5 @@ def rollout(
         states=states,
         contacts=None if recorder is None else recorder.columns(),
         contact_frames=None if recorder is None or frame_offset else recorder.frames(n_frames),
+        articulation=rec["articulation"],
     )

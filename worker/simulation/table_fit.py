@@ -20,10 +20,11 @@ import mujoco
 import numpy as np
 
 from common.geometry import FloatArray, quat_to_matrix, rotation_error_deg
+from common.primitive_surface import posed_surface_points
 from common.sequence import Sequence
 from worker.simulation.config import OBJECT_BIT, TABLE_BIT, SimConfig
 from worker.simulation.hand_mjcf import fmt
-from worker.simulation.object_model import OBJECT_JOINT, centre_of_mass, object_mjcf
+from worker.simulation.object_model import OBJECT_JOINT, centre_of_mass, joint_name, object_mjcf
 from worker.simulation.support_plane import SupportPlane, support_candidates
 
 #: Candidate tilted faces tried (most nearly level first).
@@ -70,7 +71,8 @@ class TableFit(NamedTuple):
 
 
 def fit_table(
-    seq: Sequence, config: SimConfig, rest_pose: FloatArray | None = None, *, cache_dir: Path | None = None
+    seq: Sequence, config: SimConfig, rest_pose: FloatArray | None = None, *, cache_dir: Path | None = None,
+    articulation: FloatArray | None = None,
 ) -> TableFit:
     """Frame-0 world pose of the object and the table plane under it (see the module docstring).
 
@@ -78,15 +80,15 @@ def fit_table(
     (``rest_pose``). The object then starts from it or from the recorded frame 0, on whichever table
     leaves it closest to that estimate: a mean over noisy frames is not always a pose the object can rest in
     exactly (a banana averaged over a 3 degree drift rocks 2.5 degrees off it), frame 0 may be. None: frame 0,
-    scored against itself.
+    scored against itself. ``articulation`` (J,): an articulated object's joint values at the start.
     """
     frame0 = seq.object_pose_world()[0].copy()
     target = frame0 if rest_pose is None else np.asarray(rest_pose, dtype=np.float64).copy()
     starts = [frame0] if np.array_equal(target, frame0) else [frame0, target]
-    surface = seq.object.surface_vertices()  # primitives are tessellated on each call
+    surface = posed_surface_points(seq.object, articulation, spacing=0)  # primitives are tessellated on each call
     candidates = [c for start in starts for c in _start_candidates(seq, config, surface, start)]
     # Simulated even when there is one candidate: its drift says whether the scene can hold the object at all.
-    scores = _drift_scores(seq, config, target, candidates, cache_dir)
+    scores = _drift_scores(seq, config, target, candidates, cache_dir, articulation)
     best = int(np.argmin(scores))
     return TableFit(*candidates[best], scores[best])
 
@@ -106,7 +108,7 @@ def _start_candidates(
     # point holds it where it was (a banana 10 cm up otherwise falls before the hand arrives); the shelf collides
     # with the object only, like the table.
     shelf = [(start, SupportPlane.level(bottom))] if config.table_shelf and bottom >= config.snap_to_table_m else []
-    com = rot @ centre_of_mass(seq.object) + start[:3]
+    com = rot @ centre_of_mass(seq.object) + start[:3]  # the base part's: the parts hang from it
     tilted = support_candidates(verts, config.table_max_tilt_deg, limit=MAX_CANDIDATES, centre_of_mass=com)
     return [level] + shelf + [(start, plane) for plane in tilted]
 
@@ -117,6 +119,7 @@ def _drift_scores(
     target: FloatArray,
     candidates: list[tuple[FloatArray, SupportPlane]],
     cache_dir: Path | None,
+    articulation: FloatArray | None = None,
 ) -> list[float]:
     """Degrees + millimetres between ``target`` and where the object is after ``config.table_fit_s``."""
     obj = object_mjcf(seq.object, config, target[:3], target[3:], cache_dir=cache_dir)
@@ -140,6 +143,8 @@ def _drift_scores(
     # between candidates would not move its collisions.
     table = int(model.body_mocapid[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "table_body")])
     adr = int(model.jnt_qposadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, OBJECT_JOINT)])
+    joints = [int(model.jnt_qposadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, joint_name(k))])
+              for k in range(len(seq.object.parts))]  # fmt: skip
     steps = round(config.table_fit_s / model.opt.timestep)
     scores = []
     for pose, plane in candidates:
@@ -147,6 +152,8 @@ def _drift_scores(
         data.mocap_pos[table] = plane.point
         data.mocap_quat[table] = plane.quat()
         data.qpos[adr : adr + 7] = pose
+        if joints:
+            data.qpos[joints] = articulation
         for _ in range(steps):
             mujoco.mj_step(model, data)
         end = data.qpos[adr : adr + 7]

@@ -8,8 +8,8 @@ from typing import Any
 import numpy as np
 
 from worker.refine.derive import add_attempt_metrics, attempt_figures
-from worker.refine.verify_report import CROSS_HOST, Tolerances, VerifyReport
 from worker.simulation.metrics import scalar_metrics
+from worker.verification.report import CROSS_HOST, Tolerances, VerifyReport
 
 
 def check_summary(
@@ -17,7 +17,7 @@ def check_summary(
     tol: Tolerances | None,
 ) -> None:
     """The summary's metrics (raw, refined, both protocols), attempts, success and sequence facts against the
-    derivation (``verify_arrays.check_stored_metrics`` checks them against the stored trajectories)."""
+    derivation (``arrays.check_stored_metrics`` checks them against the stored trajectories)."""
     stored = summary.get("metrics", {})
     attempts = summary.get("attempts") or []
     fresh = {k: scalar_metrics(v) for k, v in derived.metrics.items()}

@@ -7,10 +7,10 @@ from typing import Any
 import numpy as np
 
 from common.geometry import quat_to_matrix, rotation_error_deg
-from common.result_format import CONTACT_KEYS
-from worker.refine.verify_report import CROSS_HOST, Tolerances, VerifyReport
+from common.result_format import CONTACT_KEYS, PART_CONTACT_KEYS
 from worker.simulation.contacts import contact_frames
-from worker.simulation.metrics import compute_metrics, scalar_metrics
+from worker.simulation.metrics import ArticulationFrames, compute_metrics, scalar_metrics
+from worker.verification.report import CROSS_HOST, Tolerances, VerifyReport
 
 
 class ArrayChecker:
@@ -115,6 +115,17 @@ class ArrayChecker:
                     self.array(f"metrics_{name}_{k}", limit, required=k in ("e_t_cm", "e_r_deg"))
         if tol is None:
             self.array("object_table_contact", None, required=False)
+        for key in ("object_articulation_sim", "raw_object_articulation_sim"):  # an articulated object's joints
+            if key in self.fresh:
+                self.array(key, None if tol is None else np.radians(tol.object_rot_deg), " rad/m")
+        if "object_articulation_ref" in self.fresh:
+            self.array("object_articulation_ref", t(tol.inputs if tol is not None else 0.0))
+        for name in ("raw", "refined"):
+            for k in ("e_a", "a_ok"):
+                if f"metrics_{name}_{k}" in self.fresh:
+                    limit = CROSS_HOST.figures_last_bits if tol is None else (
+                        tol.object_rot_deg if k == "e_a" else 1.0)
+                    self.array(f"metrics_{name}_{k}", limit)
 
     def _pose_tolerance(self, name: str, tol: Tolerances) -> tuple[np.ndarray, np.ndarray]:
         """Per-frame position (m) and rotation (deg) tolerance of the ``name`` replay: the base plus
@@ -138,11 +149,12 @@ class ArrayChecker:
                       f"frame {i} (tolerance there {pos_tol[i] * 1000:.3g} mm / {rot_tol[i]:.3g} deg)")
 
     def contacts(self, derived: Any, tol: Tolerances | None) -> None:
+        parts = [k for k in PART_CONTACT_KEYS if k in self.fresh]  # an articulated object's contacts name the part
         if tol is None:  # the same contacts, row for row
-            for k in CONTACT_KEYS:
+            for k in CONTACT_KEYS + tuple(parts):
                 self.array(k, None)
             return
-        for k in CONTACT_KEYS:
+        for k in CONTACT_KEYS + tuple(parts):
             if k not in self.stored:
                 self.fail(f"{k}: missing from the result")
                 return
@@ -175,12 +187,26 @@ class ArrayChecker:
         if frames.size and (frames.min() < 0 or frames.max() >= len(pose)):
             self.fail("contact_frame: frame numbers outside the sequence")
             return
-        rot = np.stack([quat_to_matrix(q) for q in pose[frames, 3:]]) if frames.size else np.zeros((0, 3, 3))
-        expect = np.einsum("nji,nj->ni", rot, world - pose[frames, :3]) if frames.size else local
+        frame_pose = pose[frames]
+        obj = derived.prep.seq.object
+        if obj.parts:  # each point is in the frame of the part it touches, posed by the stored joint values
+            names, arti = self.stored.get("contact_part"), self.stored.get("object_articulation_sim")
+            if names is None or arti is None or arti.shape != (len(pose), len(obj.parts)):
+                self.fail("contact_part / object_articulation_sim: missing or misshapen for an articulated object")
+                return
+            index = {name: i for i, name in enumerate(obj.part_names)}
+            unknown = [str(n) for n in names if str(n) not in index]
+            if unknown:
+                self.fail(f"contact_part: {unknown[0]!r} is not a part of the object")
+                return
+            parts = obj.part_poses(pose[frames], arti[frames])
+            frame_pose = parts[np.arange(len(frames)), [index[str(n)] for n in names]]
+        rot = np.stack([quat_to_matrix(q) for q in frame_pose[:, 3:]]) if frames.size else np.zeros((0, 3, 3))
+        expect = np.einsum("nji,nj->ni", rot, world - frame_pose[:, :3]) if frames.size else local
         d = np.abs(expect - local)
         if d.size and d.max() > 1e-9:
-            self.fail(f"contact_pos_object: not the world point in the stored object frame (largest difference "
-                      f"{d.max():.3g} m at row {int(np.argmax(d.max(axis=1)))})")
+            self.fail(f"contact_pos_object: not the world point in the stored object (part) frame (largest "
+                      f"difference {d.max():.3g} m at row {int(np.argmax(d.max(axis=1)))})")
 
 
 def net_force(arrays: dict[str, np.ndarray], n: int) -> np.ndarray:
@@ -192,7 +218,8 @@ def net_force(arrays: dict[str, np.ndarray], n: int) -> np.ndarray:
 
 
 def check_stored_metrics(
-    report: VerifyReport, arrays: dict[str, np.ndarray], summary: dict[str, Any], sides: list[str]
+    report: VerifyReport, arrays: dict[str, np.ndarray], summary: dict[str, Any], sides: list[str],
+    joint_kinds: tuple[str, ...] = (),
 ) -> None:
     """The metrics of the *stored* trajectories and contacts against the stored per-frame arrays and summary:
     tight on any host, so a rewritten figure fails even where the re-simulation is only within tolerance."""
@@ -217,7 +244,16 @@ def check_stored_metrics(
                                           np.flatnonzero(arrays["object_table_contact"]), n)
             except ValueError as exc:
                 report.failures.append(f"contact_frame: {exc}")
-        m = compute_metrics(pose, ref, kp_sim, kp_ref, valid, contacts)
+        arti = None
+        arti_sim = arrays.get("object_articulation_sim" if name == "refined" else "raw_object_articulation_sim")
+        arti_ref = arrays.get("object_articulation_ref")
+        if joint_kinds and arti_sim is not None and arti_ref is not None:
+            arti = ArticulationFrames(arti_sim, arti_ref, joint_kinds)
+        try:
+            m = compute_metrics(pose, ref, kp_sim, kp_ref, valid, contacts, arti)
+        except ValueError as exc:
+            report.failures.append(f"metrics.{name}: the stored arrays do not fit together ({exc})")
+            continue
         for key, val in m["per_frame"].items():
             stored = arrays.get(f"metrics_{name}_{key}")
             if stored is None or (not kp_sim and key in ("e_j_cm", "e_ft_cm")):

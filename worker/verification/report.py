@@ -1,4 +1,4 @@
-"""What ``verify`` reports and the tolerances it applies on another host (``worker.refine.verify``)."""
+"""What ``verify`` reports and the tolerances it applies on another host (``worker.verification.check``)."""
 
 from __future__ import annotations
 
