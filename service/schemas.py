@@ -25,12 +25,17 @@ Vec3 = Annotated[list[Coordinate], Field(min_length=3, max_length=3)]
 #: Names may hold no control or bidi formatting character (``common.safe_text``); the server checks that itself,
 #: naming the code point, so the pattern is stated in the schema only.
 Name = Annotated[str, Field(max_length=MAX_NAME_CHARS, json_schema_extra={"pattern": TEXT_PATTERN})]
+#: (Stated as propertyNames: a key pattern on the dict's key type would become patternProperties, which leaves keys
+#: that do not match it unconstrained.)
 Meta = Annotated[
-    dict[
-        Annotated[str, Field(max_length=MAX_META_KEY_CHARS, json_schema_extra={"pattern": TEXT_PATTERN})],
-        Annotated[str, Field(max_length=MAX_META_VALUE_CHARS, json_schema_extra={"pattern": FREE_TEXT_PATTERN})],
-    ],
-    Field(max_length=MAX_META_ENTRIES),
+    dict[str, str],
+    Field(
+        max_length=MAX_META_ENTRIES,
+        json_schema_extra={
+            "propertyNames": {"maxLength": MAX_META_KEY_CHARS, "pattern": TEXT_PATTERN},
+            "additionalProperties": {"type": "string", "maxLength": MAX_META_VALUE_CHARS, "pattern": FREE_TEXT_PATTERN},
+        },
+    ),
 ]
 
 
