@@ -15,14 +15,18 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/hoi-refine demo
 
+# The suite's PostgreSQL half runs against HOI_REFINE_TEST_POSTGRES_URL when set, else against a local server that
+# answers on 127.0.0.1:5432 (.ci/local-postgres-url, as CI does); pytest's header and summary say which databases ran.
+POSTGRES_URL = $${HOI_REFINE_TEST_POSTGRES_URL:-$$(sh .ci/local-postgres-url)}
+
 test: $(STAMP)
 	$(BIN)/ruff check common worker service migrations tests bench
 	$(BIN)/mypy
 	$(BIN)/lint-imports --no-cache
-	$(BIN)/python -m pytest
+	HOI_REFINE_TEST_POSTGRES_URL="$(POSTGRES_URL)" $(BIN)/python -m pytest
 
 test-fast: $(STAMP)
-	$(BIN)/python -m pytest -m "not slow"
+	HOI_REFINE_TEST_POSTGRES_URL="$(POSTGRES_URL)" $(BIN)/python -m pytest -m "not slow"
 
 lint: $(STAMP)
 	$(BIN)/ruff check common worker service migrations tests bench

@@ -23,6 +23,27 @@ BIDI_CONTROLS = frozenset("\u061c\u200e\u200f\u202a\u202b\u202c\u202d\u202e\u206
 #: ``meta`` values may hold tabs and line breaks (free text); names may not.
 TEXT_WHITESPACE = frozenset("\t\n\r")
 MAX_META_ENTRIES = 64
+
+
+def _refused_class(allow_whitespace_controls: bool) -> str:
+    """A regular-expression character class of what ``text_problem`` refuses: category Cc (U+0000-U+001F,
+    U+007F-U+009F) and the bidi controls, less tab and line breaks for free text."""
+    points = sorted({*range(0x20), *range(0x7F, 0xA0), *map(ord, BIDI_CONTROLS)})
+    if allow_whitespace_controls:
+        points = [p for p in points if chr(p) not in TEXT_WHITESPACE]
+    runs: list[list[int]] = []
+    for p in points:
+        if runs and p == runs[-1][1] + 1:
+            runs[-1][1] = p
+        else:
+            runs.append([p, p])
+    return "".join(f"\\u{a:04x}" + (f"-\\u{b:04x}" if b > a else "") for a, b in runs)
+
+
+#: ``text_problem``'s rule as a JSON-schema pattern (the API schema states it; the server checks it itself, with
+#: messages naming the code point): names, meta keys, and meta values (``FREE_TEXT_PATTERN``).
+TEXT_PATTERN = f"^[^{_refused_class(False)}]*$"
+FREE_TEXT_PATTERN = f"^[^{_refused_class(True)}]*$"
 MAX_META_KEY_CHARS = 100
 MAX_META_VALUE_CHARS = 2000
 

@@ -10,7 +10,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from pydantic import Field
+from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 if TYPE_CHECKING:
@@ -74,8 +74,18 @@ class Settings(BaseSettings):
     # --- webhooks (sent by a background task of the API process; never by a worker) ----------
     #: Seconds between the dispatcher's looks for new events and due deliveries.
     webhook_poll_seconds: float = Field(default=1.0, gt=0)
-    #: Timeout of one delivery (connect + answer).
+    #: Deadline of one delivery: resolving the host, connecting, sending and reading the answer, all together.
     webhook_timeout_seconds: float = Field(default=5.0, gt=0)
+    #: Connect timeout within that deadline.
+    webhook_connect_timeout_seconds: float = Field(default=3.0, gt=0)
+    #: Bytes of a receiver's answer read at most (the status alone decides; the rest is never read).
+    webhook_max_response_bytes: int = Field(default=64 * 1024, ge=0)
+    #: Host names and address ranges that webhooks may target although they are not public, comma-separated
+    #: (e.g. ``hooks.internal,10.8.0.0/16,127.0.0.1``); empty: public addresses only (``common.webhook_targets``).
+    webhook_allow_targets: str = ""
+    #: CA certificates (PEM file) that https webhook receivers' certificates are verified against instead of the
+    #: public ones (certifi): for receivers with certificates from an internal CA.
+    webhook_ca_file: Path | None = None
     #: Attempts before a delivery is given up (FAILED in the delivery log).
     webhook_max_attempts: int = Field(default=8, gt=0)
     #: Base of the exponential backoff between attempts (doubling, capped at one hour).
@@ -89,6 +99,14 @@ class Settings(BaseSettings):
     #: Niceness a worker of more than one thread adds to the thread that draws a job's preview beside the next
     #: job's computation (0-19): the preview fills the rollouts' barrier waits instead of slowing them.
     preview_nice: int = Field(default=5, ge=0, le=19)
+
+    @field_validator("webhook_allow_targets")
+    @classmethod
+    def _allow_list_parses(cls, value: str) -> str:
+        from common.webhook_targets import parse_allow_list  # local: this module stays free of project imports
+
+        parse_allow_list(value)  # a typo fails at start-up, naming the entry
+        return value
 
     def parse_limits(self) -> ParseLimits:
         """What one uploaded sequence may hold (frames, mesh size, uncompressed bytes)."""

@@ -26,6 +26,7 @@ from common.queue import EVENT_LAG, batches, events, jobs
 from common.queue_types import BatchRecord, DeliveryRecord, DeliveryToSend, WebhookRecord
 from common.settings import Settings, get_settings
 from common.webhook_signing import new_secret
+from common.webhook_targets import WebhookTargets
 
 webhooks = cast(sa.Table, Webhook.__table__)
 deliveries = cast(sa.Table, WebhookDelivery.__table__)
@@ -50,12 +51,16 @@ class WebhookStore:
         self.engine = engine
         self.settings = settings if settings is not None else get_settings()
         self.tx = Transactions(engine)
+        #: Where webhooks may go: checked at registration here and again by the dispatcher at each delivery.
+        self.targets = WebhookTargets(self.settings.webhook_allow_targets)
 
     # ------------------------------------------------------------------ registration
     def create_webhook(
         self, owner_key_id: str, url: str, event_types: builtins.list[str] | None = None
     ) -> tuple[WebhookRecord, str]:
-        """(webhook, secret). The secret signs every delivery; it is returned here only."""
+        """(webhook, secret). The secret signs every delivery; it is returned here only. A URL whose host is not
+        a public address (nor allowed by the operator) is refused with a 422 naming ``url``."""
+        self.targets.check_url(url)
         hook_id, secret, now = uuid.uuid4().hex, new_secret(), utcnow()
         with self.tx.write() as conn:
             conn.execute(
@@ -189,7 +194,7 @@ class WebhookStore:
         """Due PENDING deliveries, each taken for one attempt: ``next_attempt_at`` moves past the send timeout,
         so nobody else sends it meanwhile and a dispatcher that died mid-send leaves it due again."""
         now = now or utcnow()
-        lease = timedelta(seconds=self.settings.webhook_timeout_seconds * 2 + 5)
+        lease = timedelta(seconds=self.settings.webhook_timeout_seconds * 2 + 5)  # the send's whole deadline, twice
         due = sa.select(deliveries.c.id).where(deliveries.c.state == "PENDING", deliveries.c.next_attempt_at <= now)
         with self.tx.read() as conn:
             if conn.execute(due.limit(1)).first() is None:

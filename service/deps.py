@@ -9,13 +9,13 @@ from __future__ import annotations
 import time
 from typing import Annotated, Any
 
-from fastapi import Depends, Request
+from fastapi import Depends, Query, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from starlette.concurrency import run_in_threadpool
 
 from common.api_key_store import ApiKeyStore, hash_key
 from common.errors import AuthenticationError, FieldProblem, InvalidRequestError
-from common.queue import JobQueue
+from common.queue import PAGE_TOKEN_PATTERN, JobQueue
 from common.settings import Settings
 from common.webhook_store import WebhookStore
 
@@ -48,6 +48,17 @@ def get_webhooks(request: Request) -> WebhookStore:
 
 WebhooksDep = Annotated[WebhookStore, Depends(get_webhooks)]
 SettingsDep = Annotated[Settings, Depends(get_app_settings)]
+#: ``page_token`` of the listings: opaque to clients, but its form is in the schema, and the server accepts every
+#: token of that form (each is a keyset position), so a generated client and a validator agree with it.
+PageToken = Annotated[
+    str | None,
+    Query(
+        pattern=PAGE_TOKEN_PATTERN,
+        max_length=100,
+        description="Opaque token issued by the service: the next_page_token of the previous page, passed back "
+        "unchanged; omit it for the first page",
+    ),
+]
 
 
 async def current_key(

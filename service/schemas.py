@@ -19,31 +19,53 @@ from common.job_state import JobState
 from common.outcome import REASON_DESCRIPTIONS
 from common.progress import STEPS
 from common.queue_types import JobRecord
+from common.safe_text import FREE_TEXT_PATTERN, MAX_META_ENTRIES, MAX_META_KEY_CHARS, MAX_META_VALUE_CHARS, TEXT_PATTERN
+from common.sequence import MAX_ABS_VALUE, MAX_FPS, MAX_MASS_KG, MAX_NAME_CHARS, MIN_FRAMES
 from service import links
 
 VertexIndex = Annotated[int, Field(ge=0, le=2**31 - 1)]
-Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+#: Every number of a per-frame array or a mesh (``common.sequence`` refuses larger magnitudes).
+Coordinate = Annotated[float, Field(ge=-MAX_ABS_VALUE, le=MAX_ABS_VALUE)]
+Vec3 = Annotated[list[Coordinate], Field(min_length=3, max_length=3)]
+#: Names may hold no control or bidi formatting character (``common.safe_text``); the server checks that itself,
+#: naming the code point, so the pattern is stated in the schema only.
+Name = Annotated[str, Field(max_length=MAX_NAME_CHARS, json_schema_extra={"pattern": TEXT_PATTERN})]
+#: (Stated as propertyNames: a key pattern on the dict's key type would become patternProperties, which leaves keys
+#: that do not match it unconstrained.)
+Meta = Annotated[
+    dict[str, str],
+    Field(
+        max_length=MAX_META_ENTRIES,
+        json_schema_extra={
+            "propertyNames": {"maxLength": MAX_META_KEY_CHARS, "pattern": TEXT_PATTERN},
+            "additionalProperties": {"type": "string", "maxLength": MAX_META_VALUE_CHARS, "pattern": FREE_TEXT_PATTERN},
+        },
+    ),
+]
 
 
 class PrimitiveIn(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     kind: Literal["box", "cylinder", "sphere", "capsule"]
-    size: list[float] = Field(
-        min_length=1, max_length=3, description="box half-extents (3); cylinder/capsule (radius, half-length); sphere r"
-    )
+    size: list[Annotated[float, Field(gt=0, le=5)]] = Field(
+        min_length=1, max_length=3,
+        description="metres: box half-extents (3); cylinder/capsule (radius, half-length); sphere r (1)",
+    )  # fmt: skip
 
 
 class MeshIn(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-    vertices: list[Annotated[list[float], Field(min_length=3, max_length=3)]] = Field(min_length=4)
-    faces: list[Annotated[list[VertexIndex], Field(min_length=3, max_length=3)]] = Field(min_length=4)
+    vertices: list[Vec3] = Field(min_length=4, description="metres; the mesh at most 5 m across and not flat")
+    faces: list[Annotated[list[VertexIndex], Field(min_length=3, max_length=3)]] = Field(
+        min_length=4, description="vertex indices, each below the number of vertices"
+    )
 
 
 class OriginIn(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     pos: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0], description="the part frame's origin in its "
                       "parent's frame at joint value 0 (m)")  # fmt: skip
-    quat: Annotated[list[float], Field(min_length=4, max_length=4)] = Field(
+    quat: Annotated[list[Coordinate], Field(min_length=4, max_length=4)] = Field(
         default_factory=lambda: [1.0, 0.0, 0.0, 0.0], description="the part frame's orientation in its parent's "
         "frame at joint value 0 (w x y z)")  # fmt: skip
 
@@ -52,12 +74,12 @@ class JointIn(BaseModel):
     """The joint that hangs a part from its parent (``common.articulation``: URDF's conventions)."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-    name: str
+    name: Annotated[Name, Field(min_length=1)]
     type: Literal["revolute", "prismatic"]
     parent: str = Field(description="the base part's name (object.base_part) or a part listed before this one")
     axis: Vec3 = Field(description="unit vector in the part's frame (normalised; must not be zero)")
     origin: OriginIn | None = Field(default=None, description="default: the parent's frame")
-    limits: Annotated[list[float], Field(min_length=2, max_length=2)] = Field(
+    limits: Annotated[list[Coordinate], Field(min_length=2, max_length=2)] = Field(
         description="lower, upper (rad for revolute, m for prismatic); every recorded value must lie within")
     damping: float | None = Field(default=None, ge=0, le=1000, description="N m s/rad or N s/m; default: the "
                                   "simulation's setting")  # fmt: skip
@@ -69,33 +91,35 @@ class PartIn(BaseModel):
     """A part of an articulated object beyond its base: its shape (a mesh or a primitive) and its joint."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-    name: str
-    mass_kg: float = Field(gt=0, le=1000)
-    friction: float | None = Field(default=None, ge=0)
-    primitive: PrimitiveIn | None = None
-    mesh: MeshIn | None = None
+    name: Name
+    mass_kg: float = Field(gt=0, le=MAX_MASS_KG)
+    friction: float | None = Field(default=None, gt=0, le=10)
+    primitive: PrimitiveIn | None = Field(default=None, description="exactly one of primitive and mesh")
+    mesh: MeshIn | None = Field(default=None, description="exactly one of primitive and mesh")
     joint: JointIn
 
 
 class ObjectIn(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-    name: str = "object"
-    mass_kg: float = Field(gt=0, le=1000)
-    friction: float | None = Field(default=None, ge=0)
-    primitive: PrimitiveIn | None = None
-    mesh: MeshIn | None = None
-    base_part: str | None = Field(default=None, description="an articulated object's base part name (default "
-                                  "'base'): this shape, posed by object_pose")  # fmt: skip
+    name: Name = "object"
+    mass_kg: float = Field(gt=0, le=MAX_MASS_KG)
+    friction: float | None = Field(default=None, gt=0, le=10)
+    primitive: PrimitiveIn | None = Field(default=None, description="exactly one of primitive and mesh")
+    mesh: MeshIn | None = Field(default=None, description="exactly one of primitive and mesh")
+    base_part: Name | None = Field(default=None, description="an articulated object's base part name (default "
+                                   "'base'): this shape, posed by object_pose")  # fmt: skip
     parts: list[PartIn] = Field(default_factory=list, max_length=MAX_PARTS, description="an articulated object's "
                                 "further parts, parents before children (format_version 2)")  # fmt: skip
 
 
 class ManoIn(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-    global_orient: list[list[float]]
-    hand_pose: list[list[float]]
-    trans: list[list[float]]
-    betas: list[float] = Field(default_factory=lambda: [0.0] * 10)
+    global_orient: list[Vec3] = Field(min_length=MIN_FRAMES, description="(T, 3) axis-angle")
+    hand_pose: list[list[Coordinate]] = Field(
+        min_length=MIN_FRAMES, description="(T, 45) axis-angle, or (T, 1-45) PCA coefficients"
+    )
+    trans: list[Vec3] = Field(min_length=MIN_FRAMES, description="(T, 3) metres")
+    betas: list[Coordinate] = Field(default_factory=lambda: [0.0] * 10)
     pose_format: Literal["axis_angle", "pca"] = "axis_angle"
     flat_hand_mean: bool = False
 
@@ -103,11 +127,15 @@ class ManoIn(BaseModel):
 class HandIn(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     side: Literal["right", "left"]
-    valid: list[bool]
-    keypoints: list[Annotated[list[Vec3], Field(min_length=21, max_length=21)]] | None = Field(
-        default=None, description="(T, 21, 3) metres"
+    valid: list[bool] = Field(
+        min_length=MIN_FRAMES,
+        json_schema_extra={"contains": {"const": True}},
+        description="(T,) per frame: is the hand tracked? At least one frame must be",
     )
-    mano: ManoIn | None = None
+    keypoints: list[Annotated[list[Vec3], Field(min_length=21, max_length=21)]] | None = Field(
+        default=None, min_length=MIN_FRAMES, description="(T, 21, 3) metres; a hand needs keypoints or MANO parameters"
+    )
+    mano: ManoIn | None = Field(default=None, description="MANO parameters (the server needs the MANO model files)")
 
 
 class JobCreate(BaseModel):
@@ -116,21 +144,26 @@ class JobCreate(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     format: Literal["hoi-refine-sequence"] = "hoi-refine-sequence"
     format_version: Literal[1, 2] = Field(default=1, description="2 for an articulated object (object.parts)")
-    name: str = "sequence"
-    fps: float = Field(gt=0, le=1000)
+    name: Annotated[Name, Field(min_length=1)] = "sequence"
+    fps: float = Field(gt=0, le=MAX_FPS)
     frame_start: int = Field(default=0, ge=0, le=2**31 - 1)
     object: ObjectIn
-    object_pose: list[Annotated[list[float], Field(min_length=7, max_length=7)]] = Field(
-        min_length=1, description="(T, 7): x y z qw qx qy qz per frame"
+    object_pose: list[Annotated[list[Coordinate], Field(min_length=7, max_length=7)]] = Field(
+        min_length=MIN_FRAMES,
+        description="(T, 7): x y z qw qx qy qz per frame, the quaternion of unit length; T is every per-frame "
+        "array's length, at most the server's HOI_REFINE_MAX_FRAMES",
     )
-    hands: list[HandIn] = Field(min_length=1, max_length=2)
-    world_from_camera: list[Annotated[list[float], Field(min_length=4, max_length=4)]] | None = Field(
+    hands: list[HandIn] = Field(min_length=1, max_length=2, description="at most one per side")
+    world_from_camera: list[Annotated[list[Coordinate], Field(min_length=4, max_length=4)]] | None = Field(
         default=None, min_length=4, max_length=4, description="4x4 rigid transform source -> world"
     )
-    up: Vec3 | None = None
-    articulation: list[list[float]] | None = Field(
-        default=None, description="(T, J) every joint's recorded value per frame (rad / m), J = len(object.parts)")
-    meta: dict[str, str] = Field(default_factory=dict)
+    up: Vec3 | None = Field(default=None, description="non-zero; ignored when world_from_camera is given")
+    articulation: list[list[Coordinate]] | None = Field(
+        default=None, min_length=MIN_FRAMES,
+        description="(T, J) every joint's recorded value per frame (rad / m), J = len(object.parts), each within "
+        "its joint's limits",
+    )
+    meta: Meta = Field(default_factory=dict)
     options: JobOptions = Field(default_factory=JobOptions)
     batch_id: str | None = Field(default=None, max_length=32, description="Submit into this batch (POST /v1/batches)")
 
@@ -300,7 +333,9 @@ def _eta(progress: ProgressPublic, elapsed_s: float) -> float | None:
 class JobsPublic(BaseModel):
     data: list[JobPublic]
     count: int
-    next_page_token: str | None = Field(description="Pass as page_token for the next page; null on the last page")
+    next_page_token: str | None = Field(
+        description="Opaque token issued by the service: pass it as page_token for the next page; null on the last page"
+    )
 
 
 class JobEventPublic(BaseModel):

@@ -72,7 +72,9 @@ class BatchPublic(BaseModel):
 class BatchesPublic(BaseModel):
     data: list[BatchPublic]
     count: int
-    next_page_token: str | None = Field(description="Pass as page_token for the next page; null on the last page")
+    next_page_token: str | None = Field(
+        description="Opaque token issued by the service: pass it as page_token for the next page; null on the last page"
+    )
 
 
 class BatchActionPublic(BaseModel):
@@ -82,7 +84,12 @@ class BatchActionPublic(BaseModel):
 
 class WebhookCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    url: AnyHttpUrl
+    url: AnyHttpUrl = Field(
+        description="http:// or https:// URL whose host is a public address: a host that is, or resolves to, a "
+        "loopback, private, link-local, multicast, unspecified or reserved address (IPv4 or IPv6) is refused "
+        "with 422 unless the operator allows it (HOI_REFINE_WEBHOOK_ALLOW_TARGETS); checked again at each "
+        "delivery, which never follows redirects"
+    )
     event_types: list[WebhookEventType] = Field(
         default_factory=list, description="Event types to send; empty = all"
     )

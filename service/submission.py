@@ -33,12 +33,20 @@ from service.schemas import JobCreate
 MULTIPART_SCHEMA: dict[str, Any] = {
     "type": "object",
     "properties": {
-        "sequence": {"type": "string", "format": "binary", "description": "native or DexYCB development NPZ"},
-        "options": {"type": "string", "description": "JobOptions as JSON"},
-        "batch_id": {"type": "string", "description": "submit into this batch (POST /v1/batches)"},
+        "sequence": {
+            "type": "string", "format": "binary",
+            "description": "a native sequence NPZ (a DexYCB development NPZ where the server sets HOI_REFINE_YCB_DIR)",
+        },
+        "options": {"$ref": "#/components/schemas/JobOptions", "description": "a JSON part (see encoding)"},
+        "batch_id": {
+            "type": "string", "minLength": 1, "maxLength": 32,
+            "description": "submit into this batch (POST /v1/batches)",
+        },
     },
     "required": ["sequence"],
-}
+}  # fmt: skip
+#: The options part is JSON, which a generated client learns from the part's encoding.
+MULTIPART_ENCODING: dict[str, Any] = {"options": {"contentType": "application/json"}}
 
 
 @dataclass(frozen=True)

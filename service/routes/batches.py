@@ -14,7 +14,7 @@ from starlette.concurrency import run_in_threadpool
 
 from common.queue_types import JobEventRecord
 from service import batch_report, event_stream
-from service.deps import KeyDep, QueueDep, SettingsDep, reject_unknown_query_parameters
+from service.deps import KeyDep, PageToken, QueueDep, SettingsDep, reject_unknown_query_parameters
 from service.links import REPORT_TYPES
 from service.routes.jobs import COMMON_ERRORS, PROBLEM
 from service.schemas import OutcomeStatus
@@ -41,7 +41,7 @@ def list_batches(
     queue: QueueDep,
     key_id: KeyDep,
     page_size: Annotated[int, Query(ge=1, le=500)] = 50,
-    page_token: Annotated[str | None, Query(max_length=500)] = None,
+    page_token: PageToken = None,
     outcome: Annotated[
         OutcomeStatus | None, Query(description="only batches with at least one job of this outcome")
     ] = None,

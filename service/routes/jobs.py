@@ -10,13 +10,12 @@ from fastapi.responses import StreamingResponse
 from starlette.concurrency import run_in_threadpool
 
 from common.batch_metrics import outcome_of
-from common.errors import FieldProblem, InvalidRequestError
 from common.job_state import ACTIVE, JobState
 from common.queue_types import JobEventRecord
 from common.result_format import read_arrays, read_contacts
 from common.sequence_io import sequence_to_json_dict
 from service import event_stream
-from service.deps import KeyDep, QueueDep, SettingsDep, reject_unknown_query_parameters
+from service.deps import KeyDep, PageToken, QueueDep, SettingsDep, reject_unknown_query_parameters
 from service.schemas import (
     ContactsPublic,
     JobEventPublic,
@@ -28,7 +27,7 @@ from service.schemas import (
     Problem,
     ResultJson,
 )
-from service.submission import MULTIPART_SCHEMA, read_submission
+from service.submission import MULTIPART_ENCODING, MULTIPART_SCHEMA, read_submission
 
 PROBLEM = {"model": Problem, "content": {"application/problem+json": {}}}
 COMMON_ERRORS: dict[int | str, dict[str, Any]] = {401: PROBLEM, 404: PROBLEM, 422: PROBLEM}
@@ -59,7 +58,7 @@ def _job_response(response: Response, job: JobPublic, retry_after: int) -> JobPu
             "required": True,
             "content": {
                 "application/json": {"schema": {"$ref": "#/components/schemas/JobCreate"}},
-                "multipart/form-data": {"schema": MULTIPART_SCHEMA},
+                "multipart/form-data": {"schema": MULTIPART_SCHEMA, "encoding": MULTIPART_ENCODING},
             },
         }
     },
@@ -70,7 +69,12 @@ async def submit_job(
     queue: QueueDep,
     settings: SettingsDep,
     key_id: KeyDep,
-    idempotency_key: Annotated[str | None, Header(max_length=200, pattern=r"^[\x20-\x7E]+$")] = None,
+    idempotency_key: Annotated[
+        str | None,
+        Header(max_length=200, pattern=r"^[\x20-\x7E]+$",
+               description="Resending with the same key and payload returns the first job; the same key with "
+               "another payload is a 422 (IETF Idempotency-Key draft)"),
+    ] = None,
 ) -> JobPublic:
     sub = await read_submission(request, settings)
     job, _created = await run_in_threadpool(
@@ -86,7 +90,7 @@ def list_jobs(
     queue: QueueDep,
     key_id: KeyDep,
     page_size: Annotated[int, Query(ge=1, le=500)] = 50,
-    page_token: Annotated[str | None, Query(max_length=500)] = None,
+    page_token: PageToken = None,
     state: JobState | None = None,
     batch_id: Annotated[str | None, Query(max_length=32, description="only the jobs of this batch")] = None,
     outcome: Annotated[
@@ -145,11 +149,13 @@ def get_contacts(
     job_id: str,
     queue: QueueDep,
     key_id: KeyDep,
-    start: Annotated[int | None, Query(ge=0)] = None,
-    end: Annotated[int | None, Query(ge=0)] = None,
+    start: Annotated[int | None, Query(ge=0, description="first frame (default: the first)")] = None,
+    end: Annotated[
+        int | None, Query(ge=0, description="frame after the last (default: past the last); end <= start selects none")
+    ] = None,
 ) -> ContactsPublic:
-    if start is not None and end is not None and end < start:
-        raise InvalidRequestError([FieldProblem("end", f"must be >= start ({start})")])
+    # The range is a half-open slice, as in Python: end <= start is an empty range, not an error (OpenAPI cannot
+    # say end >= start, so refusing it would refuse requests the schema allows).
     blob, _ = queue.get_result(key_id, job_id)
     rows = read_contacts(blob, start, end)
     return ContactsPublic.model_validate(

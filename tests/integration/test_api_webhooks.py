@@ -5,18 +5,15 @@ is announced once, and a receiver that hangs holds neither the queue nor deliver
 from __future__ import annotations
 
 import socket
-import time
 from datetime import datetime
-from typing import Any
 
 import pytest
 from standardwebhooks.webhooks import Webhook, WebhookVerificationError
 
-from common.queue import JobQueue
 from common.settings import Settings
-from tests.support.api import json_body
+from tests.support.api import json_body, run_job, wait_until
 from tests.support.live_server import webhook_receiver
-from tests.support.queue_fixtures import BACKENDS, ApiHarness, fake_result
+from tests.support.queue_fixtures import BACKENDS, ApiHarness
 
 pytestmark = pytest.mark.parametrize("empty_db_url", BACKENDS, indirect=True)
 
@@ -24,24 +21,10 @@ pytestmark = pytest.mark.parametrize("empty_db_url", BACKENDS, indirect=True)
 @pytest.fixture
 def api_settings() -> Settings:
     """The ``api`` harness (tests/support/queue_fixtures.py) with a fast webhook dispatcher: TestClient runs the
-    app's lifespan, so the dispatcher task runs."""
+    app's lifespan, so the dispatcher task runs. The receivers listen on loopback, which the operator setting
+    allows here (webhooks go to public addresses only by default)."""
     return Settings(webhook_poll_seconds=0.05, webhook_backoff_seconds=0.05, webhook_timeout_seconds=30,
-                    max_active_jobs_per_key=50)  # fmt: skip
-
-
-def run_job(queue: JobQueue, job_id: str) -> None:
-    lease = queue.claim("w")
-    assert lease is not None and lease.job_id == job_id
-    queue.complete(job_id, lease.lease_token, *fake_result())
-
-
-def wait_until(condition: Any, what: str, timeout: float = 60.0) -> Any:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if value := condition():
-            return value
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
+                    max_active_jobs_per_key=50, webhook_allow_targets="127.0.0.1")  # fmt: skip
 
 
 def test_signed_deliveries_verify_and_a_500_is_retried(api: ApiHarness) -> None:

@@ -1,15 +1,19 @@
 """Loopback HTTP servers for tests that need real sockets: the app under uvicorn in a thread (server-sent
-events must stream, which the in-process TestClient does not do) and a webhook receiver."""
+events must stream, which the in-process TestClient does not do), a webhook receiver, and receivers that
+answer too much or too slowly."""
 
 from __future__ import annotations
 
 import socket
+import ssl
+import subprocess
 import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
 from typing import Any
 
 import uvicorn
@@ -54,9 +58,13 @@ class Receiver:
 
 
 @contextmanager
-def webhook_receiver(statuses: list[int] | None = None, hang: bool = False) -> Iterator[Receiver]:
+def webhook_receiver(
+    statuses: list[int] | None = None, hang: bool = False, location: str | None = None,
+    tls: ssl.SSLContext | None = None,
+) -> Iterator[Receiver]:
     """A loopback receiver: answers each request with the next of ``statuses`` (then 200). ``hang``: every
-    request is held until ``receiver.release`` is set (a stuck endpoint)."""
+    request is held until ``receiver.release`` is set (a stuck endpoint). ``location``: sent as the Location
+    header of every answer (a redirect, with a 3xx status). ``tls``: serves https with this server context."""
     rec = Receiver(statuses=list(statuses or []))
 
     class Handler(BaseHTTPRequestHandler):
@@ -69,6 +77,8 @@ def webhook_receiver(statuses: list[int] | None = None, hang: bool = False) -> I
             if hang:
                 rec.release.wait(60)
             self.send_response(status)
+            if location is not None:
+                self.send_header("location", location)
             self.send_header("content-length", "0")
             self.end_headers()
 
@@ -77,7 +87,9 @@ def webhook_receiver(statuses: list[int] | None = None, hang: bool = False) -> I
 
     server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
     server.daemon_threads = True
-    rec.url = f"http://127.0.0.1:{server.server_address[1]}/hook"
+    if tls is not None:
+        server.socket = tls.wrap_socket(server.socket, server_side=True)
+    rec.url = f"{'https' if tls else 'http'}://127.0.0.1:{server.server_address[1]}/hook"
     thread = threading.Thread(target=server.serve_forever, daemon=True)
     thread.start()
     try:
@@ -87,3 +99,98 @@ def webhook_receiver(statuses: list[int] | None = None, hang: bool = False) -> I
         server.shutdown()
         server.server_close()
         thread.join(timeout=10)
+
+
+@dataclass
+class RawReceiver:
+    """A loopback TCP server that reads a request and then misbehaves; counts requests and bytes it sent."""
+
+    url: str = ""
+    requests: int = 0
+    bytes_sent: int = 0
+    stop: threading.Event = field(default_factory=threading.Event)
+    arrived: threading.Condition = field(default_factory=threading.Condition)
+
+    def wait_for(self, count: int, timeout: float = 30.0) -> None:
+        with self.arrived:
+            if not self.arrived.wait_for(lambda: self.requests >= count, timeout):
+                raise AssertionError(f"receiver got {self.requests} requests, expected {count}")
+
+
+@contextmanager
+def misbehaving_receiver(kind: str) -> Iterator[RawReceiver]:
+    """``endless``: answers 200 and then a body that never ends (as fast as the client reads); ``dribble``:
+    sends its status line and headers one byte every 50 ms, never finishing them. Either stops when the client
+    hangs up."""
+    rec = RawReceiver()
+    chunk = b"x" * 65536 if kind == "endless" else b""
+    dribble = b"HTTP/1.1 200 OK\r\n" + b"x-slow: " + b"z" * 10_000_000
+
+    def serve(conn: socket.socket) -> None:
+        with conn:
+            request = b""
+            while b"\r\n\r\n" not in request and (data := conn.recv(65536)):
+                request += data
+            with rec.arrived:
+                rec.requests += 1
+                rec.arrived.notify_all()
+            try:
+                if kind == "endless":
+                    conn.sendall(b"HTTP/1.1 200 OK\r\ncontent-length: 100000000000\r\n\r\n")
+                    while not rec.stop.is_set():
+                        conn.sendall(chunk)
+                        rec.bytes_sent += len(chunk)
+                else:
+                    for byte in dribble:
+                        if rec.stop.wait(0.05):
+                            break
+                        conn.sendall(bytes([byte]))
+                        rec.bytes_sent += 1
+            except OSError:
+                pass  # the client hung up: what a bounded client does
+
+    listener = socket.create_server(("127.0.0.1", 0))
+    listener.settimeout(0.2)
+    rec.url = f"http://127.0.0.1:{listener.getsockname()[1]}/hook"
+
+    def accept() -> None:
+        while not rec.stop.is_set():
+            try:
+                conn, _ = listener.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            conn.settimeout(30)
+            threading.Thread(target=serve, args=(conn,), daemon=True).start()
+
+    thread = threading.Thread(target=accept, daemon=True)
+    thread.start()
+    try:
+        yield rec
+    finally:
+        rec.stop.set()
+        thread.join(timeout=10)
+        listener.close()
+
+
+def throwaway_certificates(folder: Path, name: str) -> tuple[Path, ssl.SSLContext] | None:
+    """A throwaway CA (its PEM file) and a server context whose certificate names ``name``, made with the
+    ``openssl`` command; None when it is missing."""
+    def openssl(*args: str) -> None:
+        subprocess.run(["openssl", *args], cwd=folder, check=True, capture_output=True, timeout=60)
+
+    try:
+        openssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "ca.key", "-out", "ca.pem", "-days", "2",
+                "-subj", "/CN=hoi-refine test CA", "-addext", "basicConstraints=critical,CA:TRUE",
+                "-addext", "keyUsage=critical,keyCertSign,cRLSign")  # fmt: skip
+    except FileNotFoundError:
+        return None
+    (folder / "server.ext").write_text(f"subjectAltName=DNS:{name}\nextendedKeyUsage=serverAuth\n")
+    openssl("req", "-newkey", "rsa:2048", "-nodes", "-keyout", "server.key", "-out", "server.csr",
+            "-subj", f"/CN={name}")  # fmt: skip
+    openssl("x509", "-req", "-in", "server.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial",
+            "-out", "server.pem", "-days", "2", "-extfile", "server.ext")  # fmt: skip
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    context.load_cert_chain(folder / "server.pem", folder / "server.key")
+    return folder / "ca.pem", context

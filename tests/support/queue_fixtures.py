@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import uuid
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -76,12 +77,12 @@ def _with_search_path(url: str, schema: str) -> str:
     return f"{url}{sep}options=-csearch_path%3D{schema}"
 
 
-@pytest.fixture
-def empty_db_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
-    """An empty database (no tables) on the backend named by the test's ``backend`` parameter."""
-    backend = getattr(request, "param", "sqlite")
+@contextmanager
+def empty_database(backend: str, folder: Path) -> Iterator[str]:
+    """The URL of an empty database on ``backend``: a SQLite file in ``folder``, or a fresh PostgreSQL schema
+    (dropped afterwards; skips the test when no server is configured)."""
     if backend == "sqlite":
-        yield f"sqlite:///{tmp_path / 'queue.sqlite3'}"
+        yield f"sqlite:///{folder / 'queue.sqlite3'}"
         return
     base = postgres_base_url()
     if base is None:
@@ -96,6 +97,13 @@ def empty_db_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str
         with admin.begin() as conn:
             conn.exec_driver_sql(f"DROP SCHEMA {schema} CASCADE")
         admin.dispose()
+
+
+@pytest.fixture
+def empty_db_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
+    """An empty database (no tables) on the backend named by the test's ``backend`` parameter."""
+    with empty_database(getattr(request, "param", "sqlite"), tmp_path) as url:
+        yield url
 
 
 @pytest.fixture
