@@ -106,7 +106,8 @@ class ObjectIn(BaseModel):
     friction: float | None = Field(default=None, gt=0, le=10)
     primitive: PrimitiveIn | None = Field(default=None, description="exactly one of primitive and mesh")
     mesh: MeshIn | None = Field(default=None, description="exactly one of primitive and mesh")
-    base_part: Name | None = Field(default=None, description="an articulated object's base part name (default "
+    base_part: Annotated[Name, Field(min_length=1)] | None = Field(default=None, description="an articulated "
+                                                                   "object's base part name (default "
                                    "'base'): this shape, posed by object_pose")  # fmt: skip
     parts: list[PartIn] = Field(default_factory=list, max_length=MAX_PARTS, description="an articulated object's "
                                 "further parts, parents before children (format_version 2)")  # fmt: skip

@@ -44,6 +44,7 @@ MULTIPART_SCHEMA: dict[str, Any] = {
         },
     },
     "required": ["sequence"],
+    "additionalProperties": False,  # another part is refused, naming it (``_read_form``)
 }  # fmt: skip
 #: The options part is JSON, which a generated client learns from the part's encoding.
 MULTIPART_ENCODING: dict[str, Any] = {"options": {"contentType": "application/json"}}
@@ -124,6 +125,10 @@ async def _read_multipart(request: Request, settings: Settings) -> tuple[bytes, 
 
 
 async def _read_form(form: FormData) -> tuple[bytes, JobOptions, str | None]:
+    unknown = sorted({key for key in form if key not in MULTIPART_SCHEMA["properties"]})
+    if unknown:
+        raise _invalid([FieldProblem(shown(key, 40), "unknown part; a multipart submission holds sequence, options and "
+                                     "batch_id") for key in unknown[:5]])  # fmt: skip
     seq_part = form.get("sequence")
     if seq_part is None:
         raise _invalid([FieldProblem("sequence", "is required (a file part holding the sequence NPZ)")])
