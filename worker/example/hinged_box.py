@@ -16,8 +16,6 @@ do), convex, so collision uses their hulls without a decomposition.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from common.articulation import ObjectJoint
@@ -25,11 +23,8 @@ from common.geometry import FloatArray, matrix_to_quat, quat_rotate
 from common.sequence import HandTrack, ObjectPart, ObjectSpec, Sequence
 from worker.example.box_geometry import BOX_HALF, MASS_KG
 from worker.example.grasp_file import cached_box_grasp
-from worker.example.sequences import FPS, _smoothstep
+from worker.example.sequences import FPS, Timeline, _smoothstep, observed_hinges
 from worker.hand.model import (
-    FINGERS,
-    JOINT_LOWER,
-    JOINT_UPPER,
     TEMPLATE_HAND_LENGTH,
     default_geometry,
     forward_keypoints,
@@ -45,19 +40,8 @@ BLOCK_X, GRIP_X = 0.05, -0.05
 OPEN_RAD = 1.0
 
 
-@dataclass(frozen=True)
-class HingedTimeline:
-    """Frame counts of the phases: approach, close, settle, open, hold."""
-
-    approach: int = 22
-    close: int = 12
-    settle: int = 4
-    open: int = 30
-    hold: int = 8
-
-    @property
-    def total(self) -> int:
-        return self.approach + self.close + self.settle + self.open + self.hold
+#: The phases (``Timeline``): its ``lift`` is the frames over which the right hand swings the block open.
+HINGED_TIMELINE = Timeline(approach=22, close=12, settle=4, lift=30, hold=8)
 
 
 def box_mesh(half: FloatArray, centre: FloatArray) -> tuple[FloatArray, np.ndarray]:
@@ -83,7 +67,7 @@ def hinged_box_object() -> ObjectSpec:
                       parts=[ObjectPart(block, hinge)])
 
 
-def _hand_motion(tl: HingedTimeline, thumb_late: bool = True) -> tuple[FloatArray, FloatArray, FloatArray]:
+def _hand_motion(tl: Timeline, thumb_late: bool = True) -> tuple[FloatArray, FloatArray, FloatArray]:
     """The right hand's grasp of a box at the origin over the timeline: wrist positions (T,3), rotations (T,4),
     hinges (T,45), in the box frame, approaching from above and closing (no opening motion)."""
     grasp = cached_box_grasp(TEMPLATE_HAND_LENGTH, BOX_HALF, MASS_KG)
@@ -100,22 +84,12 @@ def _hand_motion(tl: HingedTimeline, thumb_late: bool = True) -> tuple[FloatArra
     return wrist_pos, wrist_quat, q
 
 
-def _observed(q: FloatArray, close: FloatArray, errors: dict[str, float]) -> FloatArray:
-    """Hinges with per-finger flexion errors growing as the hand closes (+ sinks in, - hovers)."""
-    pattern = np.array([0.0, 0.9, 0.0, 0.0, 1.0, 0.0, 0.0, 0.7, 0.0])
-    out = q.copy()
-    for name, delta in errors.items():
-        f = FINGERS.index(name)
-        out[:, 9 * f : 9 * f + 9] += close[:, None] * delta * pattern
-    return np.asarray(np.clip(out, JOINT_LOWER, JOINT_UPPER))
-
-
-def hinged_box_sequence(timeline: HingedTimeline | None = None, seed: int = 0, errors: bool = True) -> Sequence:
+def hinged_box_sequence(timeline: Timeline | None = None, seed: int = 0, errors: bool = True) -> Sequence:
     """Build the example (world frame = source frame, table z = 0); see the module docstring."""
-    tl = timeline or HingedTimeline()
+    tl = timeline or HINGED_TIMELINE
     t = np.arange(tl.total, dtype=np.float64)
     close = _smoothstep((t - tl.approach) / max(tl.close, 1))
-    opening = OPEN_RAD * _smoothstep((t - tl.approach - tl.close - tl.settle) / max(tl.open, 1))
+    opening = OPEN_RAD * _smoothstep((t - tl.approach - tl.close - tl.settle) / max(tl.lift, 1))
     obj = hinged_box_object()
     base_pose = np.tile(np.array([0.0, 0.0, BASE_HALF[2], 1.0, 0.0, 0.0, 0.0]), (tl.total, 1))
     parts = obj.part_poses(base_pose, opening[:, None])  # (T, 2, 7): the block's frame is its hinge line
@@ -125,13 +99,13 @@ def hinged_box_sequence(timeline: HingedTimeline | None = None, seed: int = 0, e
 
     # Right hand: the grasp of a box centred at the block's centre, carried by the block's frame.
     block_centre = np.array([0.0, BOX_HALF[1], BOX_HALF[2]])
-    q_right = _observed(q, close, {"index": 0.10, "middle": -0.15, "pinky": -0.2}) if errors else q
+    q_right = observed_hinges(q, close, {"index": 0.10, "middle": -0.15, "pinky": -0.2}) if errors else q
     kp = forward_keypoints(geometry, wrist_pos + (np.array([0.003, -0.002, 0.002]) if errors else 0.0), wrist_quat,
                            q_right) + block_centre  # fmt: skip
     right = quat_rotate(parts[:, 1, None, 3:], kp) + parts[:, 1, None, :3]
 
     # Left hand: the mirror image of the same grasp (x reflected), turned a quarter about z, at the base's -x end.
-    q_left = _observed(q, close, {"middle": 0.12, "ring": -0.12}) if errors else q
+    q_left = observed_hinges(q, close, {"middle": 0.12, "ring": -0.12}) if errors else q
     kp = forward_keypoints(geometry, wrist_pos + (np.array([-0.002, 0.003, 0.0]) if errors else 0.0), wrist_quat,
                            q_left) * np.array([-1.0, 1.0, 1.0])  # fmt: skip
     quarter = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
@@ -148,7 +122,7 @@ def hinged_box_sequence(timeline: HingedTimeline | None = None, seed: int = 0, e
         articulation = np.clip(articulation + rng.normal(0.0, 0.01, articulation.shape), 0.0, 1.6)
     valid = np.ones(tl.total, dtype=bool)
     seq = Sequence(
-        name="hinged_box" if tl == HingedTimeline() else f"hinged_box_{tl.total}f",
+        name="hinged_box" if tl == HINGED_TIMELINE else f"hinged_box_{tl.total}f",
         fps=FPS,
         object=obj,
         object_pose=base_pose,
@@ -162,4 +136,4 @@ def hinged_box_sequence(timeline: HingedTimeline | None = None, seed: int = 0, e
 
 def short_hinged_box_sequence(seed: int = 0, errors: bool = True) -> Sequence:
     """A 32-frame version of the hinged box, for quick tests."""
-    return hinged_box_sequence(HingedTimeline(approach=6, close=6, settle=2, open=14, hold=4), seed, errors)
+    return hinged_box_sequence(Timeline(approach=6, close=6, settle=2, lift=14, hold=4), seed, errors)

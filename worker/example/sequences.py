@@ -37,7 +37,8 @@ FPS = 30.0
 
 @dataclass(frozen=True)
 class Timeline:
-    """Frame counts of the phases: approach, close, settle, lift, hold."""
+    """Frame counts of the phases: approach, close, settle, lift (the motion the grasp makes: the hinged box's
+    opening), hold."""
 
     approach: int = 22
     close: int = 12
@@ -57,6 +58,16 @@ def _smoothstep(x: FloatArray) -> FloatArray:
 
 #: Finger flexion direction (MCP, PIP, DIP) used for the observation errors.
 _FLEX_PATTERN = np.array([0.0, 0.9, 0.0, 0.0, 1.0, 0.0, 0.0, 0.7, 0.0])
+
+
+def observed_hinges(q: FloatArray, close: FloatArray, errors: dict[str, float]) -> FloatArray:
+    """Hinge angles (T, 45) with per-finger flexion errors (radians along ``_FLEX_PATTERN``, + sinks into the
+    object, - hovers) growing with the grasp's closing (``close``, 0..1 per frame), within the joint limits."""
+    out = q.copy()
+    for name, delta in errors.items():
+        f = FINGERS.index(name)
+        out[:, 9 * f : 9 * f + 9] += close[:, None] * delta * _FLEX_PATTERN
+    return np.asarray(np.clip(out, JOINT_LOWER, JOINT_UPPER))
 
 
 def _object_spec(half_extents: FloatArray) -> ObjectSpec:
@@ -92,12 +103,7 @@ def synthetic_grasp_and_lift(timeline: Timeline | None = None, seed: int = 0, er
 
     rng = np.random.default_rng(seed)
     if errors:
-        q_seen = q.copy()
-        finger_err = {"index": 0.12, "middle": -0.15, "ring": 0.10, "pinky": -0.2}  # + sinks in, - hovers
-        for name, delta in finger_err.items():
-            f = FINGERS.index(name)
-            q_seen[:, 9 * f : 9 * f + 9] += close[:, None] * delta * _FLEX_PATTERN
-        q_seen = np.clip(q_seen, JOINT_LOWER, JOINT_UPPER)
+        q_seen = observed_hinges(q, close, {"index": 0.12, "middle": -0.15, "ring": 0.10, "pinky": -0.2})
         wrist_seen = wrist_pos + np.array([0.003, -0.002, 0.002])
         keypoints = forward_keypoints(geometry, wrist_seen, wrist_quat, q_seen)
         keypoints += rng.normal(0.0, 0.0015, keypoints.shape)
