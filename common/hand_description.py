@@ -90,7 +90,7 @@ class ActuatorSpec(_Strict):
 
 
 class MountSpec(_Strict):
-    """The robot's root body pose in the human wrist frame (``worker.hand.model``'s), the retargeting's start.
+    """The robot's root body pose in the built-in human hand's wrist frame, the retargeting's start.
     None: fitted by aligning the robot's wrist and knuckle sites with the human hand's at rest."""
 
     pos: Vec3 = (0.0, 0.0, 0.0)

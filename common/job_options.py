@@ -57,7 +57,7 @@ class JobOptions(BaseModel):
     hand: HandDescription | None = Field(
         default=None,
         description="The hand that executes the motion: None, the built-in human hand; a packed robot hand "
-        "description (common.hand_description: model_xml, actuated joints, keypoint correspondence; "
+        "description (its model inlined, actuated joints, keypoint correspondence; "
         "`hoi-refine hand pack allegro|leap|FILE` makes one)",
     )
     two_hands: Literal["per_hand", "joint"] = Field(

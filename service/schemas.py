@@ -71,7 +71,7 @@ class OriginIn(BaseModel):
 
 
 class JointIn(BaseModel):
-    """The joint that hangs a part from its parent (``common.articulation``: URDF's conventions)."""
+    """The joint that hangs a part from its parent, in URDF's conventions."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     name: Annotated[Name, Field(min_length=1)]

@@ -56,7 +56,8 @@ def test_every_contact_field_states_its_unit_in_the_schema() -> None:
         engine.dispose()
     fields = schema["ContactPublic"]["properties"]
     units = {"frame": "index", "hand": "side", "body": "hand body", "position_world": ", m", "position_object": ", m",
-             "normal": "unit vector", "force": ", N", "torque": "N·m", "depth": ", m"}  # fmt: skip
+             "normal": "unit vector", "force": ", N", "torque": "N·m", "depth": ", m",
+             "part": "object part"}  # fmt: skip
     assert set(fields) == set(units)
     for name, unit in units.items():
         assert unit in fields[name].get("description", ""), (name, fields[name])

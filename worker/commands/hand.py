@@ -1,5 +1,5 @@
 """``hoi-refine hand pack allegro|leap|FILE --out packed.json``: a robot hand description with its model compiled
-and inlined (``worker.robot.pack_description``), the form that travels with a job (``submit --hand``, the API's
+and inlined, the form that travels with a job (``submit --hand``, the API's
 ``options.hand``) and that results embed; ``hoi-refine hand check``: the same checks, nothing written."""
 
 from __future__ import annotations

@@ -64,7 +64,7 @@ def add_hand_arguments(p: argparse.ArgumentParser) -> None:
         "--hand", default=None,
         help="the hand that executes the motion: human (default, the built-in hand), allegro, leap (shipped "
         "correspondences; the models are read from --robot-dir) or a hand description file (JSON/YAML: model, "
-        "actuated joints, keypoint correspondence; common/hand_description.py)",
+        "actuated joints, keypoint correspondence; `hoi-refine hand check FILE` checks one)",
     )  # fmt: skip
     p.add_argument("--robot-dir", type=Path, default=None,
                    help="folder holding the robot models (a dex-urdf checkout); default HOI_REFINE_ROBOT_DIR")
