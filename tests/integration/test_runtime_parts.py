@@ -87,7 +87,9 @@ def test_joining_the_ray_cluster_retries_a_failed_ray_start(tmp_path: Path, monk
     pool = pool_module.WorkerPool(cfg)
     pool._start_node(threading.Event())
     calls = (tmp_path / "calls").read_text().splitlines()
-    start = "start --address 10.0.0.1:6380 --num-cpus 1 --disable-usage-stats --node-ip-address 10.0.0.2"
+    temp_dir = pool_module.ray_temp_dir(get_settings().var_dir)  # Ray's session files go under the var dir
+    start = ("start --address 10.0.0.1:6380 --num-cpus 1 --disable-usage-stats --node-ip-address 10.0.0.2 "
+             f"--temp-dir {temp_dir}")
     # Two failed starts, each cleaned up with `ray stop --force`, then the third joins.
     assert calls == [start, "stop --force", start, "stop --force", start]
     assert pool._node_started
