@@ -52,7 +52,9 @@ def batch_jobs(client: ApiClient, batch_id: str) -> list[dict[str, Any]]:
 
 
 def batch_items(client: ApiClient, jobs: list[dict[str, Any]]) -> Iterator[SourceItem]:
-    """Each job's result (downloaded) and document; a job that did not succeed comes without a result."""
-    for job in jobs:
+    """Each job's result (downloaded) and full document (the listing leaves out the summary, which holds the
+    worker's verification); a job that did not succeed comes without a result."""
+    for listed in jobs:
+        job, _ = client.job(listed["id"])
         blob = client.result(job["id"]) if job.get("state") == JobState.SUCCEEDED else None
         yield SourceItem(str(job.get("name") or job["id"]), blob, job)

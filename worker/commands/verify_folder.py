@@ -29,6 +29,7 @@ from worker.verification.folder import (
 
 #: Longest failure text shown in the table (the JSON report keeps it whole).
 _SHOWN = 110
+_LOG_WIDTH = 200
 
 
 def verify_folder(root: Path, *, jobs: int | None, report_path: Path | None, allow_config: bool) -> int:
@@ -58,9 +59,15 @@ def verify_folder(root: Path, *, jobs: int | None, report_path: Path | None, all
     seconds = time.perf_counter() - start
     all_passed = all(v.status == "passed" for v in verdicts) and (manifest is None or manifest.ok)
     out = Console()
-    out.print(_table(verdicts, manifest))
-    out.print(f"{len(verdicts)} results on {min(workers, len(paths))} processes in {seconds:.1f} s: "
-              + ", ".join(f"{n} {status}" for status, n in _counts(verdicts).items()))
+    if not out.is_terminal:  # a log or a pipe: room for the whole failure line rather than rich's 80 columns
+        out = Console(width=_LOG_WIDTH)
+    table = _table(verdicts, manifest)
+    if table.row_count:
+        out.print(table)
+    line = ", ".join(f"{n} {status}" for status, n in _counts(verdicts).items())
+    if manifest is not None:
+        line += f"; {MANIFEST_NAME}: {manifest.files} files, " + ("all match" if manifest.ok else "MISMATCH")
+    out.print(f"{len(verdicts)} results on {min(workers, len(paths))} processes in {seconds:.1f} s: {line}")
     if report_path is not None:
         report = _report(root, verdicts, manifest, workers, seconds, all_passed)
         report_path.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
@@ -74,7 +81,7 @@ def _counts(verdicts: list[FileVerdict]) -> dict[str, int]:
 
 
 def _table(verdicts: list[FileVerdict], manifest: ManifestCheck | None) -> Table:
-    table = Table(title="verify: results", show_lines=False)
+    table = Table(title="verify: what did not pass", show_lines=False)
     for name in ("file", "status", "field", "frame", "what"):
         table.add_column(name, overflow="fold")
     for v in verdicts:
@@ -91,11 +98,6 @@ def _table(verdicts: list[FileVerdict], manifest: ManifestCheck | None) -> Table
                             ("not listed", manifest.unlisted)):
             for rel in paths:
                 table.add_row(rel, "failed", MANIFEST_NAME, "", kind)
-    counts = _counts(verdicts)
-    summary = ", ".join(f"{n} {status}" for status, n in counts.items())
-    if manifest is not None:
-        summary += f"; {MANIFEST_NAME}: {manifest.files} files, " + ("all match" if manifest.ok else "MISMATCH")
-    table.caption = summary
     return table
 
 
