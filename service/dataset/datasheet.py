@@ -1,6 +1,6 @@
 """The release's datasheet (``README.md``) and its plots, generated from the index table: counts, success on both
 protocols, error distributions (PNG), failure reasons, software versions and physics configs, the layout, how to
-load it, and every column with its unit (``service.dataset.columns``)."""
+load it, and every column with its unit (``common.release_format``)."""
 
 from __future__ import annotations
 
@@ -12,8 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from common.outcome import REASON_DESCRIPTIONS, ReasonCode
-from common.release_manifest import MANIFEST_NAME
-from service.dataset.columns import (
+from common.release_format import (
     CONTACT_COLUMNS,
     CONTACTS_FILE,
     INDEX_COLUMNS,
@@ -27,6 +26,7 @@ from service.dataset.columns import (
     Column,
     metric_column,
 )
+from common.release_manifest import MANIFEST_NAME
 
 #: The datasheet's plots: file name -> (metric key, axis label) per panel.
 PLOTS: dict[str, tuple[tuple[str, str], ...]] = {

@@ -1,4 +1,4 @@
-"""Write a dataset release (``service.dataset.columns`` gives the layout): each sequence's result file, the contacts
+"""Write a dataset release (``common.release_format`` gives the layout): each sequence's result file, the contacts
 of all sequences and the index as Parquet, the datasheet with its plots, and the checksum manifest, written last.
 
 The release is assembled in ``OUT.partial`` beside the target and renamed into place when complete, so a
@@ -17,19 +17,20 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from common.errors import ConfigurationError
-from common.release_manifest import write_manifest
-from service.dataset.columns import (
+from common.release_format import (
     CONTACT_COLUMNS,
     CONTACTS_FILE,
     DATASHEET_FILE,
     INDEX_FILE,
     PLOTS_DIR,
+    RESULT_SUFFIX,
     RESULTS_DIR,
     schema,
 )
+from common.release_manifest import write_manifest
+from common.release_tables import contact_table, index_row, index_table
 from service.dataset.datasheet import datasheet, write_plots
-from service.dataset.sources import RESULT_SUFFIX, SourceItem
-from service.dataset.tables import contact_table, index_row, index_table
+from service.dataset.sources import SourceItem
 
 _UNSAFE = re.compile(r"[^A-Za-z0-9._-]+")
 

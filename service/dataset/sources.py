@@ -10,9 +10,8 @@ from typing import Any
 from common.api_client import ApiClient
 from common.errors import ConfigurationError, UnsupportedFormatError
 from common.job_state import FINISHED, JobState
+from common.release_format import RESULT_SUFFIX
 from common.result_format import read_summary
-
-RESULT_SUFFIX = ".result.npz"
 
 
 @dataclass(frozen=True)

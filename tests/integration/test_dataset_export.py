@@ -107,6 +107,41 @@ def test_a_folder_export_round_trips_and_verifies(tmp_path: Path, capsys: pytest
     assert main(["dataset", "export", "--from", str(src), "--out", str(release)]) == 2
 
 
+def test_tables_rewritten_with_their_checksums_fail_verify(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import pyarrow as pa
+
+    from common.release_manifest import write_manifest
+
+    src = tmp_path / "results"
+    src.mkdir()
+    (src / "a.result.npz").write_bytes(cheap_result(seed=0))
+    release = tmp_path / "release"
+    assert main(["dataset", "export", "--from", str(src), "--out", str(release)]) == 0
+    contacts = pq.read_table(release / "contacts.parquet")
+    force = contacts.column("force_x").to_pylist()
+    force[3] *= 2.0  # a contact's force doubled: every file's checksum rewritten to match
+    pq.write_table(contacts.set_column(contacts.schema.get_field_index("force_x"), contacts.schema.field("force_x"),
+                                       pa.array(force)), release / "contacts.parquet")
+    index = pq.read_table(release / "index.parquet")
+    edited = index.to_pylist()
+    edited[0]["executable"], edited[0]["outcome"] = True, "executable"  # a failure relabelled a success
+    pq.write_table(pa.Table.from_pylist(edited, schema=index.schema), release / "index.parquet")
+    (release / "SHA256SUMS").unlink()
+    write_manifest(release)
+    report_path = tmp_path / "report.json"
+    capsys.readouterr()
+
+    assert main(["verify", str(release), "--jobs", "1", "--report", str(report_path)]) == 1
+
+    out = capsys.readouterr().out
+    assert "SHA256SUMS: 6 files, all match" in out and "release tables: 1 sequences, 3 differences" in out
+    problems = json.loads(report_path.read_text())["release_tables"]["problems"]
+    frame = contacts.column("frame").to_pylist()[3]
+    assert {(p["file"], p["column"], p["frame"]) for p in problems} == {
+        ("contacts.parquet", "force_x", frame), ("index.parquet", "executable", None),
+        ("index.parquet", "outcome", None)}
+
+
 @pytest.fixture
 def live_api(db_url: str) -> Iterator[tuple[str, str, JobQueue]]:
     """The API under uvicorn on a loopback socket, on a migrated SQLite database."""

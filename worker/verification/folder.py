@@ -18,7 +18,8 @@ from multiprocessing import get_context
 from pathlib import Path
 from typing import Any, Literal
 
-RESULT_SUFFIX = ".result.npz"
+from common.release_format import RESULT_SUFFIX
+
 Status = Literal["passed", "failed", "unreadable"]
 STATUSES: tuple[Status, ...] = ("passed", "failed", "unreadable")
 #: "right_wrist_pos: ... at frame 12 ...": the field before the first colon, the first frame named after it.

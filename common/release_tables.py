@@ -1,21 +1,26 @@
-"""One result's rows in the release's tables (``service.dataset.columns``): its index row and its contacts."""
+"""One result's rows in a release's tables (``common.release_format``): its index row and its contacts; and the
+check that a release's tables say what its result files say (``check_release_tables``, run by ``hoi-refine verify``)."""
 
 from __future__ import annotations
 
 import hashlib
 import json
 from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.parquet as pq
 
 from common.batch_metrics import outcome_status, primary_reason, protocol_sections, reasons
 from common.outcome import outcome_of
-from common.result_format import CONTACT_KEYS, PART_CONTACT_KEYS, content_digest, read_arrays, read_summary
-from service.dataset.columns import (
+from common.release_format import (
     CONTACT_COLUMNS,
+    CONTACTS_FILE,
     INDEX_COLUMNS,
+    INDEX_FILE,
     METRICS,
     PROTOCOLS,
     STAGES,
@@ -23,6 +28,7 @@ from service.dataset.columns import (
     metric_column,
     schema,
 )
+from common.result_format import CONTACT_KEYS, PART_CONTACT_KEYS, content_digest, read_arrays, read_summary
 
 #: A result's contact array -> its columns in contacts.parquet (vectors become _x, _y, _z).
 _VECTORS = {"contact_pos_world": "world", "contact_pos_object": "object", "contact_normal": "normal",
@@ -141,3 +147,90 @@ def _object_name(blob: bytes) -> str | None:
 
 def index_table(rows: list[dict[str, Any]]) -> pa.Table:
     return pa.Table.from_pylist(rows, schema=schema(INDEX_COLUMNS))
+
+
+# ---------------------------------------------------------------------------------------------- checking a release
+#: Index columns that come from the job (through the API), not from the result file: a release cannot re-derive them.
+JOB_COLUMNS: frozenset[str] = frozenset({"job_id", "job_state", "job_error", "worker_verified", "checked_sha256"})
+
+
+@dataclass(frozen=True)
+class TableProblem:
+    """A release table that does not say what its result files say: the table, the sequence, the column, the
+    contact's frame (contacts.parquet) and what differs."""
+
+    file: str
+    sequence: str | None
+    column: str
+    frame: int | None
+    message: str
+
+
+def check_release_tables(root: Path) -> tuple[int, list[TableProblem]] | None:
+    """Rebuild ``index.parquet`` and ``contacts.parquet`` from the release's result files and compare, cell by cell
+    (the job columns aside): (sequences checked, problems); None when ``root`` holds no index (not a release).
+    The contacts of the index's sequences lie in index order, each sequence's rows together (as the export writes
+    them), so each sequence's rows are a slice and the check is linear in the table's size."""
+    if not (root / INDEX_FILE).is_file():
+        return None
+    try:
+        index = pq.read_table(root / INDEX_FILE)
+        contacts = pq.read_table(root / CONTACTS_FILE)
+    except (OSError, pa.ArrowException) as exc:
+        return 0, [TableProblem(INDEX_FILE, None, "file", None, f"the release's tables cannot be read: {exc}")]
+    problems: list[TableProblem] = []
+    for name, table, columns in ((INDEX_FILE, index, INDEX_COLUMNS), (CONTACTS_FILE, contacts, CONTACT_COLUMNS)):
+        if table.schema.names != [c.name for c in columns]:
+            problems.append(TableProblem(name, None, "columns", None, "not the release's columns"))
+    if problems:
+        return 0, problems
+    rows = index.to_pylist()
+    offset, checked = 0, 0
+    for row in rows:
+        sequence, result_file = str(row["sequence"]), row["result_file"]
+        if result_file is None:
+            continue
+        path = root / str(result_file)
+        if ".." in Path(str(result_file)).parts or not path.is_file():
+            problems.append(TableProblem(INDEX_FILE, sequence, "result_file", None, f"{result_file} is missing"))
+            continue
+        blob = path.read_bytes()
+        try:
+            expected_contacts = contact_table(sequence, blob)
+            expected = index_row(sequence, blob, str(result_file), None, expected_contacts.num_rows)
+        except Exception:  # an unreadable result file: verify reports the file itself
+            continue
+        checked += 1
+        for column, value in expected.items():
+            if column not in JOB_COLUMNS and not _same(row[column], value):
+                problems.append(TableProblem(INDEX_FILE, sequence, column, None,
+                                             f"{row[column]!r} in the table, {value!r} in the result file"))
+        stored = contacts.slice(offset, expected_contacts.num_rows)
+        offset += expected_contacts.num_rows
+        problems += _contact_differences(sequence, stored, expected_contacts)
+    if offset != contacts.num_rows:
+        problems.append(TableProblem(CONTACTS_FILE, None, "rows", None,
+                                     f"{contacts.num_rows} rows, the result files give {offset}"))
+    return checked, problems
+
+
+def _same(stored: Any, expected: Any) -> bool:
+    if isinstance(stored, float) and isinstance(expected, float):
+        return stored == expected or (stored != stored and expected != expected)
+    return bool(stored == expected)
+
+
+def _contact_differences(sequence: str, stored: pa.Table, expected: pa.Table) -> list[TableProblem]:
+    """The first differing row of each column of one sequence's contacts."""
+    out = []
+    frames = expected.column("frame").to_pylist()
+    for name in expected.schema.names:
+        have, want = stored.column(name).to_pylist(), expected.column(name).to_pylist()
+        if len(have) != len(want):
+            return [TableProblem(CONTACTS_FILE, sequence, "rows", None,
+                                 f"{len(have)} rows where the result file has {len(want)}")]
+        row = next((i for i, (a, b) in enumerate(zip(have, want, strict=True)) if not _same(a, b)), None)
+        if row is not None:
+            out.append(TableProblem(CONTACTS_FILE, sequence, name, frames[row],
+                                    f"{have[row]!r} in the table, {want[row]!r} in the result file"))
+    return out

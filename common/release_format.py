@@ -1,5 +1,6 @@
-"""A release's layout and the columns of its two Parquet tables: name, Arrow type, unit and meaning, defined once
-(the writer builds its schemas from them, the datasheet and ``docs/dataset.md`` list them).
+"""A dataset release's format (issue #54 item 4): its layout and the columns of its two Parquet tables (name,
+Arrow type, unit and meaning), defined once: ``hoi-refine dataset export`` builds its schemas from them, its
+datasheet and ``docs/dataset.md`` list them, ``hoi-refine verify`` checks a release's tables against its results.
 
 Layout of a release folder::
 
@@ -18,6 +19,7 @@ from dataclasses import dataclass
 import pyarrow as pa
 
 RESULTS_DIR = "results"
+RESULT_SUFFIX = ".result.npz"
 PLOTS_DIR = "plots"
 INDEX_FILE = "index.parquet"
 CONTACTS_FILE = "contacts.parquet"
