@@ -95,6 +95,19 @@ def _columns_table(columns: Sequence[Column], collapse_metrics: bool) -> list[st
     return _table(("column", "type", "unit", "meaning"), rows)
 
 
+def columns_markdown() -> list[str]:
+    """Both tables' columns with type, unit and meaning (the datasheet's last section, and docs/dataset.md's)."""
+    out = [f"## Columns of `{INDEX_FILE}`", ""]
+    out += _columns_table(INDEX_COLUMNS, collapse_metrics=True)
+    out += ["", "Metric columns: `<protocol>_<stage>_<metric>`, protocol `all_frames` or `paper` (frames 10 on), "
+            "stage `raw` (the retargeted replay) or `refined`; null where a result has no such figure:", ""]
+    out += _table(("metric", "type", "unit", "meaning"),
+                  [(f"`{k}`", str(t), u or "–", m) for k, (t, u, m) in METRICS.items()])
+    out += ["", f"## Columns of `{CONTACTS_FILE}`", ""]
+    out += _columns_table(CONTACT_COLUMNS, collapse_metrics=False)
+    return out
+
+
 def datasheet(title: str, source: str, rows: Sequence[dict[str, Any]], contacts: int, plots: list[str]) -> str:
     """The README.md text."""
     with_result = [r for r in rows if r.get("result_file")]
@@ -171,13 +184,7 @@ def datasheet(title: str, source: str, rows: Sequence[dict[str, Any]], contacts:
             "## Checking it", "",
             f"`sha256sum -c {MANIFEST_NAME}` checks every file's bytes. `hoi-refine verify .` re-simulates every "
             "result from its embedded sequence and stored controls and recomputes every contact, metric and "
-            f"figure (in parallel; it also checks {MANIFEST_NAME}); exit code 0 when all verify.", "",
-            f"## Columns of `{INDEX_FILE}`", ""]
-    out += _columns_table(INDEX_COLUMNS, collapse_metrics=True)
-    out += ["", "Metric columns: `<protocol>_<stage>_<metric>`, protocol `all_frames` or `paper` (frames 10 on), "
-            "stage `raw` (the retargeted replay) or `refined`:", ""]
-    out += _table(("metric", "type", "unit", "meaning"),
-                  [(f"`{k}`", str(t), u or "–", m) for k, (t, u, m) in METRICS.items()])
-    out += ["", f"## Columns of `{CONTACTS_FILE}`", ""]
-    out += _columns_table(CONTACT_COLUMNS, collapse_metrics=False)
+            f"figure (in parallel; it also checks {MANIFEST_NAME} and that both tables say what the result files "
+            "say); exit code 0 when all verify.", "",
+            *columns_markdown()]
     return "\n".join(out) + "\n"
