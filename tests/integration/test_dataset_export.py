@@ -22,7 +22,7 @@ from common.result_format import CONTACT_KEYS, content_digest, read_arrays, read
 from common.sequence_io import sequence_to_npz_bytes
 from common.settings import Settings
 from tests.support.live_server import serve_app
-from tests.support.results import cheap_options, cheap_result, push
+from tests.support.results import cheap_articulated_result, cheap_options, cheap_result, push
 
 AXES = "xyz"
 VECTORS = {"contact_pos_world": "world", "contact_pos_object": "object", "contact_normal": "normal",
@@ -51,7 +51,7 @@ def assert_release_matches(release: Path, results: dict[str, bytes]) -> list[dic
         assert (release / str(row["result_file"])).read_bytes() == blob
         summary = read_summary(blob)
         assert row["file_sha256"] == hashlib.sha256(blob).hexdigest() and row["content_sha256"] == content_digest(blob)
-        assert row["frames"] == summary["frames"] and row["hands"] == "right"
+        assert row["frames"] == summary["frames"] and row["hands"] == "right" and row["object"]
         assert row["paper_refined_E_t"] == summary["metrics"]["refined"]["paper"]["E_t"]
         assert row["all_frames_raw_E_r"] == summary["metrics"]["raw"]["E_r"]
         assert row["paper_refined_penetration_max_mm"] == summary["metrics"]["refined"]["paper"]["penetration_max_mm"]
@@ -105,6 +105,22 @@ def test_a_folder_export_round_trips_and_verifies(tmp_path: Path, capsys: pytest
     assert "checksum differs" in capsys.readouterr().out
     # An export never overwrites a folder.
     assert main(["dataset", "export", "--from", str(src), "--out", str(release)]) == 2
+
+
+def test_an_articulated_result_exports_the_parts_touched(tmp_path: Path) -> None:
+    src = tmp_path / "results"
+    src.mkdir()
+    blob = cheap_articulated_result()
+    (src / "hinged.result.npz").write_bytes(blob)
+    release = tmp_path / "release"
+    assert main(["dataset", "export", "--from", str(src), "--out", str(release)]) == 0
+
+    row = pq.read_table(release / "index.parquet").to_pylist()[0]
+    assert row["hands"] == "right,left"
+    assert row["all_frames_refined_E_a"] == read_summary(blob)["metrics"]["refined"]["E_a"]
+    parts = pq.read_table(release / "contacts.parquet", columns=["part", "object_x"]).to_pydict()["part"]
+    assert parts == read_arrays(blob)["contact_part"].tolist() and {"base", "lid"} <= set(parts)
+    assert main(["verify", str(release), "--jobs", "1"]) == 0
 
 
 def test_tables_rewritten_with_their_checksums_fail_verify(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -36,3 +36,12 @@ def forged(blob: bytes, key: str = "right_wrist_pos", delta: float = 0.05, from_
     moved[from_frame:] += delta
     arrays[key] = moved
     return write_result_npz(arrays, read_summary(blob))
+
+
+def cheap_articulated_result() -> bytes:
+    """A refinement result of the short hinged box (two hands, a lid on a hinge): contacts name the part touched."""
+    from worker.example.hinged_box import short_hinged_box_sequence
+    from worker.refine.run import refine_sequence
+
+    options = CHEAP_OPTIONS.model_copy(update={"polish": False})
+    return refine_sequence(short_hinged_box_sequence(), options).to_npz_bytes()
