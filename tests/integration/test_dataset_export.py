@@ -105,6 +105,11 @@ def test_a_folder_export_round_trips_and_verifies(tmp_path: Path, capsys: pytest
     assert "checksum differs" in capsys.readouterr().out
     # An export never overwrites a folder.
     assert main(["dataset", "export", "--from", str(src), "--out", str(release)]) == 2
+    # A folder holding a file that is not a result exports nothing, naming the file, and leaves nothing behind.
+    (src / "s1" / "broken.result.npz").write_bytes(b"not a zip")
+    assert main(["dataset", "export", "--from", str(src), "--out", str(tmp_path / "again")]) == 2
+    assert "broken.result.npz" in capsys.readouterr().err
+    assert not (tmp_path / "again").exists() and not (tmp_path / "again.partial").exists()
 
 
 def test_an_articulated_result_exports_the_parts_touched(tmp_path: Path) -> None:
