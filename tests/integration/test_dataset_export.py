@@ -128,6 +128,28 @@ def test_an_articulated_result_exports_the_parts_touched(tmp_path: Path) -> None
     assert main(["verify", str(release), "--jobs", "1"]) == 0
 
 
+def test_outcome_reasons_reach_the_index_and_the_datasheet(tmp_path: Path) -> None:
+    from common.outcome import Outcome, OutcomeReason, ReasonCode
+    from common.result_format import write_result_npz
+
+    blob = cheap_result(seed=0)
+    summary = read_summary(blob)
+    reasons = [OutcomeReason(code=ReasonCode.SLIPPED, frame=11, value=3.4, unit="cm", message="It slips."),
+               OutcomeReason(code=ReasonCode.RESCUED_ON_FINER_PARTS, message="Kept on finer parts.")]
+    summary["outcome"] = Outcome(executable=False, reasons=reasons).model_dump(mode="json")
+    src = tmp_path / "results"
+    src.mkdir()
+    (src / "a.result.npz").write_bytes(write_result_npz(read_arrays(blob), summary))
+    release = tmp_path / "release"
+    assert main(["dataset", "export", "--from", str(src), "--out", str(release)]) == 0
+
+    row = pq.read_table(release / "index.parquet").to_pylist()[0]
+    assert (row["outcome"], row["executable"], row["reason"], row["reason_frame"], row["reason_value"],
+            row["reason_unit"], row["reasons"]) == ("not_executable", False, "slipped", 11, 3.4, "cm",
+                                                    "slipped;rescued_on_finer_parts")
+    assert "| `slipped` | 1 | the object slips out of the grasp |" in (release / "README.md").read_text()
+
+
 def test_tables_rewritten_with_their_checksums_fail_verify(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     import pyarrow as pa
 
