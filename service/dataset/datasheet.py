@@ -149,7 +149,7 @@ def datasheet(title: str, source: str, rows: Sequence[dict[str, Any]], contacts:
     if reasons:
         out += _table(("reason", "sequences", "meaning"),
                       [(f"`{code}`" if code else "(none recorded)", n,
-                        _reason_text(code) if code else "a result made before reasons were recorded")
+                        _reason_text(code) if code else "the result records no outcome reasons")
                        for code, n in reasons.most_common()])
     else:
         out += ["None: every sequence with a result is executable."]
