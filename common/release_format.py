@@ -19,7 +19,6 @@ from dataclasses import dataclass
 import pyarrow as pa
 
 RESULTS_DIR = "results"
-RESULT_SUFFIX = ".result.npz"
 PLOTS_DIR = "plots"
 INDEX_FILE = "index.parquet"
 CONTACTS_FILE = "contacts.parquet"

@@ -23,12 +23,12 @@ from common.release_format import (
     DATASHEET_FILE,
     INDEX_FILE,
     PLOTS_DIR,
-    RESULT_SUFFIX,
     RESULTS_DIR,
     schema,
 )
 from common.release_manifest import write_manifest
 from common.release_tables import contact_table, index_row, index_table
+from common.result_format import RESULT_SUFFIX
 from service.dataset.datasheet import datasheet, write_plots
 from service.dataset.sources import SourceItem
 

@@ -10,8 +10,7 @@ from typing import Any
 from common.api_client import ApiClient
 from common.errors import ConfigurationError, UnsupportedFormatError
 from common.job_state import FINISHED, JobState
-from common.release_format import RESULT_SUFFIX
-from common.result_format import read_summary
+from common.result_format import RESULT_SUFFIX, read_summary
 
 
 @dataclass(frozen=True)

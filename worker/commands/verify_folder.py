@@ -21,15 +21,8 @@ from common.errors import ConfigurationError
 from common.release_manifest import MANIFEST_NAME, ManifestCheck, check_manifest
 from common.release_tables import TableProblem, check_release_tables
 from common.settings import get_settings
-from worker.verification.folder import (
-    STATUSES,
-    Failure,
-    FileVerdict,
-    VerifyOptions,
-    default_jobs,
-    find_results,
-    verify_files,
-)
+from worker.verification import FileVerdict, find_results, verify_files
+from worker.verification.folder import STATUSES, Failure, VerifyOptions, default_jobs
 
 #: Longest failure text shown in the table (the JSON report keeps it whole).
 _SHOWN = 110

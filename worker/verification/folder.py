@@ -18,7 +18,7 @@ from multiprocessing import get_context
 from pathlib import Path
 from typing import Any, Literal
 
-from common.release_format import RESULT_SUFFIX
+from common.result_format import RESULT_SUFFIX
 
 Status = Literal["passed", "failed", "unreadable"]
 STATUSES: tuple[Status, ...] = ("passed", "failed", "unreadable")
