@@ -66,3 +66,9 @@ def test_bad_input_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -
     assert main(["verify", str(tmp_path)]) == 2  # no results in it
     assert "no *.result.npz" in capsys.readouterr().err
     assert main(["verify", str(tmp_path / "missing")]) == 2
+    (tmp_path / "r.result.npz").write_bytes(b"")
+    capsys.readouterr()
+    assert main(["verify", str(tmp_path / "r.result.npz"), "--jobs", "2"]) == 2  # a folder's options, on a file
+    assert "apply to a folder" in capsys.readouterr().err
+    assert main(["verify", str(tmp_path), "--threads", "2"]) == 2  # a file's options, on a folder
+    assert "apply to one result file" in capsys.readouterr().err

@@ -45,14 +45,16 @@ def register(subparsers: Any) -> None:
 
 
 def _verify(args: argparse.Namespace) -> int:
+    from common.errors import ConfigurationError
+
     if args.result.is_dir():
         from worker.commands.verify_folder import verify_folder
 
-        if args.sequence is not None:
-            from common.errors import ConfigurationError
-
-            raise ConfigurationError("--sequence applies to one result file, not to a folder")
+        if args.sequence is not None or args.threads != 1:
+            raise ConfigurationError("--sequence and --threads apply to one result file (a folder: --jobs)")
         return verify_folder(args.result, jobs=args.jobs, report_path=args.report, allow_config=args.allow_config)
+    if args.jobs is not None or args.report is not None:
+        raise ConfigurationError("--jobs and --report apply to a folder of results")
     from common.errors import ResultMismatchError
     from common.result_format import content_digest
     from common.sequence_io import load_sequence
