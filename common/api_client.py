@@ -286,6 +286,18 @@ class ApiClient:
         doc = resp.json()
         return doc if isinstance(doc, dict) else {}
 
+    def jobs(self, batch_id: str | None = None, page_size: int = 100) -> list[dict[str, Any]]:
+        """``GET /v1/jobs`` page by page: every job of this key (of ``batch_id`` when given), newest first."""
+        out: list[dict[str, Any]] = []
+        params: dict[str, Any] = {"page_size": page_size, **({"batch_id": batch_id} if batch_id else {})}
+        while True:
+            doc = self._document(self.request("GET", "/v1/jobs", params=params))
+            out.extend(j for j in doc.get("data") or [] if isinstance(j, dict))
+            token = doc.get("next_page_token")
+            if not token:
+                return out
+            params["page_token"] = token
+
     def create_batch(self, name: str, meta: dict[str, str] | None = None) -> dict[str, Any]:
         """``POST /v1/batches``: a new batch to submit into. Returns the batch document (has ``id``)."""
         doc = self.request("POST", "/v1/batches", json={"name": name, "meta": dict(meta or {})}).json()

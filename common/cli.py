@@ -21,7 +21,7 @@ COMMAND_GROUP = "hoi_refine.commands"
 #: The order subcommands are listed in ``--help``: the science a user starts with, then the service.
 HELP_ORDER = (
     "inspect", "replay", "refine", "verify", "render", "view", "plot", "export", "demo", "submit", "up", "serve",
-    "worker", "ray-head", "keys",
+    "worker", "ray-head", "keys", "dataset",
 )  # fmt: skip
 
 

@@ -39,6 +39,8 @@ import numpy as np
 from common.errors import UnsupportedFormatError
 from common.npz_writer import deterministic_npz_bytes
 
+#: How a result file's name ends (``hoi-refine refine --out``, ``submit``'s downloads, a dataset release).
+RESULT_SUFFIX = ".result.npz"
 SUMMARY_KEY = "summary_json"
 TIMINGS_KEY = "timings_json"
 #: Members that are JSON text rather than data arrays (``read_arrays`` leaves them out).

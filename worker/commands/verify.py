@@ -1,6 +1,7 @@
 """``hoi-refine verify RESULT.npz``: recompute everything a result claims from its embedded sequence and stored
 controls (``worker.verification.check``), fail naming each field that differs, flag a non-default physics config, and
-print the largest deviation and the digests."""
+print the largest deviation and the digests. ``hoi-refine verify DIR``: every result under a folder or a dataset
+release, in parallel (``worker.commands.verify_folder``)."""
 
 from __future__ import annotations
 
@@ -23,18 +24,37 @@ def register(subparsers: Any) -> None:
         "on another x86_64 host it is compared within physical tolerances (millimetres for a held object). "
         "Prints the largest trajectory deviation, a SHA-256 over everything checked, and the result's content "
         "sha256 (every member but the wall-clock timings), which two runs with the same input, options and seed "
-        "share.",
+        "share. Given a folder (or a dataset release from `hoi-refine dataset export`), checks every *.result.npz "
+        "under it on --jobs processes, with a progress bar, a summary table (passed / failed / unreadable, and "
+        "per failing file its first failing field and frame) and, with --report, a JSON report; a release's "
+        "SHA256SUMS is checked too. A file that fails or cannot be read does not stop the others. Exit code: 0 "
+        "all passed, 1 some failed or could not be read, 2 bad input (no such path, no results in the folder).",
     )
-    v.add_argument("result", type=Path, help="result file written by `hoi-refine refine`")
+    v.add_argument("result", type=Path, metavar="RESULT_OR_DIR",
+                   help="result file written by `hoi-refine refine`, or a folder of them / a dataset release")
     v.add_argument("--sequence", type=Path, default=None, help="sequence file (default: the one embedded)")
     v.add_argument("--allow-config", action="store_true",
                    help="accept a physics config that differs from the defaults (the differences are printed)")
     v.add_argument("--threads", type=int, default=1,
                    help="replays run side by side on this many threads (default 1; the figures do not depend on it)")
+    v.add_argument("--jobs", type=int, default=None,
+                   help="a folder: files checked side by side on this many processes (default: the core count)")
+    v.add_argument("--report", type=Path, default=None,
+                   help="a folder: write the JSON report (every file's status, failures, figures) here")
     v.set_defaults(func=_verify)
 
 
 def _verify(args: argparse.Namespace) -> int:
+    from common.errors import ConfigurationError
+
+    if args.result.is_dir():
+        from worker.commands.verify_folder import verify_folder
+
+        if args.sequence is not None or args.threads != 1:
+            raise ConfigurationError("--sequence and --threads apply to one result file (a folder: --jobs)")
+        return verify_folder(args.result, jobs=args.jobs, report_path=args.report, allow_config=args.allow_config)
+    if args.jobs is not None or args.report is not None:
+        raise ConfigurationError("--jobs and --report apply to a folder of results")
     from common.errors import ResultMismatchError
     from common.result_format import content_digest
     from common.sequence_io import load_sequence
