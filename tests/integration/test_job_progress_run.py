@@ -44,3 +44,18 @@ def test_progress_goes_forward_over_restarts_and_a_rescue_and_ends_done() -> Non
     done = finished_progress(sent[-1])
     assert (done["fraction"], done["stage"], done["eta_s"], done["attempt"]) == (1.0, "done", 0.0, 1)
     assert "window" not in done and "refine_attempt" not in done
+
+
+def test_reporting_progress_leaves_the_result_unchanged() -> None:
+    from tests.support.synthetic_push import push_sequence
+    from worker.refine.job_progress import JobProgress
+    from worker.refine.run import refine_sequence
+
+    seq = push_sequence(30)
+    options = QUICK.model_copy(update={"polish": True})
+    tracker = JobProgress(options.restarts, options.polish)
+    docs: list[dict[str, Any]] = []
+    reported = refine_sequence(seq, options, progress=lambda p: docs.append(tracker.window(p)))
+    silent = refine_sequence(seq, options)
+    assert reported.to_npz_bytes(wall_clock=False) == silent.to_npz_bytes(wall_clock=False)
+    assert docs[-1]["step"] == "derive" and len({d["stage"] for d in docs}) >= 2
