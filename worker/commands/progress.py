@@ -42,6 +42,7 @@ class ProgressBar:
         sys.stderr.flush()
 
     def finish(self) -> None:
-        """End the rewritten line so what follows starts on its own."""
-        if self._tty:
-            print(file=sys.stderr)
+        """The finished job's line (``done``), on its own line."""
+        text = progress_text(self._tracker.finished())
+        sys.stderr.write(f"\r{text} \n" if self._tty else f"{text}\n")
+        sys.stderr.flush()
