@@ -27,8 +27,10 @@ from worker.refine.windowed import RefineProgress
 #: measured its own, of the ETA. Measured on DexYCB jobs (bench/results/speed_experiments.md): a pass takes tens
 #: of seconds, the derivation and the worker's verification well under one each, the preview 2-3 s.
 TAIL_PASSES: dict[str, float] = {"derive": 0.05, "verify": 0.05, "preview": 0.15}
-#: No ETA until this much of a pass has run: the first generations' pace says little.
+#: No ETA until this much of a pass and this many seconds have run: the first generations' pace says little, and
+#: the first windows are often skipped in milliseconds (no hand near the object yet).
 MIN_PACE_PASSES = 0.02
+MIN_PACE_SECONDS = 1.0
 #: The reserve for passes that may follow, per pass started (capped by what the options still allow).
 RESERVE_PER_PASS = 0.5
 
@@ -45,8 +47,7 @@ class JobProgress:
         self._attempts = restarts + 1
         self._polish = polish
         self._passes_started = 0
-        self._tail = [s for s in ("derive", "verify", "preview") if s == "derive" or (verify if s == "verify"
-                                                                                         else preview)]
+        self._tail = ["derive", *(["verify"] if verify else []), *(["preview"] if preview else [])]
         self._passes_done = 0.0  # finished passes of the window loop
         self._pass: tuple[bool, int, int] | None = None  # (rescue, attempt, polish sweep) of the running pass
         self._pass_fraction = 0.0
@@ -152,7 +153,7 @@ class JobProgress:
             return None
         in_passes = self._passes_done + self._pass_fraction
         if self._step in ("attempt", "polish", "rescue"):
-            if in_passes < MIN_PACE_PASSES:
+            if in_passes < MIN_PACE_PASSES or now - self._passes_started_at < MIN_PACE_SECONDS:
                 return None
             pace = (now - self._passes_started_at) / in_passes
             remaining_passes = max(self._planned - self._tail_units() - in_passes, 0.0)
