@@ -3,8 +3,8 @@
 The window loop reports its pass (``windowed.RefineProgress``); ``run.refine_sequence`` tags each report with the
 refinement's attempt, polish sweep and whether it is the rescue, and reports the result's derivation. ``JobProgress``
 turns those reports into one fraction over the whole job's plan: the passes of the window loop started so far, a
-reserve for the passes that may still follow (half as many as started, at most as many as the options still
-allow: a job that needed several passes often needs more), then the derivation, the verification and the preview,
+reserve for the passes that may still follow (as many as started, at most as many as the options still allow:
+a job that needed several passes often needs more), then the derivation, the verification and the preview,
 each weighted in passes (``TAIL_PASSES``). The fraction only goes forward: when the plan changes (a pass starts,
 the derivation ends the passes), the bar keeps its place and spreads its rest over what the plan has left, so it
 fills more slowly after a further attempt and faster once the passes are over. The ETA is that plan's remaining
@@ -31,8 +31,11 @@ TAIL_PASSES: dict[str, float] = {"derive": 0.05, "verify": 0.05, "preview": 0.15
 #: the first windows are often skipped in milliseconds (no hand near the object yet).
 MIN_PACE_PASSES = 0.02
 MIN_PACE_SECONDS = 1.0
-#: The reserve for passes that may follow, per pass started (capped by what the options still allow).
-RESERVE_PER_PASS = 0.5
+#: The reserve for passes that may follow, per pass started (capped by what the options still allow): a job that
+#: needed n passes is expected to need as many again. A smaller reserve fills the bar faster at first and then
+#: squeezes a long job's later passes into its last few percent (each pass the plan did not expect takes a share
+#: of what is left); with one, what is left after n passes shrinks like 1 / n.
+RESERVE_PER_PASS = 1.0
 
 
 class JobProgress:
