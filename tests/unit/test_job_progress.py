@@ -4,6 +4,8 @@ apart from the refinement's."""
 
 from __future__ import annotations
 
+import numpy as np
+
 from common.progress import STEPS, finished_progress
 from worker.refine.job_progress import RESERVE_PER_PASS, TAIL_PASSES, JobProgress
 from worker.refine.windowed import RefineProgress
@@ -155,3 +157,20 @@ def test_the_cli_and_the_demo_client_show_the_stage_and_the_whole_jobs_fraction(
     desc, fraction, info = progress_columns({"state": "RUNNING", "progress": doc})
     assert desc == "running: attempt 2 of 3" and fraction == doc["fraction"] and "window 2/4" in info
     assert progress_columns({"state": "QUEUED", "progress": None}) == ("queued", 0.0, "")
+
+
+def test_a_long_jobs_later_passes_still_move_the_bar() -> None:
+    clock = Clock()
+    tracker = JobProgress(3, verify=True, preview=True, clock=clock)
+    # Four failed attempts, ten polish sweeps, then the rescue's four attempts: 18 passes nobody planned at first.
+    passes = [_pass(5, a, attempts=4) for a in range(1, 5)] + [_pass(5, 4, sweep=s, attempts=4) for s in range(1, 11)]
+    passes += [_pass(5, a, rescue=True, attempts=4) for a in range(1, 5)]
+    starts = []
+    for reports in passes:
+        for i, p in enumerate(reports):
+            clock.now += 1.0
+            doc = tracker.window(p)
+            if i == 0:
+                starts.append(doc["fraction"])
+    assert starts == sorted(starts) and starts[-1] < 0.95
+    assert float(np.diff(starts).min()) > 0.002
