@@ -1,8 +1,9 @@
 """The README's pictures of a real DexYCB refinement: one frame of its rendered video and its error plot.
 
 Refines one DexYCB development sequence (or takes a result file), renders the video as `hoi-refine render`
-does, and writes ``docs/dexycb_frame.png`` (the first frame where the simulated object has risen 60% of its lift) and
-``docs/dexycb_errors.png`` (the ``errors.png`` plot). The dashboard screenshot comes from the browser test
+does, and writes ``docs/dexycb_frame.png`` (the first frame where the simulated object has risen 60% of its lift),
+``docs/dexycb_closeup.png`` (that frame as `hoi-refine render --close-up` draws it) and ``docs/dexycb_errors.png``
+(the ``errors.png`` plot). The dashboard screenshot comes from the browser test
 (``HOI_REFINE_UPDATE_DOCS=1``, tests/acceptance/test_dashboard_browser.py).
 
     .venv/bin/python bench/docs_pictures.py [--sequence PATH | --result PATH] [--prefix NAME]
@@ -67,20 +68,24 @@ def main() -> int:
     from PIL import Image
 
     from worker.visual import read_mp4, render_video, resimulate, write_plots
+    from worker.visual.render import auto_camera, render_frames
 
     pb = resimulate(blob)
     args.out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
         video = Path(tmp) / "dexycb.mp4"
-        render_video(pb, str(video), ("raw", "refined"), 480, 360)
+        render_video(pb, str(video), ("raw", "refined"))  # the default panels and camera, as `hoi-refine render`
         frames, _ = read_mp4(video)
         z = pb.trajectories["refined"].object_pose[:, 2]
         best = int(np.argmax(z >= z[0] + 0.6 * (z.max() - z[0])))  # well into the lift
         Image.fromarray(frames[best]).save(args.out / f"{args.prefix}_frame.png")
+        close_up = auto_camera(pb, close_up=True)
+        closeup = next(render_frames(pb, ["raw", "refined"], camera=close_up, frames=[best]))
+        Image.fromarray(closeup).save(args.out / f"{args.prefix}_closeup.png")
         plots = write_plots(blob, Path(tmp) / "plots")
         shutil.copy(next(p for p in plots if p.name == "errors.png"), args.out / f"{args.prefix}_errors.png")
-    print(f"wrote {args.out / (args.prefix + '_frame.png')} (frame {best + 1} of {pb.num_frames}) and "
-          f"{args.out / (args.prefix + '_errors.png')} ({pb.summary.get('sequence')})")
+    print(f"wrote {args.out / (args.prefix + '_frame.png')}, {args.prefix}_closeup.png (frame {best + 1} of "
+          f"{pb.num_frames}) and {args.out / (args.prefix + '_errors.png')} ({pb.summary.get('sequence')})")
     return 0
 
 

@@ -87,9 +87,9 @@ def test_the_stored_preview_has_every_part_and_its_video_shows_the_lift(
     assert sum(name.startswith(PLOTS_PREFIX) for name in parts) == 3
     (tmp_path / VIDEO).write_bytes(parts[VIDEO].data)
     frames, _ = read_mp4(tmp_path / VIDEO)
-    refined = [object_pixels(f[:, 320:]) for f in (frames[0], frames[-1])]
-    assert frames.shape[1:] == (240, 640, 3) and min(len(p) for p in refined) > 200
-    assert refined[0][:, 0].mean() - refined[1][:, 0].mean() > 40  # the box rises, as with anti-aliasing
+    refined = [object_pixels(f[:, 640:]) for f in (frames[0], frames[-1])]
+    assert frames.shape[1:] == (480, 1280, 3) and min(len(p) for p in refined) > 800  # 640x480 panels
+    assert refined[0][:, 0].mean() - refined[1][:, 0].mean() > 80  # the box rises, as with anti-aliasing
     names = zipfile.ZipFile(io.BytesIO(parts[EXPORT].data)).namelist()
     assert "export/scene.xml" in names and "export/controls.npz" in names
     (tmp_path / RECORDING).write_bytes(parts[RECORDING].data)

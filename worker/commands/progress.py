@@ -6,31 +6,43 @@ import sys
 from typing import Any
 
 
-class ProgressBar:
-    """Window i/N, best loss, evaluations, ETA: one rewritten line on a terminal; in a log (not a TTY), one
-    line per finished window instead of hundreds of carriage-return updates."""
+def progress_text(doc: dict[str, Any], width: int = 24) -> str:
+    """One line of a whole-job progress document (``common.progress``): the bar over the whole job, the stage,
+    the window within the pass, the best loss, the evaluations, the elapsed time and the ETA of the whole job."""
+    fraction = float(doc.get("fraction") or 0.0)
+    done = int(width * fraction)
+    text = f"[{'#' * done}{'-' * (width - done)}] {100 * fraction:3.0f}%  {doc.get('stage', '')}"
+    if doc.get("windows"):
+        text += f"  window {doc['window']}/{doc['windows']}  best loss {doc['best_loss']:9.3f}"
+    eta = doc.get("eta_s")
+    return (text + f"  evals {doc.get('evaluations', 0):6d}  elapsed {doc.get('elapsed_s', 0.0):5.1f}s  "
+            f"ETA {'?' if eta is None else f'{eta:.0f}s'}")
 
-    def __init__(self) -> None:
+
+class ProgressBar:
+    """The whole refinement's bar (``JobProgress``: every attempt, polish sweep and rescue, then the result's
+    derivation), its stage, the window, best loss, evaluations and ETA: one rewritten line on a terminal; in a log
+    (not a TTY), one line per finished window and stage instead of hundreds of carriage-return updates."""
+
+    def __init__(self, restarts: int, polish: bool = True) -> None:
+        from worker.refine.job_progress import JobProgress  # the refinement's modules: not for ``--help``
+
         self._tty = sys.stderr.isatty()
-        self._last_window = (0, -1)
+        self._tracker = JobProgress(restarts, polish)
+        self._last: tuple[Any, ...] = ()
 
     def __call__(self, p: Any) -> None:
-        width = 24
-        done = int(width * p.window / max(p.windows, 1))
-        bar = "#" * done + "-" * (width - done)
-        again = f"attempt {p.attempt} " if p.attempt > 1 else ""
-        text = (
-            f"[{bar}] {again}window {p.window}/{p.windows}  best loss {p.best_loss:9.3f}  "
-            f"evals {p.evaluations:6d}  skipped {p.skipped}  elapsed {p.elapsed_s:5.1f}s  ETA {p.eta_s:5.1f}s"
-        )
+        doc = self._tracker.window(p)
+        text = progress_text(doc)
         if self._tty:
             sys.stderr.write(f"\r{text} ")
-        elif (p.attempt, p.window) != self._last_window:
+        elif (doc["stage"], doc.get("window")) != self._last:
             sys.stderr.write(f"{text}\n")
-            self._last_window = (p.attempt, p.window)
+            self._last = (doc["stage"], doc.get("window"))
         sys.stderr.flush()
 
     def finish(self) -> None:
-        """End the rewritten line so what follows starts on its own."""
-        if self._tty:
-            print(file=sys.stderr)
+        """The finished job's line (``done``), on its own line."""
+        text = progress_text(self._tracker.finished())
+        sys.stderr.write(f"\r{text} \n" if self._tty else f"{text}\n")
+        sys.stderr.flush()

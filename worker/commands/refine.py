@@ -46,7 +46,7 @@ def _refine(args: argparse.Namespace) -> int:
     settings = get_settings()
     options = with_hand(options, args, settings.robot_dir)
     seq = load_sequence(args.sequence, object_dir=args.object_dir)
-    bar = None if args.quiet else ProgressBar()
+    bar = None if args.quiet else ProgressBar(options.restarts, options.polish)
     outcome = refine_sequence(seq, options, threads=args.threads, progress=bar,
                               cache_dir=settings.resolved_cache_dir(), mano_dir=settings.mano_dir)
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -208,7 +208,8 @@ def refine_sequence(
         from-scratch replay and metrics, listed among the attempts with the convex parts it ran on."""
         polish = start_keyframes is not None
         problem = window_problem(on.prep, ev, on.start, weights, rotation_weight)
-        report = None if progress is None else _with_attempt(progress, len(attempts) + 1)
+        report = None if progress is None else _tagged(progress, attempts, on, on.prep is not prep, polish,
+                                                       options.restarts + 1)
         if options.two_hands == "joint" and len(problem.sides) == 2:
             joint = JointHandsProblem(problem)
             stacked, logs = optimise_windows(joint, settings, None if start_keyframes is None else
@@ -272,6 +273,8 @@ def refine_sequence(
             ev.close()
     # The result: the derivation ``verify`` repeats, from the embedded bytes in a fresh model and MjData.
     t_derive = time.perf_counter()
+    if progress is not None:
+        progress(RefineProgress(0, 0, float("nan"), 0, t_derive - t0, 0.0, deriving=True))
     derived = derive_result(seq_bytes, options, prep.scene.config, prep.rotation_pivot, keyframes,
                             tried if len(tried) > 1 else None, cache_dir=cache_dir, mano_dir=mano_dir,
                             mirror_left=prep.mirror_left, references=prep.references,
@@ -340,9 +343,17 @@ class _Attempt:
     metrics: dict[str, Any] = field(default_factory=dict)
 
 
-def _with_attempt(progress: Callable[[RefineProgress], None], attempt: int) -> Callable[[RefineProgress], None]:
+def _tagged(progress: Callable[[RefineProgress], None], attempts: list[dict[str, Any]], on: _Geometry, rescue: bool,
+            polish: bool, most: int) -> Callable[[RefineProgress], None]:
+    """``progress`` with the pass's place in the plan on ``on``: its attempt (or the attempts before a polish
+    sweep) and sweep, counted from ``attempts`` (every earlier pass, with the convex parts it ran on)."""
+    detail = on.prep.scene.config.convex_detail
+    same = [a for a in attempts if a["convex_detail"] == detail]
+    sweeps = sum(1 for a in same if a.get("polish"))
+    attempt, sweep = len(same) - sweeps + (0 if polish else 1), sweeps + 1 if polish else 0
+
     def report(p: RefineProgress) -> None:
-        progress(replace(p, attempt=attempt))
+        progress(replace(p, attempt=attempt, attempts=most, polish_sweep=sweep, rescue=rescue))
 
     return report
 

@@ -110,7 +110,14 @@ class RefineProgress:
     elapsed_s: float
     eta_s: float
     skipped: int = 0
-    attempt: int = 1  # 2, 3, ...: a further attempt after a failed or poor one (refine_sequence, attempt_plan)
+    #: Of this pass's windows, done (0..1; ``elapsed_s`` / (``elapsed_s`` + ``eta_s``)).
+    fraction: float = 0.0
+    # Set by ``run.refine_sequence``: which pass of its plan this is (``job_progress`` turns them into the job's).
+    attempt: int = 1  # the refinement's attempt (2, 3, ...: a further one after a failed or poor one, attempt_plan)
+    attempts: int = 1  # the most attempts the job's options allow (restarts + 1)
+    polish_sweep: int = 0  # the polish sweep over the best attempt (1-based); 0 in an attempt
+    rescue: bool = False  # the plan's run on finer convex parts (run.RESCUE)
+    deriving: bool = False  # the passes are over and the result is being derived (no window fields)
 
 
 def optimise_windows(
@@ -143,7 +150,7 @@ def optimise_windows(
         eta = elapsed / done * (n_todo - done)
         skipped = sum(w.skipped for w in logs)
         index = j - problem.first_window + 1
-        progress(RefineProgress(index, n_todo, best, evaluations, elapsed, eta, skipped))
+        progress(RefineProgress(index, n_todo, best, evaluations, elapsed, eta, skipped, done / n_todo))
 
     for j in range(problem.first_window, n_win):
         _check_stop(should_stop)

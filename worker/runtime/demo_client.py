@@ -91,26 +91,38 @@ def local_deployment(
 
 
 def poll_with_progress_bar(client: ApiClient, job_id: str, timeout_s: float) -> dict[str, Any]:
-    """Poll until the job ends, showing window i/N, best loss, evaluations and ETA (rich)."""
+    """Poll until the job ends, showing the whole job's bar and stage, the window, best loss, evaluations and the
+    job's ETA (rich; the progress document of ``common.progress``)."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     columns = (TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[info]}"), TimeElapsedColumn())
     with Progress(*columns, transient=False) as bar:
-        task = bar.add_task("queued", total=1, info="")
+        task = bar.add_task("queued", total=1.0, info="")
 
         def update(job: dict[str, Any]) -> None:
-            p = job.get("progress") or {}
-            windows = p.get("windows") or 1
-            info = (
-                f"best loss {p['best_loss']:.3f}  evals {p.get('evaluations', 0)}  ETA {p.get('eta_s') or 0:.0f}s"
-                if p.get("best_loss") is not None else ""
-            )  # fmt: skip
-            desc = f"{job['state'].lower()} window {p.get('window', 0)}/{windows}"
-            bar.update(task, total=windows, completed=p.get("window", 0), description=desc, info=info)
+            desc, fraction, info = progress_columns(job)
+            bar.update(task, completed=fraction, description=desc, info=info)
 
         job = client.wait(job_id, timeout_s, on_poll=update)
-        bar.update(task, completed=bar.tasks[0].total, description=job["state"].lower())
+        bar.update(task, completed=1.0, description=job["state"].lower())
     return job
+
+
+def progress_columns(job: dict[str, Any]) -> tuple[str, float, str]:
+    """A job's progress as (state and stage, fraction of the whole job, details with the job's ETA)."""
+    p = job.get("progress") or {}
+    stage = p.get("stage")
+    desc = job["state"].lower() + (f": {stage}" if stage else "")
+    details = []
+    if p.get("windows"):
+        details.append(f"window {p.get('window', 0)}/{p['windows']}")
+    if p.get("best_loss") is not None:
+        details.append(f"best loss {p['best_loss']:.3f}")
+    if p.get("evaluations") is not None:
+        details.append(f"evals {p['evaluations']}")
+    if p.get("eta_s") is not None:
+        details.append(f"ETA {p['eta_s']:.0f}s")
+    return desc, float(min(max(p.get("fraction") or 0.0, 0.0), 1.0)), "  ".join(details)
 
 
 def run_demo(

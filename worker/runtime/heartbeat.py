@@ -46,7 +46,8 @@ class Heartbeat:
         self._lease_seconds = lease_seconds
         self._clock = clock
         self._lock = threading.Lock()
-        self._progress: dict[str, Any] = dict(base_progress or {})
+        self._base: dict[str, Any] = dict(base_progress or {})
+        self._progress: dict[str, Any] = dict(self._base)
         self._stopped = threading.Event()
         self._cancel = threading.Event()
         self._lost = threading.Event()
@@ -82,9 +83,14 @@ class Heartbeat:
         self._external_stop.set()
 
     def update(self, progress: dict[str, Any]) -> None:
-        """Merge the compute loop's latest progress; it is sent with the next renewal."""
+        """Merge the compute loop's latest progress; it is sent with the next renewal. A whole-job document (it
+        has a ``step``, ``common.progress``) replaces the previous one instead, over the base keys, so that a
+        pass's keys (a polish sweep's number, the windows) do not outlive it."""
         with self._lock:
-            self._progress.update(progress)
+            if "step" in progress:
+                self._progress = {**self._base, **progress}
+            else:
+                self._progress.update(progress)
 
     def progress(self) -> dict[str, Any]:
         with self._lock:

@@ -71,8 +71,13 @@ class RefineJob:
         from common.sequence_io import sequence_from_npz_bytes
         from common.settings import get_settings
         from worker.refine.evaluator import ParallelEvaluator
+        from worker.refine.job_progress import JobProgress
         from worker.refine.run import refine_sequence
 
+        # One document over the whole job (``common.progress``): the refinement's passes, then the derivation,
+        # the verification below and the preview the worker loop draws after this function.
+        tracker = JobProgress(options.restarts, options.polish, verify=True, preview=options.preview_video)
+        progress(tracker.preparing())
         seq = sequence_from_npz_bytes(payload)
         if self._evaluator is None:
             # Placeholder model: refine_sequence swaps in each job's own compiled scene (ensure_model).
@@ -81,7 +86,7 @@ class RefineJob:
             seq,
             options,
             threads=self.threads,
-            progress=lambda p: progress(_progress_dict(p)),
+            progress=lambda p: progress(_progress_dict(tracker.window(p))),
             should_stop=should_stop,
             evaluator=self._evaluator,
             cache_dir=get_settings().resolved_cache_dir(),
@@ -89,9 +94,12 @@ class RefineJob:
         )
         blob = outcome.to_npz_bytes()
         summary = dict(outcome.summary)
+        progress(tracker.stage("verify"))
         proof = verification(blob, cache_dir=get_settings().resolved_cache_dir(), mano_dir=get_settings().mano_dir,
                              threads=self.threads)
         summary["metrics"] = {**summary["metrics"], "verification": proof}
+        if options.preview_video:  # the worker loop draws it next (``refine_preview``)
+            progress(tracker.stage("preview"))
         return blob, summary
 
 

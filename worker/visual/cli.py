@@ -29,12 +29,16 @@ def register_render(subparsers: Any) -> None:
     r.add_argument("--out", type=Path, default=None, help="video file to write (default: RESULT.mp4 beside it)")
     r.add_argument("--which", choices=("both", "raw", "refined"), default="both",
                    help="panels: both side by side (default; a raw replay has only raw), or one")  # fmt: skip
-    r.add_argument("--size", default="320x240", help="size of one panel, WIDTHxHEIGHT (default 320x240)")
+    r.add_argument("--size", default="640x480", help="size of one panel, WIDTHxHEIGHT (default 640x480)")
     r.add_argument(
         "--camera", default="auto",
-        help="auto (frames the hand and object; default), a camera name of the scene, AZIMUTH,ELEVATION (auto "
-        "distance), or AZIMUTH,ELEVATION,DISTANCE[,X,Y,Z] (degrees, metres; X,Y,Z the point looked at)",
+        help="auto (frames the hands and object over the sequence; default), a camera name of the scene, "
+        "AZIMUTH,ELEVATION (auto distance), or AZIMUTH,ELEVATION,DISTANCE[,X,Y,Z] (degrees, metres; X,Y,Z the point "
+        "looked at)",
     )  # fmt: skip
+    r.add_argument("--close-up", action="store_true",
+                   help="a close-up: the camera follows the recorded object and frames it with the fingers at it "
+                   "(with --camera auto or AZIMUTH,ELEVATION)")  # fmt: skip
     r.add_argument("--sequence", type=Path, default=None, help=SEQUENCE_HELP)
     r.set_defaults(func=_render)
 
@@ -106,7 +110,7 @@ def parse_size(text: str) -> tuple[int, int]:
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"--size {text!r}: expected WIDTHxHEIGHT, e.g. 320x240") from None
+        raise argparse.ArgumentTypeError(f"--size {text!r}: expected WIDTHxHEIGHT, e.g. 640x480") from None
     if w < 16 or h < 16 or w % 2 or h % 2:
         raise argparse.ArgumentTypeError(f"--size {text!r}: width and height must be even and at least 16")
     return w, h
@@ -128,7 +132,7 @@ def _render(args: argparse.Namespace) -> int:
     pb = resimulate(load_result(args.result), _sequence(args), which=which, **_folders())
     panels = list(pb.trajectories)
     try:
-        camera = parse_camera(args.camera, pb)
+        camera = parse_camera(args.camera, pb, (width, height), close_up=args.close_up)
     except ValueError as exc:
         raise InvalidRequestError.single("camera", str(exc)) from None
     out = args.out or _beside(args.result, ".mp4")

@@ -1,8 +1,9 @@
 """What the service keeps beside a finished job's result (issue #18 item 4): a cheap preview.
 
-One re-simulation (raw replay and refined, with the refined controls recorded) feeds the video (320x240 per
-panel, every frame), the Rerun recording and the plain-MuJoCo export (zipped); the plots come from the file
-alone. The worker stores them with the result (``worker.runtime``); the API serves them by name.
+One re-simulation (raw replay and refined, with the refined controls recorded) feeds the video (640x480 per
+panel, every frame, the camera framing the hands and object: ``render.auto_camera``), the Rerun recording and the
+plain-MuJoCo export (zipped); the plots come from the file alone. The worker stores them with the result
+(``worker.runtime``); the API serves them by name.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ VIDEO = "video.mp4"
 RECORDING = "recording.rrd"
 EXPORT = "export.zip"
 PLOTS_PREFIX = "plots/"
-PREVIEW_SIZE = (320, 240)
+PREVIEW_SIZE = (640, 480)  # ``render.PANEL_SIZE`` (this module imports MuJoCo only once the backend is chosen)
 #: No multisample anti-aliasing in the stored video: on the software renderer of a CPU worker the 4x default was
 #: a third of the preview's drawing time (``hoi-refine render`` keeps it).
 PREVIEW_SAMPLES = 0

@@ -5,14 +5,17 @@ recorded object as a translucent green ghost (an articulated object part by part
 it, so the ghost opens as the recording does), every hand-object contact as a red arrow of the hand's force on the
 object, its head at the contact point (``FORCE_ARROW_M_PER_N`` metres per newton, capped), and a caption with the
 panel's name, the frame number and that frame's E_t / E_r (and E_a for an articulated object). Panels sit side by
-side. The default camera (``auto_camera``) frames the recorded and simulated object and the hands near it over the
-whole sequence, and looks across the line between two hands so that neither hides the other.
+side, ``PANEL_SIZE`` (640x480) each by default: the fingers and contacts need the pixels. The default camera
+(``auto_camera``) fits the view to the recorded and simulated object and the hands near it over the whole sequence
+(``framing.fit_view``: every point inside the image, below the caption), and looks across the line between two hands
+so that neither hides the other. The close-up (``auto_camera(close_up=True)``, ``hoi-refine render --close-up``)
+follows the recorded object and frames it with the fingers at it.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import mujoco
 import numpy as np
@@ -29,57 +32,142 @@ OBJECT_RGBA = (0.95, 0.6, 0.2, 1.0)
 HAND_RGBA = (0.85, 0.72, 0.62, 1.0)
 TABLE_RGBA = (0.55, 0.6, 0.68, 1.0)
 ARROW_RGBA = (0.95, 0.15, 0.1, 1.0)
-#: Hand keypoints farther than this from the recorded object do not steer the automatic camera.
-NEAR_OBJECT_M = 0.15
+#: A hand steers the automatic camera in the frames where one of its keypoints is this close to the object's
+#: surface (its parts' boxes): its whole reach from afar would shrink the grasp; both hands count.
+NEAR_OBJECT_M = 0.08
+#: The close-up frames the object and the hand keypoints this close to its surface: the fingers at the grasp.
+CLOSE_UP_NEAR_M = 0.05
+#: The close-up follows the recorded object, smoothed over this many frames (annotation jitter would shake it).
+CLOSE_UP_SMOOTHING_FRAMES = 5
 PANEL_TITLES = {"raw": "raw replay", "refined": "refined"}
+#: A panel's default size: large enough for the fingers and contact arrows to be seen.
+PANEL_SIZE = (640, 480)
+CAPTION_LINES = 2
 
 
 @dataclass(frozen=True)
 class CameraSpec:
     """A free camera: look at ``lookat`` from ``distance`` at ``azimuth`` / ``elevation`` (degrees), or a camera
-    of the model by ``name``."""
+    of the model by ``name``. ``track``: a look-at point per frame (F, 3) instead of ``lookat`` (the close-up)."""
 
     lookat: tuple[float, float, float] = (0.0, 0.0, 0.0)
     distance: float = 0.5
     azimuth: float = 135.0
     elevation: float = -25.0
     name: str | None = None
+    track: FloatArray | None = field(default=None, compare=False)
 
 
 DEFAULT_AZIMUTH = 135.0
 
 
-def auto_camera(playback: Playback, azimuth: float | None = None, elevation: float = -25.0) -> CameraSpec:
-    """Frame the interaction over the whole sequence: the recorded and simulated object (every part), and the
-    recorded hands where they are within ``NEAR_OBJECT_M`` of a part (a hand still far away would shrink
-    everything). ``azimuth`` None: ``DEFAULT_AZIMUTH`` for one hand; with two, the view across the line between
-    them nearest to it (``two_hand_azimuth``)."""
-    ref = playback.object_pose_ref[:, :3]
-    parts = playback.part_poses_ref[:, :, :3]  # (F, P, 3)
-    points = [ref, parts.reshape(-1, 3), *(t.object_pose[:, :3] for t in playback.trajectories.values())]
-    near_points = {}
-    for side, kp in playback.keypoints_ref.items():
-        dist = np.linalg.norm(kp[:, :, None, :] - parts[:, None, :, :], axis=3).min(axis=2)  # (F, 21)
-        near_points[side] = kp[dist <= NEAR_OBJECT_M]
-        points.append(near_points[side])
+def auto_camera(playback: Playback, azimuth: float | None = None, elevation: float = -25.0,
+                size: tuple[int, int] = PANEL_SIZE, close_up: bool = False) -> CameraSpec:
+    """Frame the interaction over the whole sequence in panels of ``size`` (width, height): the recorded and
+    simulated object (every part, its whole geometry) and the recorded and simulated hands in the frames where they
+    are within ``NEAR_OBJECT_M`` of it (a hand still far away would shrink everything), fitted to the image below the
+    caption (``framing.fit_view``). ``close_up``: the object and the hand keypoints within ``CLOSE_UP_NEAR_M`` of it,
+    the camera following the recorded object. ``azimuth`` None: ``DEFAULT_AZIMUTH`` for one hand; with two, the view
+    across the line between them nearest to it (``two_hand_azimuth``)."""
+    from worker.visual.framing import fit_view
+
+    # The close-up leaves out the simulated objects: it is about the grasp of the recorded one (a raw replay's
+    # dropped object would widen it to the fall).
+    objects, hands = framing_points(playback, CLOSE_UP_NEAR_M if close_up else NEAR_OBJECT_M, whole_hand=not close_up,
+                                    simulated_objects=not close_up)
     if azimuth is None:
-        azimuth = two_hand_azimuth(near_points)
-    cloud = np.concatenate(points)
-    cloud = cloud[np.isfinite(cloud).all(axis=1)]
-    lo, hi = np.percentile(cloud, 1, axis=0), np.percentile(cloud, 99, axis=0)
-    centre = (lo + hi) / 2
-    radius = max(float(np.linalg.norm(hi - lo)) / 2, 0.08)
-    # 45 deg vertical field of view (MuJoCo's default): a sphere of ``radius`` fits at radius / sin(22.5 deg).
-    # Looking a little higher moves the scene down, clear of the caption band at the top.
-    distance = 1.2 * radius / np.sin(np.radians(22.5))
-    lookat = (float(centre[0]), float(centre[1]), float(centre[2] + 0.08 * distance))
-    return CameraSpec(lookat, distance, azimuth, elevation)
+        azimuth = two_hand_azimuth(hands)
+    width, height = size
+    fovy, band = float(playback.scene.model.vis.global_.fovy), caption_band(height) / height
+    track = None
+    if close_up:
+        track = _smoothed(playback.part_poses_ref[:, 0, :3], CLOSE_UP_SMOOTHING_FRAMES)
+        objects = objects - track[:, None, :]
+        hands = {side: kp - track[:, None, :] for side, kp in hands.items()}
+    cloud = np.concatenate([objects.reshape(-1, 3), *(h.reshape(-1, 3) for h in hands.values())])
+    view = fit_view(cloud, azimuth, elevation, fovy, width / height, band)
+    lookat = tuple(float(v) for v in view.lookat)
+    if track is not None:
+        track = track + view.lookat
+        lookat = tuple(float(v) for v in track[0])
+    return CameraSpec(lookat, view.distance, view.azimuth, view.elevation, track=track)  # type: ignore[arg-type]
+
+
+def framing_points(playback: Playback, near_m: float, whole_hand: bool,
+                   simulated_objects: bool = True) -> tuple[FloatArray, dict[str, FloatArray]]:
+    """What the automatic camera frames: (F, N, 3) the corners of every object geom's box where the recording (and
+    with ``simulated_objects`` each re-simulated trajectory) has the object, and per hand (F, K, 3) its recorded and
+    simulated keypoints near the object (within ``near_m`` of a part's box in that frame; ``whole_hand``: every
+    keypoint of a frame where one is), NaN elsewhere."""
+    model, scene = playback.scene.model, playback.scene
+    ref = playback.part_poses_ref  # (F, P, 7)
+    boxes = _part_boxes(model, scene, ref.shape[1])
+    objects = [_transform(corners, ref[:, k]) for k, corners in enumerate(boxes)]
+    if simulated_objects:
+        objects += [_transform(boxes[0], t.object_pose) for t in playback.trajectories.values()]
+    lo_hi = [(c.min(axis=0), c.max(axis=0)) for c in boxes]
+    hands: dict[str, FloatArray] = {}
+    for side, kp_ref in playback.keypoints_ref.items():
+        simulated = [t.keypoints[side] for t in playback.trajectories.values() if side in t.keypoints]
+        kp = np.concatenate([kp_ref, *simulated], axis=1)
+        dist = np.min([_box_distance(kp, ref[:, k], lo, hi) for k, (lo, hi) in enumerate(lo_hi)], axis=0)  # (F, K)
+        near = dist <= near_m
+        if whole_hand:
+            near = np.repeat(near.any(axis=1, keepdims=True), kp.shape[1], axis=1)
+        hands[side] = np.where(near[..., None], kp, np.nan)
+    return np.concatenate(objects, axis=1), hands
+
+
+def _part_boxes(model: mujoco.MjModel, scene: object, parts: int) -> list[FloatArray]:
+    """Per part, the corners (M, 3) of its geoms' bounding boxes in the part's body frame."""
+    geom_part = getattr(scene, "geom_part", np.zeros(0))
+    signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
+    corners: list[list[FloatArray]] = [[] for _ in range(parts)]
+    for g in getattr(scene, "object_geom_ids", []):
+        g = int(g)
+        part = max(int(geom_part[g]), 0) if len(geom_part) else 0
+        centre, half = model.geom_aabb[g, :3], model.geom_aabb[g, 3:]
+        local = centre + signs * half
+        corners[min(part, parts - 1)].append(model.geom_pos[g] + local @ _quat_mat(model.geom_quat[g]).T)
+    return [np.concatenate(c) if c else np.zeros((1, 3)) for c in corners]
+
+
+def _transform(local: FloatArray, poses: FloatArray) -> FloatArray:
+    """(F, M, 3): ``local`` points (M, 3) at each of ``poses`` (F, 7: x y z qw qx qy qz)."""
+    return np.einsum("fij,mj->fmi", _quat_mats(poses[:, 3:]), local) + poses[:, None, :3]
+
+
+def _box_distance(points: FloatArray, poses: FloatArray, lo: FloatArray, hi: FloatArray) -> FloatArray:
+    """(F, K) distance of ``points`` (F, K, 3) to the box ``lo``..``hi`` of a body at ``poses`` (F, 7)."""
+    local = np.einsum("fji,fkj->fki", _quat_mats(poses[:, 3:]), points - poses[:, None, :3])
+    outside = np.maximum(np.maximum(lo - local, local - hi), 0.0)
+    dist = np.linalg.norm(outside, axis=2)
+    return np.where(np.isfinite(dist), dist, np.inf)
+
+
+def _quat_mats(quats: FloatArray) -> FloatArray:
+    """(F, 3, 3) rotation matrices of unit quaternions (F, 4) wxyz."""
+    q = np.asarray(quats, dtype=np.float64)
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], axis=1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], axis=1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=1),
+    ], axis=1)  # fmt: skip
+
+
+def _smoothed(track: FloatArray, frames: int) -> FloatArray:
+    """``track`` (F, 3) averaged over a window of ``frames`` (shorter at the ends)."""
+    half = frames // 2
+    return np.stack([track[max(i - half, 0): i + half + 1].mean(axis=0) for i in range(len(track))])
 
 
 def two_hand_azimuth(near_points: dict[str, FloatArray], preferred: float = DEFAULT_AZIMUTH) -> float:
     """The azimuth (deg) looking across the horizontal line between two hands' points nearest to ``preferred``
     (``preferred`` itself for one hand, or hands less than 2 cm apart seen from above)."""
-    centres = [p[np.isfinite(p).all(axis=1)].mean(axis=0) for p in near_points.values() if len(p)]
+    finite = [p.reshape(-1, 3) for p in near_points.values()]
+    centres = [p[np.isfinite(p).all(axis=1)].mean(axis=0) for p in finite if np.isfinite(p).all(axis=1).any()]
     if len(centres) != 2:
         return preferred
     d = centres[1] - centres[0]
@@ -90,12 +178,14 @@ def two_hand_azimuth(near_points: dict[str, FloatArray], preferred: float = DEFA
     return min((line + 90.0, line - 90.0), key=lambda a: abs((a - preferred + 180.0) % 360.0 - 180.0)) % 360.0
 
 
-def parse_camera(text: str, playback: Playback) -> CameraSpec:
+def parse_camera(text: str, playback: Playback, size: tuple[int, int] = PANEL_SIZE,
+                 close_up: bool = False) -> CameraSpec:
     """``auto``, a camera name of the model, ``AZIMUTH,ELEVATION`` (auto framing from there) or
-    ``AZIMUTH,ELEVATION,DISTANCE[,X,Y,Z]`` (degrees, metres)."""
+    ``AZIMUTH,ELEVATION,DISTANCE[,X,Y,Z]`` (degrees, metres); the automatic framing for panels of ``size``, a
+    close-up with ``close_up`` (``auto_camera``)."""
     text = text.strip()
     if text in ("", "auto"):
-        return auto_camera(playback)
+        return auto_camera(playback, size=size, close_up=close_up)
     parts = text.split(",")
     try:
         values = [float(p) for p in parts]
@@ -104,7 +194,7 @@ def parse_camera(text: str, playback: Playback) -> CameraSpec:
         if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, text) < 0:
             raise ValueError(f"--camera {text!r}: not 'auto', numbers, or a camera of the scene") from None
         return CameraSpec(name=text)
-    base = auto_camera(playback, *values[:2]) if len(values) >= 2 else None
+    base = auto_camera(playback, values[0], values[1], size, close_up) if len(values) >= 2 else None
     if len(values) == 2 and base is not None:
         return base
     if len(values) in (3, 6) and base is not None:
@@ -116,8 +206,8 @@ def parse_camera(text: str, playback: Playback) -> CameraSpec:
 class PanelRenderer:
     """Draws panels of one playback; owns one ``mujoco.Renderer`` (close it, or use as a context manager)."""
 
-    def __init__(self, playback: Playback, width: int = 320, height: int = 240, camera: CameraSpec | None = None,
-                 samples: int | None = None):
+    def __init__(self, playback: Playback, width: int = PANEL_SIZE[0], height: int = PANEL_SIZE[1],
+                 camera: CameraSpec | None = None, samples: int | None = None):
         """``samples``: multisample anti-aliasing of the offscreen buffer (None: the model's, 4 by default; 0 draws
         a job's stored preview a third faster on a software renderer, with jagged edges)."""
         from worker.visual.gl import offscreen_context_class
@@ -136,7 +226,7 @@ class PanelRenderer:
         self._colour(playback)
         self.renderer = mujoco.Renderer(self.model, height, width)
         self.data = mujoco.MjData(self.model)
-        self.camera = camera or auto_camera(playback)
+        self.camera = camera or auto_camera(playback, size=(width, height))
         self._cam = self._make_camera(self.camera)
         scene = playback.scene
         # Each object geom's part (0: the base; a rigid object's geoms all 0) and that part's body.
@@ -177,6 +267,8 @@ class PanelRenderer:
         """One (H, W, 3) panel of ``traj`` at ``frame`` with the ghost, contact arrows and caption."""
         d = self.data
         d.qpos[:] = traj.qpos[frame]
+        if self.camera.track is not None and isinstance(self._cam, mujoco.MjvCamera):
+            self._cam.lookat[:] = self.camera.track[frame]
         mujoco.mj_kinematics(self.model, d)
         mujoco.mj_camlight(self.model, d)
         self.renderer.update_scene(d, camera=self._cam)
@@ -258,20 +350,29 @@ def caption(image: Frame, lines: Sequence[str]) -> Frame:
 
     pil = Image.fromarray(image)
     draw = ImageDraw.Draw(pil)
-    size = max(10, image.shape[0] // 20)
+    size = _caption_font_size(image.shape[0])
     font = ImageFont.load_default(size=size)
-    band = (size + 4) * len(lines) + 4
+    band = caption_band(image.shape[0], len(lines))
     draw.rectangle((0, 0, image.shape[1], band), fill=(20, 20, 20))
     for i, line in enumerate(lines):
         draw.text((5, 3 + i * (size + 4)), line, fill=(240, 240, 240), font=font)
     return np.asarray(pil, dtype=np.uint8)
 
 
+def _caption_font_size(height: int) -> int:
+    return max(10, height // 20)
+
+
+def caption_band(height: int, lines: int = CAPTION_LINES) -> int:
+    """The height in pixels of the caption's band at the top of a panel ``height`` pixels high."""
+    return (_caption_font_size(height) + 4) * lines + 4
+
+
 def render_frames(
     playback: Playback,
     which: Sequence[str] | None = None,
-    width: int = 320,
-    height: int = 240,
+    width: int = PANEL_SIZE[0],
+    height: int = PANEL_SIZE[1],
     camera: CameraSpec | None = None,
     frames: Sequence[int] | None = None,
     samples: int | None = None,
@@ -293,8 +394,8 @@ def render_video(
     playback: Playback,
     out: str,
     which: Sequence[str] | None = None,
-    width: int = 320,
-    height: int = 240,
+    width: int = PANEL_SIZE[0],
+    height: int = PANEL_SIZE[1],
     camera: CameraSpec | None = None,
     samples: int | None = None,
 ) -> int:

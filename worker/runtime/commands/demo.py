@@ -86,9 +86,10 @@ def run_local_demo(threads: int = 2, short: bool = False, out_dir: Path | str = 
 
     chosen = example_named(example)
     seq = chosen.build_short() if short else chosen.build()
-    bar = ProgressBar()
+    options = options or JobOptions()
+    bar = ProgressBar(options.restarts, options.polish)
     cache_dir = get_settings().resolved_cache_dir()
-    outcome = refine_sequence(seq, options or JobOptions(), threads=threads, progress=bar, cache_dir=cache_dir)
+    outcome = refine_sequence(seq, options, threads=threads, progress=bar, cache_dir=cache_dir)
     bar.finish()
     print(f"refined the built-in example {seq.name!r} ({seq.num_frames} frames)")
     print_refine_metrics(outcome.summary)
