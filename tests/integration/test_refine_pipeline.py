@@ -16,12 +16,12 @@ import pytest
 
 from common.cli import main as cli_main
 from common.errors import ResultMismatchError
-from common.job_options import LOSS_NAMES, JobOptions
+from common.job_options import JobOptions
 from common.result_format import content_digest, read_arrays, read_summary, write_result_npz
 from common.sequence_io import save_sequence
 from tests.support.synthetic_push import push_sequence, recovery_case
 from worker.refine.evaluator import ParallelEvaluator
-from worker.refine.losses import ROT_SCALE
+from worker.refine.losses import DEFAULT_WEIGHTS, ROT_SCALE
 from worker.refine.prepare import prepare, settled_start
 from worker.refine.problem import SimWindowProblem
 from worker.refine.replay import LOOKAHEAD_ROTATION_WEIGHT
@@ -115,7 +115,7 @@ def test_zero_weight_changes_the_optimised_objective() -> None:
 
         full = objective({})
         ablated = objective({"hand_joints": 0.0})
-        only_joints = objective({k: 0.0 for k in LOSS_NAMES if k != "hand_joints"})
+        only_joints = objective({k: 0.0 for k in DEFAULT_WEIGHTS if k != "hand_joints"})  # the human hand's terms
     assert np.all(only_joints > 0)
     np.testing.assert_allclose(full - ablated, only_joints, rtol=1e-9)
 
