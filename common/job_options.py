@@ -10,6 +10,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from common.hand_description import HandDescription, packed_model_problems
+from common.json_int import JsonInt, OptionalJsonInt
 
 #: Loss terms of DESIGN §1.5; each weight may be set (0 disables the term, for ablations).
 LossName = Literal[
@@ -32,17 +33,18 @@ class JobOptions(BaseModel):
     # Every float finite (issue #16): JSON's non-standard Infinity/NaN are refused, not stored.
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    seed: int = Field(default=0, ge=0, le=2**31 - 1, description="CMA-ES seed; same input+options+seed => same bytes")
-    keyframe_interval: int | None = Field(
+    seed: JsonInt = Field(default=0, ge=0, le=2**31 - 1,
+                          description="CMA-ES seed; same input+options+seed => same bytes")
+    keyframe_interval: OptionalJsonInt = Field(
         default=None, ge=1, le=240, description="Frames between control keyframes; default round(fps / 6)"
     )
-    max_generations: int | None = Field(default=None, ge=1, le=1000, description="CMA-ES generations per window")
-    popsize: int | None = Field(default=None, ge=2, le=256, description="CMA-ES population size")
+    max_generations: OptionalJsonInt = Field(default=None, ge=1, le=1000, description="CMA-ES generations per window")
+    popsize: OptionalJsonInt = Field(default=None, ge=2, le=256, description="CMA-ES population size")
     loss_weights: dict[LossName, Annotated[float, Field(ge=0, le=1e6, allow_inf_nan=False)]] = Field(
         default_factory=dict, description="Overrides of the default loss weights (each finite, >= 0)"
     )
     free_wrist_translation: bool = Field(default=False, description="Also optimise a 3-D wrist translation offset")
-    restarts: int = Field(
+    restarts: JsonInt = Field(
         default=3, ge=0, le=5,
         description="Further attempts when the result fails the success criterion (every frame within 3 cm / "
         "30 deg) or the first attempt's object error is above the published method's mean (0.67 cm + 2.97 deg): "
@@ -66,7 +68,7 @@ class JobOptions(BaseModel):
         "object's terms plus its own hand's (the published method); 'joint' one CMA-ES over both hands' keyframes "
         "minimising the object's terms once plus both hands'",
     )
-    priority: int = Field(default=0, ge=-100, le=100, description="Higher runs first (queue only)")
+    priority: JsonInt = Field(default=0, ge=-100, le=100, description="Higher runs first (queue only)")
     preview_video: bool = Field(
         default=True,
         description="After the job succeeds, the worker also renders a preview video (320x240 per panel, raw vs "

@@ -225,6 +225,8 @@ class JobQueue:
             query = query.where(
                 sa.or_(jobs.c.created_at < created, sa.and_(jobs.c.created_at == created, jobs.c.id < last_id))
             )
+        if batch_id is not None and not _PLAIN_ID.fullmatch(batch_id):
+            return [], None  # no batch has such an id (and PostgreSQL cannot even compare a NUL)
         query = query.order_by(jobs.c.created_at.desc(), jobs.c.id.desc()).limit(page_size + 1)
         with self.tx.read() as conn:
             page = [self._record(r) for r in conn.execute(query)]
@@ -739,7 +741,8 @@ class JobQueue:
 
     # ------------------------------------------------------------------ helpers
     def _owned_batch(self, conn: Connection, owner_key_id: str | None, batch_id: str) -> Row[Any]:
-        row = conn.execute(sa.select(batches).where(batches.c.id == batch_id)).first()
+        row = conn.execute(sa.select(batches).where(batches.c.id == batch_id)).first() if _PLAIN_ID.fullmatch(
+            batch_id) else None
         if row is None or (owner_key_id is not None and row.owner_key_id != owner_key_id):
             raise NotFoundError(f"no batch {batch_id}")
         return row

@@ -10,12 +10,13 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
 from common.articulation import MAX_PARTS
 from common.batch_metrics import OUTCOMES, UNKNOWN
 from common.job_options import JobOptions
 from common.job_state import JobState
+from common.json_int import JsonInt, integral_float_as_int
 from common.outcome import REASON_DESCRIPTIONS
 from common.progress import STEPS
 from common.queue_types import JobRecord
@@ -23,7 +24,7 @@ from common.safe_text import FREE_TEXT_PATTERN, MAX_META_ENTRIES, MAX_META_KEY_C
 from common.sequence import MAX_ABS_VALUE, MAX_FPS, MAX_MASS_KG, MAX_NAME_CHARS, MIN_FRAMES
 from service import links
 
-VertexIndex = Annotated[int, Field(ge=0, le=2**31 - 1)]
+VertexIndex = Annotated[int, Field(ge=0, le=2**31 - 1), BeforeValidator(integral_float_as_int)]
 #: Every number of a per-frame array or a mesh (``common.sequence`` refuses larger magnitudes).
 Coordinate = Annotated[float, Field(ge=-MAX_ABS_VALUE, le=MAX_ABS_VALUE)]
 Vec3 = Annotated[list[Coordinate], Field(min_length=3, max_length=3)]
@@ -147,7 +148,7 @@ class JobCreate(BaseModel):
     format_version: Literal[1, 2] = Field(default=1, description="2 for an articulated object (object.parts)")
     name: Annotated[Name, Field(min_length=1)] = "sequence"
     fps: float = Field(gt=0, le=MAX_FPS)
-    frame_start: int = Field(default=0, ge=0, le=2**31 - 1)
+    frame_start: JsonInt = Field(default=0, ge=0, le=2**31 - 1)
     object: ObjectIn
     object_pose: list[Annotated[list[Coordinate], Field(min_length=7, max_length=7)]] = Field(
         min_length=MIN_FRAMES,

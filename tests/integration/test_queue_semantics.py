@@ -223,3 +223,15 @@ def test_keyset_pagination_and_state_filter(queue: JobQueue, owner: str) -> None
         queue.list(owner, page_token="not-a-token")
     stats = queue.stats()
     assert stats.jobs_by_state == {"QUEUED": 6, "CANCELLED": 1} and stats.claims_total == 0
+
+
+def test_a_batch_id_no_batch_can_have_finds_nothing(queue: JobQueue, owner: str) -> None:
+    """A NUL or other text no batch id holds is answered as a missing batch without reaching the database
+    (PostgreSQL refuses to compare a NUL: a server error before)."""
+    batch = queue.create_batch(owner, "b")
+    queue.submit(owner, tiny_payload(0), JobOptions(), None, "in-batch", 5, batch_id=batch.id)
+    assert [j.name for j in queue.list(owner, batch_id=batch.id)[0]] == ["in-batch"]
+    for odd in ("ý\x00sk", "a b", "x" * 65):
+        assert queue.list(owner, batch_id=odd) == ([], None)
+        with pytest.raises(NotFoundError):
+            queue.get_batch(owner, odd)

@@ -28,15 +28,16 @@ TETRAHEDRON = {
 IDENTITY = [[1.0 if i == j else 0.0 for j in range(4)] for i in range(4)]
 
 
-def consistent_body(case: Any, max_frames: int) -> None:
+def consistent_body(case: Any, max_frames: int) -> bool:
     """Make ``case``'s body (a ``POST /v1/jobs`` submission, JSON or multipart) satisfy the rules above; a negative
-    case (data the schema refuses, which the server must refuse too) is left alone."""
+    case (data the schema refuses, which the server must refuse too) is left alone. True when the body was made
+    consistent (a submission generated positive)."""
     body = case.body
     if (case.operation.method.upper(), case.operation.path) != ("POST", "/v1/jobs") or not isinstance(body, dict):
-        return
+        return False
     meta = case.meta
     if meta is None or meta.generation.mode.is_negative or any(c.mode.is_negative for c in meta.components.values()):
-        return
+        return False
     # An Idempotency-Key names one payload (another payload under the same key is a 422, a state the schema
     # cannot know), so a generated key is made this payload's own.
     for name in [h for h in case.headers or {} if h.lower() == "idempotency-key"]:
@@ -52,6 +53,7 @@ def consistent_body(case: Any, max_frames: int) -> None:
         # matching it (a file cannot be checked), which would turn this positive case into a negative one; the
         # file is the one thing changed, so the edited body is taken as generated (schemathesis is pinned).
         case._record_starting_state()
+    return True
 
 
 def consistent_sequence(body: dict[str, Any], max_frames: int) -> dict[str, Any]:
