@@ -25,6 +25,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from common.cpu_kind import cpu_model  # noqa: E402
 from common.job_options import JobOptions  # noqa: E402
 from common.sequence_io import load_sequence  # noqa: E402
 from worker.refine.run import refine_sequence  # noqa: E402
@@ -102,7 +103,7 @@ def report(rows: list[dict[str, Any]], hands: list[str], names: list[str], args:
     seqs = [n.removesuffix(".npz") for n in names]
     lines = ["# Robot hands on DexYCB dev120 (bench/robot_hands.py)", "",
              f"Generated {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} on {platform.processor() or 'x86_64'} "
-             f"({_cpu()}), 2 cores shared with four other engineers' work (1-minute load average at the end of "
+             f"({cpu_model()}), 2 cores shared with four other engineers' work (1-minute load average at the end of "
              f"each run: {_load_range(rows)}), {args.threads} simulation threads, nice 15. Paper's protocol "
              "(frames 10+). Product options "
              "(restarts 3, polish on); the models are dex-urdf's (read from --robot-dir, not shipped).", ""]
@@ -154,16 +155,6 @@ def report(rows: list[dict[str, Any]], hands: list[str], names: list[str], args:
 def _load_range(rows: list[dict[str, Any]]) -> str:
     loads = [r["load_avg"] for r in rows if "load_avg" in r]
     return f"{min(loads):.1f}-{max(loads):.1f}" if loads else "not recorded"
-
-
-def _cpu() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return "unknown CPU"
 
 
 def main() -> int:

@@ -45,7 +45,8 @@ MAX_LISTED_REASONS = 8
 _REASON_TEXT_LIMIT = 500
 
 
-def _number(value: Any) -> float | None:
+def finite_number(value: Any) -> float | None:
+    """A metric as a float (a bool as 0/1); None for anything else or a non-finite number."""
     if isinstance(value, bool):
         return float(value)
     if isinstance(value, (int, float)) and math.isfinite(value):
@@ -84,7 +85,7 @@ def metric_value(stage: Any, key: str) -> float | None:
     if not isinstance(stage, Mapping):
         return None
     for name in (key, key + _UNIT_SUFFIX.get(key, "")):
-        value = _number(stage.get(name))
+        value = finite_number(stage.get(name))
         if value is not None:
             return value
     return None
@@ -165,7 +166,7 @@ def reasons(outcome: Mapping[str, Any] | None) -> list[dict[str, Any]]:
         out.append({
             "code": item["code"][:100],
             "frame": frame if isinstance(frame, int) and not isinstance(frame, bool) else None,
-            "value": _number(item.get("value")) if not isinstance(item.get("value"), bool) else None,
+            "value": finite_number(item.get("value")) if not isinstance(item.get("value"), bool) else None,
             "unit": _text(item.get("unit")),
             "message": _text(item.get("message")) or "",
         })  # fmt: skip

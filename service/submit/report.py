@@ -3,7 +3,6 @@ summary: outcomes first (executable or not, and why not), then states and mean r
 
 from __future__ import annotations
 
-import math
 import time
 from collections import Counter
 from typing import Any
@@ -12,7 +11,15 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from common.batch_metrics import EXECUTABLE, NOT_EXECUTABLE, OUTCOMES, UNKNOWN, primary_reason, reasons
+from common.batch_metrics import (
+    EXECUTABLE,
+    NOT_EXECUTABLE,
+    OUTCOMES,
+    UNKNOWN,
+    finite_number,
+    primary_reason,
+    reasons,
+)
 from common.job_state import JobState
 from common.metrics_table import MEAN_KEYS, metrics_table
 from service.submit.manifest import FAILED_STATES, INVALID, PENDING, REJECTED, Entry
@@ -77,14 +84,6 @@ class ProgressLines:
         return max(0.0, self.next_at - self.clock())
 
 
-def _number(value: Any) -> float | None:
-    if isinstance(value, bool):
-        return float(value)
-    if isinstance(value, (int, float)) and math.isfinite(value):
-        return float(value)
-    return None
-
-
 def _metric(stage: Any, key: str) -> float | None:
     if "." in key:  # a nested block: "paper.E_t"
         block, _, key = key.partition(".")
@@ -93,7 +92,7 @@ def _metric(stage: Any, key: str) -> float | None:
         return None
     for name in (key, key + _UNIT_SUFFIX.get(key, "")):
         if name in stage:
-            return _number(stage[name])
+            return finite_number(stage[name])
     return None
 
 
