@@ -97,7 +97,7 @@ class ArrayChecker:
                               tol.object_vel_rel)
         for s in sides:
             key = f"{s}_keypoints_sim"
-            self.array(key, t(CROSS_HOST.keypoints_m), " m")
+            self.array(key, t((tol or CROSS_HOST).keypoints_m), " m")
             st, fr = self.stored.get(key), self.fresh.get(key)
             if st is not None and fr is not None and st.shape == fr.shape:
                 self.report.max_keypoint_diff_m = max(self.report.max_keypoint_diff_m,

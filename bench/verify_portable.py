@@ -1,0 +1,380 @@
+"""Stepwise verification off-host (issue #54 item 2): honest results pass with other NumPy / OpenBLAS kernels forced,
+forgeries fail there naming field and frame, and what storing the states costs.
+
+    .venv/bin/python bench/verify_portable.py --results DIR [--make 8] [--forge NAME.npz]
+
+``--make N`` first refines every k-th sequence of the dev120 sample (N of them) with a cheap budget into DIR
+(``--max-generations 2 --restarts 0``; results that exist are kept). Then every result in DIR is verified in a
+subprocess under each kernel set of ``KERNELS`` (this build's own, NumPy without AVX-512 + OpenBLAS Haswell: what
+an AVX2 host runs, and NumPy's baseline + OpenBLAS Nehalem: an SSE-only host's kernels), recording the largest
+stepwise deviation per state field, the whole-rollout drift, and the time of the stepwise check against the full
+re-simulation. ``--forge`` (default: the first result) builds the forgeries of ``tests/integration`` and the new
+ones and verifies each under the AVX2 kernels. Prints the tables and writes ``bench/results/verify_portable.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import io
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+KERNELS: dict[str, dict[str, str]] = {
+    "original": {},
+    "avx2": {"NPY_DISABLE_CPU_FEATURES": "X86_V4 AVX512_ICL AVX512_SPR AVX512_SKX", "OPENBLAS_CORETYPE": "Haswell"},
+    "sse": {"NPY_DISABLE_CPU_FEATURES": "X86_V3 X86_V4 AVX512_ICL AVX512_SPR AVX512_SKX",
+            "OPENBLAS_CORETYPE": "Nehalem"},
+}
+FIELDS = ("qpos", "qvel", "qacc_warmstart", "ctrl", "mocap_pos", "mocap_quat")
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--results", type=Path, required=True, help="folder of refinement results (made by --make)")
+    p.add_argument("--make", type=int, default=0, help="refine this many dev120 sequences into --results first")
+    p.add_argument("--forge", type=Path, default=None, help="the result the forgeries start from (default: first)")
+    p.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "verify_portable.md")
+    p.add_argument("--one", type=Path, default=None, help=argparse.SUPPRESS)  # subprocess: verify one, print JSON
+    return p.parse_args(argv)
+
+
+# ------------------------------------------------------------------------------------------- one verification
+
+
+def verify_one(path: Path) -> dict[str, Any]:
+    """``check_result`` of one file with the full re-simulation timed apart; the figures as JSON."""
+    import worker.verification.check as check
+    from common.cpu_kind import numpy_simd
+
+    timed: dict[str, float] = {}
+    derive = check.derive_result
+
+    def timed_derive(*args: Any, **kwargs: Any) -> Any:
+        t0 = time.perf_counter()
+        out = derive(*args, **kwargs)
+        timed["derive_s"] = time.perf_counter() - t0
+        return out
+
+    check.derive_result = timed_derive
+    t0 = time.perf_counter()
+    report = check.check_result(path.read_bytes())
+    total = time.perf_counter() - t0
+    return {
+        "verified": report.verified, "method": report.method, "failures": report.failures[:6],
+        "drift_m": report.max_pos_diff_m, "drift_deg": report.max_rot_diff_deg, "exact_rollout": report.exact,
+        "stepwise": {k: r.to_dict() for k, r in report.stepwise.items()}, "total_s": total,
+        "derive_s": timed.get("derive_s", float("nan")), "simd": numpy_simd(), "frames": report.frames,
+    }
+
+
+def run_one(path: Path, kernels: dict[str, str]) -> dict[str, Any]:
+    env = {**os.environ, **kernels, "PYTHONPATH": str(ROOT)}
+    run = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--results", str(path.parent), "--one",
+                          str(path)], env=env, cwd=ROOT, capture_output=True, text=True, timeout=1800)
+    if run.returncode != 0:
+        return {"verified": False, "error": (run.stdout + run.stderr)[-2000:]}
+    return dict(json.loads(run.stdout.strip().splitlines()[-1]))
+
+
+# ------------------------------------------------------------------------------------------------- results
+
+
+def make_results(folder: Path, count: int) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    names = [n for n in (ROOT / "bench" / "samples" / "dev120.txt").read_text().split() if n.endswith(".npz")]
+    step = max(1, len(names) // count)
+    data = ROOT.parent / "shared" / "data" / "dexycb" / "dev"
+    for name in names[::step][:count]:
+        out = folder / name
+        if out.exists():
+            continue
+        tmp = folder / f"{name}.tmp"
+        subprocess.run([sys.executable, "-m", "common.cli", "refine", str(data / name), "--out", str(tmp),
+                        "--max-generations", "2", "--restarts", "0", "--no-wall-clock", "--quiet", "--threads", "1"],
+                       cwd=ROOT, check=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True)
+        tmp.rename(out)
+        print(f"refined {name}", flush=True)
+
+
+def state_sizes(path: Path) -> dict[str, Any]:
+    """Bytes the stored states take: per frame (uncompressed) and per sequence (as stored, compressed)."""
+    blob = path.read_bytes()
+    with zipfile.ZipFile(io.BytesIO(blob)) as zf:
+        info = {i.filename: i for i in zf.infolist()}
+    from common.result_format import read_arrays
+
+    arrays = read_arrays(blob)
+    states = arrays["state_sim"]
+    stored = sum(info[f"{k}.npy"].compress_size for k in ("state_sim", "raw_state_sim"))
+    raw = sum(info[f"{k}.npy"].file_size for k in ("state_sim", "raw_state_sim"))
+    return {"frames": int(states.shape[0]), "nstate": int(states.shape[1]), "per_frame": 8 * int(states.shape[1]),
+            "stored": stored, "uncompressed": raw, "result": len(blob)}
+
+
+# ----------------------------------------------------------------------------------------------- forgeries
+
+
+def forgeries(path: Path, folder: Path) -> list[tuple[str, str, Path]]:
+    """(name, what it changes, file) of every forgery of ``path``; ``folder`` receives the files."""
+    from common.job_options import JobOptions
+    from common.result_format import read_arrays, read_summary, write_result_npz
+    from worker.refine.derive import add_attempt_metrics, attempt_figures, derive_result
+    from worker.refine.evaluator import ParallelEvaluator
+    from worker.refine.prepare import settled_start
+    from worker.refine.replay import replay
+    from worker.refine.result import prepare_from_result
+    from worker.simulation.config import SimConfig
+    from worker.simulation.metrics import scalar_metrics
+    from worker.verification.stepwise import StateLayout
+
+    blob = path.read_bytes()
+    arrays, summary = read_arrays(blob), read_summary(blob)
+    prep, keyframes = prepare_from_result(blob)
+    side = next(iter(prep.spaces))
+    layout = StateLayout(prep.layout.model)
+    qpos0, obj = layout.slices["qpos"].start, prep.scene.object_qpos_adr
+    out: list[tuple[str, str, Path]] = []
+
+    def add(name: str, what: str, a: dict[str, np.ndarray], s: dict[str, Any]) -> None:
+        file = folder / f"{name}.npz"
+        file.write_bytes(write_result_npz(a, s, wall_clock=False))
+        out.append((name, what, file))
+
+    refined = summary["metrics"]["refined"]
+    # The forgeries of tests/integration/test_verify_forgeries.py.
+    add("summary_E_t", "metrics.refined.E_t rewritten to 0.01 cm",
+        arrays, {**summary, "metrics": {**summary["metrics"], "refined": {**refined, "E_t": 0.01}}})
+    hold = summary["object_hold"]
+    add("object_hold", "object_hold.release_frame + 5", arrays,
+        {**summary, "object_hold": {**hold, "release_frame": hold["release_frame"] + 5}})
+    add("per_frame_metrics", "metrics_refined_e_t_cm zeroed",
+        {**arrays, "metrics_refined_e_t_cm": np.zeros_like(arrays["metrics_refined_e_t_cm"])}, summary)
+    add("keypoints", f"{side}_keypoints_sim replaced by the reference",
+        {**arrays, f"{side}_keypoints_sim": arrays[f"{side}_keypoints_ref"].copy()}, summary)
+    wrist = arrays[f"{side}_wrist_pos"].copy()
+    wrist[:, 2] += 0.05
+    add("wrist_5cm", f"{side}_wrist_pos raised 5 cm", {**arrays, f"{side}_wrist_pos": wrist}, summary)
+    add("reference", "object_pose_ref replaced by the simulated trajectory",
+        {**arrays, "object_pose_ref": arrays["object_pose_sim"].copy()}, summary)
+    add("forces_x10", "contact_force x 10", {**arrays, "contact_force": arrays["contact_force"] * 10}, summary)
+    moved = arrays["object_pose_sim"].copy()
+    moved[20, 0] += 0.002
+    add("trajectory_2mm_frame20", "object_pose_sim moved 2 mm at frame 20 (states untouched)",
+        {**arrays, "object_pose_sim": moved}, summary)
+    options = JobOptions.model_validate(summary["options"])
+    stored: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in summary["config"]["sim"].items()}
+    sticky = SimConfig(**{**stored, "hand_friction": (3.0, 0.02, 0.001), "object_friction": 3.0})
+    derived = derive_result(arrays["sequence_npz"].tobytes(), options, sticky, summary["config"]["rotation_pivot"],
+                            keyframes)
+    metrics = {k: scalar_metrics(v) for k, v in derived.metrics.items()}
+    add_attempt_metrics(metrics["refined"], [{**attempt_figures(derived.metrics["refined"])}])
+    sim = {**summary["config"]["sim"], "hand_friction": [3.0, 0.02, 0.001], "object_friction": 3.0}
+    add("friction_3", "friction 3.0 and the whole result re-derived under it",
+        {**arrays, **derived.arrays}, {**summary, "metrics": metrics, "config": {**summary["config"], "sim": sim},
+                                       "attempts": summary["attempts"][:1],
+                                       "num_contacts": len(derived.final.contacts["contact_frame"])})
+
+    # New: forged states.
+    states = arrays["state_sim"].copy()
+    pose = arrays["object_pose_sim"].copy()
+    states[12, qpos0 + obj] += 0.05
+    pose[12, 0] += 0.05
+    add("teleport_5cm", "object moved 5 cm at frame 12 in its state and trajectory",
+        {**arrays, "state_sim": states, "object_pose_sim": pose}, summary)
+    states = arrays["state_sim"].copy()
+    body = prep.scene.object_body_id
+    states[8:, layout.slices["xfrc_applied"].start + 6 * body + 2] = 0.5
+    add("force_stored", "0.5 N upwards on the object (xfrc_applied) from frame 8", {**arrays, "state_sim": states},
+        summary)
+    spf = prep.layout.substeps
+
+    def push(i: int, d: Any) -> None:
+        d.xfrc_applied[body, 2] = 2.0 if 10 * spf - 1 <= i < 12 * spf - 1 else 0.0
+
+    with ParallelEvaluator(prep.scene.model, 1) as ev:
+        start, _ = settled_start(prep, ev)
+        rec = replay(prep, ev, start, keyframes, on_step=push, record_states=True)
+    assert rec.states is not None
+    hidden = rec.states.copy()
+    hidden[:, layout.slices["xfrc_applied"]] = 0.0
+    add("force_hidden", "simulated with a 2 N push during frames 10-11, the force zeroed in the stored states",
+        {**arrays, "state_sim": hidden, "object_pose_sim": rec.object_pose}, summary)
+    states = arrays["state_sim"].copy()
+    states[15, qpos0 + int(prep.scene.hands[side].qpos_adr[5])] += 0.05
+    add("hand_off_controls", "a finger bent 0.05 rad off its controls at frame 15", {**arrays, "state_sim": states},
+        summary)
+    add_shift(add, arrays, summary, prep, keyframes, layout)
+    return out
+
+
+def add_shift(add: Any, arrays: dict[str, np.ndarray], summary: dict[str, Any], prep: Any,
+              keyframes: dict[str, np.ndarray], layout: Any) -> None:
+    """The new forgery: the refined trajectory moved 3 mm (z) over frames 20-30, with everything that depends on it
+    moved along (states, the contacts' world points, per-frame and summary metrics): within the old cross-host
+    tolerance (5 mm + 10 %). Added twice: with states, and without them (an older result, verified the old way)."""
+    from common.result_format import CONTACT_KEYS
+    from worker.refine.derive import build_arrays, replay_metrics
+    from worker.refine.replay import ReplayRecord
+    from worker.simulation.contacts import contact_frames
+    from worker.simulation.metrics import scalar_metrics
+
+    frames = np.arange(20, min(31, len(arrays["object_pose_sim"])))
+    pose = arrays["object_pose_sim"].copy()
+    pose[frames, 2] += 0.003
+    contacts: dict[str, np.ndarray] = {k: arrays[k].copy() for k in CONTACT_KEYS}
+    rows = np.isin(contacts["contact_frame"], frames)
+    contacts["contact_pos_world"][rows, 2] += 0.003
+    final = ReplayRecord(pose, arrays["object_vel_sim"], {s: arrays[f"{s}_keypoints_sim"] for s in prep.spaces},
+                         contacts, 0)
+    final = dataclasses.replace(final, contact_frames=contact_frames(
+        contacts["contact_frame"], contacts["contact_depth"], np.flatnonzero(arrays["object_table_contact"]),
+        len(pose)))
+    m_ref = replay_metrics(prep, final)
+    raw_rec = ReplayRecord(arrays["raw_object_pose_sim"], arrays["object_vel_sim"], final.keypoints, contacts, 0)
+    m_raw = {"per_frame": {k[len("metrics_raw_"):]: arrays[k] for k in arrays if k.startswith("metrics_raw_")}}
+    forged = build_arrays(prep, arrays["sequence_npz"].tobytes(), keyframes, final, raw_rec, m_raw, m_ref)
+    forged = {**arrays, **{k: v for k, v in forged.items() if k.startswith("metrics_refined_")},
+              "object_pose_sim": pose, "contact_pos_world": contacts["contact_pos_world"]}
+    states = arrays["state_sim"].copy()
+    states[frames, layout.slices["qpos"].start + prep.scene.object_qpos_adr + 2] += 0.003
+    scalars = scalar_metrics(m_ref)
+    old = summary["metrics"]["refined"]
+    for key in ("attempts", "success_first_attempt"):
+        if key in old:
+            scalars[key] = old[key]
+    if "paper" in old and "success_first_attempt" in old["paper"]:
+        scalars["paper"]["success_first_attempt"] = old["paper"]["success_first_attempt"]
+    s = {**summary, "metrics": {**summary["metrics"], "refined": scalars}}
+    add("shift_3mm_states", "trajectory + states + contacts + metrics moved 3 mm over frames 20-30",
+        {**forged, "state_sim": states}, s)
+    add("shift_3mm_old_way", "the same without states (verified the old way)",
+        {k: v for k, v in forged.items() if k not in ("state_sim", "raw_state_sim")}, s)
+
+
+# ------------------------------------------------------------------------------------------------- report
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    if args.one is not None:
+        print(json.dumps(verify_one(args.one)))
+        return 0
+    if args.make:
+        make_results(args.results, args.make)
+    files = sorted(p for p in args.results.glob("*.npz"))
+    lines = ["# Stepwise verification off-host (issue #54)", "",
+             f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores (shared with other "
+             f"sessions); {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}. Sample: {len(files)} results in "
+             f"`{args.results}`. Kernels forced in a subprocess: " + "; ".join(
+                 f"**{k}** {' '.join(f'{a}={b!r}' for a, b in v.items()) or '(none)'}" for k, v in KERNELS.items()),
+             ""]
+    rows: list[dict[str, Any]] = []
+    for path in files:
+        for kernel, env in KERNELS.items():
+            r = run_one(path, env)
+            r.update(name=path.stem, kernel=kernel)
+            rows.append(r)
+            print(json.dumps({k: r.get(k) for k in ("name", "kernel", "verified", "drift_m", "total_s",
+                                                    "derive_s")}), flush=True)
+    lines += [*deviation_table(rows), "", *timing_table(rows), "", *size_table(files), ""]
+    if files:
+        with tempfile.TemporaryDirectory() as tmp:
+            forged = forgeries(args.forge or files[0], Path(tmp))
+            lines += forgery_table(forged, args.forge or files[0])
+    args.out.write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+    return 0
+
+
+def deviation_table(rows: list[dict[str, Any]]) -> list[str]:
+    out = ["## Largest stepwise deviation per result (refined and raw replay, every frame from the stored one before)",
+           "", "Each cell: the largest |stored - reached| over frames 1.. and both replays (m or rad for qpos, m/s or "
+           "rad/s for qvel, per-dof; 0 = bit-identical). `start`: frame 0 against the start re-settled here. "
+           "`drift`: the whole re-simulation's largest object deviation (reported, not pass/fail).", "",
+           "| result | kernels | verified | " + " | ".join(FIELDS) + " | start qpos / qvel | drift (mm) |",
+           "|---|---|---|" + "---|" * len(FIELDS) + "---|---|"]
+    for r in rows:
+        if "error" in r:
+            out.append(f"| {r['name']} | {r['kernel']} | ERROR | " + " | ".join("" for _ in FIELDS) + " | | |")
+            continue
+        sw = r["stepwise"].values()
+        cells = []
+        for f in FIELDS:
+            worst = max((s["largest"].get(f, {}).get("value", 0.0) for s in sw), default=0.0)
+            cells.append(f"{worst:.2g}")
+        start = [max((s["start"].get(f, {}).get("value", 0.0) for s in sw), default=0.0) for f in ("qpos", "qvel")]
+        ok = "yes" if r["verified"] else "NO: " + "; ".join(r["failures"])[:200]
+        out.append(f"| {r['name']} | {r['kernel']} | {ok} | " + " | ".join(cells)
+                   + f" | {start[0]:.2g} / {start[1]:.2g} | {r['drift_m'] * 1000:.3g} |")
+    return out
+
+
+def timing_table(rows: list[dict[str, Any]]) -> list[str]:
+    good = [r for r in rows if "error" not in r]
+    out = ["## Time: stepwise check against the full re-simulation", "",
+           "Stepwise: both replays, each frame from its stored state (Python-stepped, contacts recorded). Full: "
+           "`derive_result`, the whole re-simulation verify ran before (settling, raw and refined replay, every "
+           "restart). Seconds on this shared 2-core machine (other sessions running).", "",
+           "| kernels | results | frames (mean) | stepwise s (mean) | full re-simulation s (mean) | verify total s |",
+           "|---|---|---|---|---|---|"]
+    for kernel in KERNELS:
+        mine = [r for r in good if r["kernel"] == kernel]
+        if not mine:
+            continue
+        step = np.mean([sum(s["seconds"] for s in r["stepwise"].values()) for r in mine])
+        out.append(f"| {kernel} | {len(mine)} | {np.mean([r['frames'] for r in mine]):.0f} | {step:.2f} | "
+                   f"{np.mean([r['derive_s'] for r in mine]):.2f} | {np.mean([r['total_s'] for r in mine]):.2f} |")
+    return out
+
+
+def size_table(files: list[Path]) -> list[str]:
+    from common.settings import Settings
+
+    limits = Settings()
+    sizes = [state_sizes(p) for p in files]
+    out = ["## What storing the states costs", "",
+           "| result | frames | state values | bytes / frame / replay | states stored (both, compressed) | "
+           "uncompressed | result file |", "|---|---|---|---|---|---|---|"]
+    for p, s in zip(files, sizes, strict=True):
+        out.append(f"| {p.stem} | {s['frames']} | {s['nstate']} | {s['per_frame']} | {s['stored'] / 1024:.0f} KiB | "
+                   f"{s['uncompressed'] / 1024:.0f} KiB | {s['result'] / 1024:.0f} KiB |")
+    if sizes:
+        per = max(s["per_frame"] for s in sizes)
+        worst = 2 * per * limits.max_frames
+        out += ["", f"At the service's frame limit ({limits.max_frames} frames) the states of a one-hand result take "
+                f"{worst / 2**20:.1f} MiB uncompressed (two hands and an articulated object about twice that), "
+                f"below the 64 MiB an NPZ member may hold (`common.npz_safe.NpzLimits`) and the "
+                f"{limits.max_request_bytes / 2**20:.0f} MiB request limit; the service stores results in the "
+                "database with no size limit of its own."]
+    return out
+
+
+def forgery_table(forged: list[tuple[str, str, Path]], source: Path) -> list[str]:
+    out = [f"## Forgeries of `{source.stem}`, verified with the avx2 kernels forced", "",
+           "| forgery | what it changes | verdict | first failure (field and frame) |", "|---|---|---|---|"]
+    for name, what, path in forged:
+        r = run_one(path, KERNELS["avx2"])
+        if "error" in r:
+            verdict, text = "error", r["error"][-300:].replace("\n", " ")
+        else:
+            verdict = "accepted" if r["verified"] else "FAILS"
+            text = (r["failures"] or [""])[0]
+        out.append(f"| {name} | {what} | {verdict} | {text.replace('|', '/')[:400]} |")
+        print(out[-1], flush=True)
+    return out
+
+
+if __name__ == "__main__":
+    sys.exit(main())
