@@ -47,6 +47,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--forge", type=Path, default=None, help="the result the forgeries start from (default: first)")
     p.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "verify_portable.md")
     p.add_argument("--one", type=Path, default=None, help=argparse.SUPPRESS)  # subprocess: verify one, print JSON
+    p.add_argument("--substeps", type=Path, nargs=2, default=None, help=argparse.SUPPRESS)  # subprocess: RESULT STATES
     return p.parse_args(argv)
 
 
@@ -86,6 +87,109 @@ def run_one(path: Path, kernels: dict[str, str]) -> dict[str, Any]:
     if run.returncode != 0:
         return {"verified": False, "error": (run.stdout + run.stderr)[-2000:]}
     return dict(json.loads(run.stdout.strip().splitlines()[-1]))
+
+
+# ------------------------------------------------------------------------------------- frames or control steps
+
+
+def _refined_controls(path: Path) -> tuple[Any, np.ndarray]:
+    from worker.refine.evaluator import ParallelEvaluator
+    from worker.refine.prepare import settled_start
+    from worker.refine.replay import window_problem
+    from worker.refine.result import prepare_from_result
+
+    prep, keyframes = prepare_from_result(path.read_bytes())
+    with ParallelEvaluator(prep.scene.model, 1) as ev:
+        start, _ = settled_start(prep, ev)
+        control, _ = window_problem(prep, ev, start, {}).build_control(keyframes, 0, prep.num_frames - 1)
+    return prep, control[0]
+
+
+def substep_states(path: Path) -> np.ndarray:
+    """The refined replay's integration state after every physics step (row 0: the start), on this build."""
+    import mujoco
+
+    from worker.refine.evaluator import ParallelEvaluator
+    from worker.refine.prepare import settled_start
+    from worker.refine.replay import INTEGRATION_STATE, frame_states, replay
+    from worker.refine.result import prepare_from_result
+
+    prep, keyframes = prepare_from_result(path.read_bytes())
+    model = prep.layout.model
+    n = (prep.num_frames - 1) * prep.layout.substeps + 1
+    states = np.zeros((n + 1, mujoco.mj_stateSize(model, INTEGRATION_STATE)))
+
+    def keep(i: int, d: Any) -> None:
+        mujoco.mj_getState(model, d, states[i + 1], INTEGRATION_STATE)
+
+    with ParallelEvaluator(model, 1) as ev:
+        start, _ = settled_start(prep, ev)
+        states[0] = frame_states(prep, start, 1)[0]
+        replay(prep, ev, start, keyframes, record_contacts=False, on_step=keep)
+    return states
+
+
+def steps_against_frames(path: Path, states_file: Path) -> dict[str, float]:
+    """On this process's kernels: the largest deviation of one physics step, and of one frame's steps, each from
+    the stored state (``substep_states`` of the original build) — whether frames are too coarse."""
+    import mujoco
+
+    from worker.refine.evaluator import CONTROL_SPEC
+    from worker.refine.replay import INTEGRATION_STATE
+    from worker.verification.stepwise import StateLayout
+
+    states = np.load(states_file)
+    prep, control = _refined_controls(path)
+    model, spf = prep.layout.model, prep.layout.substeps
+    layout, data = StateLayout(model), mujoco.MjData(model)
+    worst = {"step_qpos": 0.0, "step_qvel": 0.0, "frame_qpos": 0.0, "frame_qvel": 0.0}
+    for i in range(len(control)):
+        mujoco.mj_setState(model, data, states[i], INTEGRATION_STATE)
+        mujoco.mj_setState(model, data, control[i], CONTROL_SPEC)
+        mujoco.mj_step(model, data)
+        reached = np.zeros(layout.size)
+        mujoco.mj_getState(model, data, reached, INTEGRATION_STATE)
+        d = layout.differences(states[i + 1], reached)
+        worst["step_qpos"] = max(worst["step_qpos"], float(d["qpos"].max()))
+        worst["step_qvel"] = max(worst["step_qvel"], float(d["qvel"].max()))
+    for f in range(0, len(control) - spf, spf):
+        mujoco.mj_setState(model, data, states[f], INTEGRATION_STATE)
+        for i in range(f, f + spf):
+            mujoco.mj_setState(model, data, control[i], CONTROL_SPEC)
+            mujoco.mj_step(model, data)
+        reached = np.zeros(layout.size)
+        mujoco.mj_getState(model, data, reached, INTEGRATION_STATE)
+        d = layout.differences(states[f + spf], reached)
+        worst["frame_qpos"] = max(worst["frame_qpos"], float(d["qpos"].max()))
+        worst["frame_qvel"] = max(worst["frame_qvel"], float(d["qvel"].max()))
+    return {**worst, "substeps_per_frame": float(spf)}
+
+
+def steps_table(files: list[Path]) -> list[str]:
+    out = ["## Frames or control steps?", "",
+           "The refined replay's state after every physics step recorded on this build; then, with other kernels "
+           "forced, each step from its stored state and each frame's steps from the frame's stored state (largest "
+           "per-dof deviation, m or rad / m/s or rad/s). Where a frame's steps stay at the last bits as one step "
+           "does, frames suffice and storing every step would multiply the size by the substeps per frame.", "",
+           "| result | kernels | substeps / frame | one step: qpos | qvel | one frame: qpos | qvel |",
+           "|---|---|---|---|---|---|---|"]
+    with tempfile.TemporaryDirectory() as tmp:
+        for path in files:
+            states_file = Path(tmp) / "states.npy"
+            np.save(states_file, substep_states(path))
+            for kernel in ("original", "avx2", "sse"):
+                env = {**os.environ, **KERNELS[kernel], "PYTHONPATH": str(ROOT)}
+                run = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--results", str(path.parent),
+                                      "--substeps", str(path), str(states_file)], env=env, cwd=ROOT,
+                                     capture_output=True, text=True, timeout=1800)
+                if run.returncode != 0:
+                    out.append(f"| {path.stem} | {kernel} | error: {(run.stderr or run.stdout)[-200:]} | | | | |")
+                    continue
+                r = json.loads(run.stdout.strip().splitlines()[-1])
+                out.append(f"| {path.stem} | {kernel} | {r['substeps_per_frame']:.0f} | {r['step_qpos']:.2g} | "
+                           f"{r['step_qvel']:.2g} | {r['frame_qpos']:.2g} | {r['frame_qvel']:.2g} |")
+                print(out[-1], flush=True)
+    return out
 
 
 # ------------------------------------------------------------------------------------------------- results
@@ -271,6 +375,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.one is not None:
         print(json.dumps(verify_one(args.one)))
         return 0
+    if args.substeps is not None:
+        print(json.dumps(steps_against_frames(*args.substeps)))
+        return 0
     if args.make:
         make_results(args.results, args.make)
     files = sorted(p for p in args.results.glob("*.npz"))
@@ -289,6 +396,7 @@ def main(argv: list[str] | None = None) -> int:
             print(json.dumps({k: r.get(k) for k in ("name", "kernel", "verified", "drift_m", "total_s",
                                                     "derive_s")}), flush=True)
     lines += [*deviation_table(rows), "", *timing_table(rows), "", *size_table(files), ""]
+    lines += [*steps_table(files[:2]), ""]
     if files:
         with tempfile.TemporaryDirectory() as tmp:
             forged = forgeries(args.forge or files[0], Path(tmp))
