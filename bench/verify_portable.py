@@ -395,7 +395,7 @@ def main(argv: list[str] | None = None) -> int:
             rows.append(r)
             print(json.dumps({k: r.get(k) for k in ("name", "kernel", "verified", "drift_m", "total_s",
                                                     "derive_s")}), flush=True)
-    lines += [*deviation_table(rows), "", *timing_table(rows), "", *size_table(files), ""]
+    lines += [*summary_lines(rows), "", *deviation_table(rows), "", *timing_table(rows), "", *size_table(files), ""]
     lines += [*steps_table(files[:2]), ""]
     if files:
         with tempfile.TemporaryDirectory() as tmp:
@@ -404,6 +404,30 @@ def main(argv: list[str] | None = None) -> int:
     args.out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
+
+
+def summary_lines(rows: list[dict[str, Any]]) -> list[str]:
+    """The largest honest deviations over every result and kernel set against the tolerances."""
+    from worker.verification.stepwise import STATE_TOLERANCES
+
+    good = [r for r in rows if "error" not in r]
+    passed = sum(bool(r["verified"]) for r in good)
+    out = ["## Summary", "",
+           f"{passed} of {len(rows)} verifications passed ({len({r['name'] for r in rows})} results x "
+           f"{len(KERNELS)} kernel sets).", "",
+           "| state field | largest honest deviation, frames 1.. | at frame 0 (re-settled start) | tolerance | "
+           "tolerance at frame 0 |", "|---|---|---|---|---|"]
+    for f in ("qpos", "qvel", "qacc_warmstart", "ctrl", "mocap_pos", "mocap_quat", "time"):
+        step = max((s["largest"].get(f, {}).get("value", 0.0) for r in good for s in r["stepwise"].values()),
+                   default=0.0)
+        start = max((s["start"].get(f, {}).get("value", 0.0) for r in good for s in r["stepwise"].values()),
+                    default=0.0)
+        out.append(f"| {f} | {step:.3g} | {start:.3g} | {STATE_TOLERANCES.of(f):g} | "
+                   f"{STATE_TOLERANCES.of(f, 0):g} |")
+    drift = max((r["drift_m"] for r in good), default=0.0)
+    out += ["", f"Largest whole-rollout drift (the figure the old check compared within 5 mm + 10 %): "
+            f"{drift * 1000:.3g} mm."]
+    return out
 
 
 def deviation_table(rows: list[dict[str, Any]]) -> list[str]:

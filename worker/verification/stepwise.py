@@ -289,6 +289,7 @@ def stepwise_derivation(
     for name, (rep, rec) in zip(names, done, strict=True):
         report.stepwise[name] = rep
         report.failures.extend(rep.failures)
+        report.checked.append(rep.key)
         fallback = derived.final if name == "refined" else derived.raw
         records[name] = rec if len(rec.object_pose) == prep.num_frames else fallback
     final, raw = records["refined"], records["raw"]
