@@ -186,10 +186,13 @@ def test_a_hand_moved_off_its_controls_fails(honest: Result, prep: Prepared) -> 
     _fails_naming(_blob({**arrays, "state_sim": wrist}, summary), "state_sim.mocap_pos", "at frame 9")
 
 
-def test_states_of_another_shape_fail(honest: Result) -> None:
+def test_states_of_another_shape_or_not_numbers_fail(honest: Result, prep: Prepared) -> None:
     arrays, summary = honest
     _fails_naming(_blob({**arrays, "raw_state_sim": arrays["raw_state_sim"][:, :-1]}, summary),
                   "raw_state_sim: shape")
+    states = arrays["state_sim"].copy()
+    states[7, StateLayout(prep.layout.model).slices["qvel"].start] = np.nan
+    _fails_naming(_blob({**arrays, "state_sim": states}, summary), "state_sim.qvel: not a finite number at frame 7")
 
 
 def test_an_older_result_without_states_verifies_the_old_way_with_a_note(honest: Result) -> None:

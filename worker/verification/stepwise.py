@@ -156,8 +156,12 @@ class StateLayout:
     def entry(self, name: str, index: int) -> str:
         """A readable name of entry ``index`` of part ``name``."""
         m = self.model
-        if name in ("qpos",) or name in ("qvel", "qacc_warmstart", "qfrc_applied"):
+        if name in ("qpos", "qvel", "qacc_warmstart", "qfrc_applied"):
             return self._dof[index] if index < m.nv else str(index)
+        if name in ("mocap_pos", "mocap_quat"):
+            size, axes = (3, "xyz") if name == "mocap_pos" else (4, "wxyz")
+            body = int(np.flatnonzero(m.body_mocapid == index // size)[0])
+            return f"{mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, body) or body} {axes[index % size]}"
         if name == "ctrl":
             return mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, index) or f"actuator {index}"
         if name == "xfrc_applied":
@@ -221,6 +225,13 @@ def replay_stepwise(
 
 
 def _check_forces(report: StepwiseReport, layout: StateLayout, states: FloatArray, key: str) -> None:
+    """No applied force in any stored state, and no value that is not a finite number."""
+    bad = np.argwhere(~np.isfinite(states))
+    if bad.size:
+        frame, index = (int(v) for v in bad[0])
+        name = next(n for n, sl in layout.slices.items() if sl.start <= index < sl.stop)
+        report.failures.append(f"{key}.{name}: not a finite number at frame {frame} "
+                               f"({layout.entry(name, index - layout.slices[name].start)})")
     for name in FORCE_FIELDS:
         part = layout.part(states, name)
         if part.size and np.any(part != 0):
