@@ -160,8 +160,9 @@ class StateLayout:
             return self._dof[index] if index < m.nv else str(index)
         if name in ("mocap_pos", "mocap_quat"):
             size, axes = (3, "xyz") if name == "mocap_pos" else (4, "wxyz")
-            body = int(np.flatnonzero(m.body_mocapid == index // size)[0])
-            return f"{mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, body) or body} {axes[index % size]}"
+            body_id = int(np.flatnonzero(m.body_mocapid == index // size)[0])
+            body = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, body_id) or f"body {body_id}"
+            return f"{body} {axes[index % size]}"
         if name == "ctrl":
             return mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, index) or f"actuator {index}"
         if name == "xfrc_applied":
