@@ -204,3 +204,23 @@ def test_an_older_result_without_states_verifies_the_old_way_with_a_note(honest:
     moved = old["object_pose_sim"].copy()
     moved[20, 0] += 0.002
     _fails_naming(_blob({**old, "object_pose_sim": moved}, summary), "frame 20")
+
+
+def test_recording_the_states_leaves_the_replay_as_it_was(honest: Result, prep: Prepared) -> None:
+    """Storing states must not change a refinement's numbers: the same replay with and without them, bit for bit."""
+    from worker.refine.evaluator import ParallelEvaluator
+    from worker.refine.prepare import settled_start
+    from worker.refine.replay import ReplayJob, replay_all
+
+    arrays, _ = honest
+    with ParallelEvaluator(prep.scene.model, 1) as ev:
+        start, _ = settled_start(prep, ev)
+    keyframes = {"right": arrays["right_keyframes"]}
+    (plain, recorded), _ = replay_all(prep, start, [ReplayJob(keyframes), ReplayJob(keyframes, record_states=True)])
+    assert plain.states is None and recorded.states is not None
+    np.testing.assert_array_equal(recorded.states, arrays["state_sim"])
+    for name in ("object_pose", "object_vel", "articulation"):
+        np.testing.assert_array_equal(getattr(plain, name), getattr(recorded, name))
+    np.testing.assert_array_equal(plain.keypoints["right"], recorded.keypoints["right"])
+    for key, column in plain.contacts.items():
+        np.testing.assert_array_equal(column, recorded.contacts[key])
