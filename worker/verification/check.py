@@ -118,14 +118,14 @@ def check_result(
     _check_rescue(report, sim["convex_detail"], details, derived.attempt_metrics, allow_config)
     ArrayChecker(report, arrays, derived.arrays).compare_trajectory()  # the whole rollout: exact, or its drift
     tol: Tolerances | None = None if report.exact else CROSS_HOST
-    attempt_tol = tol
+    attempt_tol, attempts_decide = tol, True
     against = derived
     if any(key in arrays for key in STATE_KEYS.values()):
         report.method = "stepwise"
         against = stepwise_derivation(report, derived, arrays, seq_bytes, keyframes, threads)  # type: ignore[arg-type]
         if not report.exact:  # the whole rollout drifted (another host): a figure, the stepwise check decides
             exact_steps = all(r.exact for r in report.stepwise.values())
-            tol = None if exact_steps else STEPWISE
+            tol, attempts_decide = (None if exact_steps else STEPWISE), False
             report.config_notes.append(
                 f"whole-rollout drift {report.max_pos_diff_m * 1000:.4g} mm / {report.max_rot_diff_deg:.4g} deg "
                 "(reported, not pass/fail: every stored frame was checked against the one before it)")
@@ -137,7 +137,7 @@ def check_result(
     c.simulated(sides, tol)
     c.contacts(against, tol)
     c.consistency(against, sides)
-    check_summary(report, summary, against, attempt_kf, tol, attempt_tol)
+    check_summary(report, summary, against, attempt_kf, tol, attempt_tol, attempts_decide)
     check_stored_metrics(report, arrays, summary, sides, tuple(j.kind for j in derived.prep.seq.object.joints))
     report.frames = int(derived.prep.num_frames)
     _environment_notes(summary.get("versions") or {}, report)
