@@ -47,6 +47,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--forge", type=Path, default=None, help="the result the forgeries start from (default: first)")
     p.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "verify_portable.md")
     p.add_argument("--one", type=Path, default=None, help=argparse.SUPPRESS)  # subprocess: verify one, print JSON
+    p.add_argument("--old-way", action="store_true", help=argparse.SUPPRESS)  # --one without the stored states
     p.add_argument("--substeps", type=Path, nargs=2, default=None, help=argparse.SUPPRESS)  # subprocess: RESULT STATES
     return p.parse_args(argv)
 
@@ -54,10 +55,17 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 # ------------------------------------------------------------------------------------------- one verification
 
 
-def verify_one(path: Path) -> dict[str, Any]:
-    """``check_result`` of one file with the full re-simulation timed apart; the figures as JSON."""
+def verify_one(path: Path, old_way: bool = False) -> dict[str, Any]:
+    """``check_result`` of one file with the full re-simulation timed apart; the figures as JSON. ``old_way``: the
+    file without its stored states (as an older result: whole re-simulation within the cross-host tolerances)."""
     import worker.verification.check as check
     from common.cpu_kind import numpy_simd
+    from common.result_format import read_arrays, read_summary, write_result_npz
+
+    blob = path.read_bytes()
+    if old_way:
+        arrays = {k: v for k, v in read_arrays(blob).items() if k not in ("state_sim", "raw_state_sim")}
+        blob = write_result_npz(arrays, read_summary(blob))
 
     timed: dict[str, float] = {}
     derive = check.derive_result
@@ -70,7 +78,7 @@ def verify_one(path: Path) -> dict[str, Any]:
 
     check.derive_result = timed_derive
     t0 = time.perf_counter()
-    report = check.check_result(path.read_bytes())
+    report = check.check_result(blob)
     total = time.perf_counter() - t0
     return {
         "verified": report.verified, "method": report.method, "failures": report.failures[:6],
@@ -80,10 +88,11 @@ def verify_one(path: Path) -> dict[str, Any]:
     }
 
 
-def run_one(path: Path, kernels: dict[str, str]) -> dict[str, Any]:
+def run_one(path: Path, kernels: dict[str, str], old_way: bool = False) -> dict[str, Any]:
     env = {**os.environ, **kernels, "PYTHONPATH": str(ROOT)}
     run = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--results", str(path.parent), "--one",
-                          str(path)], env=env, cwd=ROOT, capture_output=True, text=True, timeout=1800)
+                          str(path), *(["--old-way"] if old_way else [])], env=env, cwd=ROOT, capture_output=True,
+                         text=True, timeout=1800)
     if run.returncode != 0:
         return {"verified": False, "error": (run.stdout + run.stderr)[-2000:]}
     return dict(json.loads(run.stdout.strip().splitlines()[-1]))
@@ -373,7 +382,7 @@ def add_shift(add: Any, arrays: dict[str, np.ndarray], summary: dict[str, Any], 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     if args.one is not None:
-        print(json.dumps(verify_one(args.one)))
+        print(json.dumps(verify_one(args.one, args.old_way)))
         return 0
     if args.substeps is not None:
         print(json.dumps(steps_against_frames(*args.substeps)))
@@ -392,6 +401,10 @@ def main(argv: list[str] | None = None) -> int:
         for kernel, env in KERNELS.items():
             r = run_one(path, env)
             r.update(name=path.stem, kernel=kernel)
+            if kernel != "original":  # the same file as an older result, without states
+                old = run_one(path, env, old_way=True)
+                r["old_way"] = "error" if "error" in old else (
+                    "passes" if old["verified"] else "FAILS: " + "; ".join(old["failures"])[:160])
             rows.append(r)
             print(json.dumps({k: r.get(k) for k in ("name", "kernel", "verified", "drift_m", "total_s",
                                                     "derive_s")}), flush=True)
@@ -425,8 +438,10 @@ def summary_lines(rows: list[dict[str, Any]]) -> list[str]:
         out.append(f"| {f} | {step:.3g} | {start:.3g} | {STATE_TOLERANCES.of(f):g} | "
                    f"{STATE_TOLERANCES.of(f, 0):g} |")
     drift = max((r["drift_m"] for r in good), default=0.0)
+    olds = [r for r in good if "old_way" in r]
     out += ["", f"Largest whole-rollout drift (the figure the old check compared within 5 mm + 10 %): "
-            f"{drift * 1000:.3g} mm."]
+            f"{drift * 1000:.3g} mm. The same files without their states (the old way) off the original kernels: "
+            f"{sum(r['old_way'] == 'passes' for r in olds)} of {len(olds)} pass."]
     return out
 
 
@@ -435,11 +450,13 @@ def deviation_table(rows: list[dict[str, Any]]) -> list[str]:
            "", "Each cell: the largest |stored - reached| over frames 1.. and both replays (m or rad for qpos, m/s or "
            "rad/s for qvel, per-dof; 0 = bit-identical). `start`: frame 0 against the start re-settled here. "
            "`drift`: the whole re-simulation's largest object deviation (reported, not pass/fail).", "",
-           "| result | kernels | verified | " + " | ".join(FIELDS) + " | start qpos / qvel | drift (mm) |",
-           "|---|---|---|" + "---|" * len(FIELDS) + "---|---|"]
+           "`old way`: the same file without its states, verified as an older result (whole re-simulation within "
+           "5 mm / 5 deg + 10 %).", "",
+           "| result | kernels | verified | " + " | ".join(FIELDS) + " | start qpos / qvel | drift (mm) | old way |",
+           "|---|---|---|" + "---|" * len(FIELDS) + "---|---|---|"]
     for r in rows:
         if "error" in r:
-            out.append(f"| {r['name']} | {r['kernel']} | ERROR | " + " | ".join("" for _ in FIELDS) + " | | |")
+            out.append(f"| {r['name']} | {r['kernel']} | ERROR | " + " | ".join("" for _ in FIELDS) + " | | | |")
             continue
         sw = r["stepwise"].values()
         cells = []
@@ -449,7 +466,7 @@ def deviation_table(rows: list[dict[str, Any]]) -> list[str]:
         start = [max((s["start"].get(f, {}).get("value", 0.0) for s in sw), default=0.0) for f in ("qpos", "qvel")]
         ok = "yes" if r["verified"] else "NO: " + "; ".join(r["failures"])[:200]
         out.append(f"| {r['name']} | {r['kernel']} | {ok} | " + " | ".join(cells)
-                   + f" | {start[0]:.2g} / {start[1]:.2g} | {r['drift_m'] * 1000:.3g} |")
+                   + f" | {start[0]:.2g} / {start[1]:.2g} | {r['drift_m'] * 1000:.3g} | {r.get('old_way', '')} |")
     return out
 
 
