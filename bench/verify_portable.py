@@ -46,6 +46,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--make", type=int, default=0, help="refine this many dev120 sequences into --results first")
     p.add_argument("--forge", type=Path, default=None, help="the result the forgeries start from (default: first)")
     p.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "verify_portable.md")
+    p.add_argument("--note", action="append", default=[], help="a paragraph for the report (how the sample was made)")
     p.add_argument("--one", type=Path, default=None, help=argparse.SUPPRESS)  # subprocess: verify one, print JSON
     p.add_argument("--old-way", action="store_true", help=argparse.SUPPRESS)  # --one without the stored states
     p.add_argument("--substeps", type=Path, nargs=2, default=None, help=argparse.SUPPRESS)  # subprocess: RESULT STATES
@@ -396,6 +397,8 @@ def main(argv: list[str] | None = None) -> int:
              f"`{args.results}`. Kernels forced in a subprocess: " + "; ".join(
                  f"**{k}** {' '.join(f'{a}={b!r}' for a, b in v.items()) or '(none)'}" for k, v in KERNELS.items()),
              ""]
+    for note in args.note:
+        lines += [note, ""]
     rows: list[dict[str, Any]] = []
     for path in files:
         for kernel, env in KERNELS.items():
