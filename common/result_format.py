@@ -62,6 +62,11 @@ CONTACT_KEYS: tuple[str, ...] = (
 )
 
 
+#: Each replay's integration state per frame (refinement results since issue #54): for ``verify``'s stepwise check,
+#: in the NPZ only (the JSON form of a result leaves them out: 3 KB a frame as text is no one's reading).
+INTEGRATION_STATE_KEYS: tuple[str, ...] = ("state_sim", "raw_state_sim")
+
+
 #: Contact columns of an articulated object's result only.
 PART_CONTACT_KEYS: tuple[str, ...] = ("contact_part",)
 

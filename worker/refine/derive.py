@@ -21,6 +21,7 @@ import numpy as np
 
 from common.geometry import FloatArray
 from common.job_options import JobOptions
+from common.result_format import INTEGRATION_STATE_KEYS
 from common.sequence_io import sequence_from_npz_bytes
 from worker.hand.mano.pose import mano_result_arrays
 from worker.hand.reference import HandReference
@@ -34,7 +35,7 @@ from worker.simulation.metrics import compute_metrics, scalar_metrics
 from worker.simulation.replay import articulation_frames
 
 #: The result arrays holding each replay's integration state per frame (``worker.refine.replay.INTEGRATION_STATE``).
-STATE_KEYS = {"refined": "state_sim", "raw": "raw_state_sim"}
+STATE_KEYS = dict(zip(("refined", "raw"), INTEGRATION_STATE_KEYS, strict=True))
 
 
 @dataclass
