@@ -167,6 +167,28 @@ def test_a_force_simulated_then_hidden_fails_where_it_acted(honest: Result, prep
                   "state_sim.q", "at frame 11")
 
 
+def test_nudges_each_within_the_per_frame_tolerance_fail_by_what_they_add_up_to(honest: Result,
+                                                                                 prep: Prepared) -> None:
+    """The forger's patient try: every frame from frame 4 on, the object's upward velocity half the per-frame
+    tolerance above where the frame before leads. No frame is beyond its bound; the running sum of the deviations
+    (the velocity the nudges add up to) is, from the frame where it passes its own bound."""
+    from worker.verification.stepwise import STATE_TOLERANCES, StepwiseReport, _compare
+
+    arrays, _ = honest
+    layout = StateLayout(prep.layout.model)
+    reached = arrays["state_sim"].copy()
+    stored = reached.copy()
+    step = STATE_TOLERANCES.qvel / 2
+    stored[4:, layout.slices["qvel"].start + prep.scene.object_dof_adr + 2] += step
+    report = StepwiseReport("state_sim")
+    _compare(report, layout, stored, reached, "state_sim", STATE_TOLERANCES)
+    assert report.largest["qvel"].value < STATE_TOLERANCES.qvel
+    crossing = 4 + int(STATE_TOLERANCES.running_qvel / step)  # the first frame whose sum passes the bound
+    (failure,) = report.failures
+    assert failure.startswith("state_sim.qvel: the per-frame deviations add up to ") and \
+        f"by frame {crossing} (object_root z position" in failure, failure
+
+
 def test_a_hand_moved_off_its_controls_fails(honest: Result, prep: Prepared) -> None:
     arrays, summary = honest
     model = prep.layout.model

@@ -58,24 +58,29 @@ PHYSICS_FIELDS = ("time", "qpos", "qvel", "act", "qacc_warmstart", "plugin_state
 @dataclass(frozen=True)
 class StateTolerances:
     """How far a stored frame's state may be from the state one frame's steps reach from the stored frame before
-    it (max abs per degree of freedom; positions by ``mj_differentiatePos``: metres and radians).
+    it (max abs per degree of freedom; positions by ``mj_differentiatePos``: metres and radians), and how far the
+    running sums of those deviations may go (``running_qpos`` / ``running_qvel``, signed, per degree of freedom).
 
     Measured (``bench/results/verify_portable.md``): with other NumPy/OpenBLAS kernels forced, an honest frame is
-    reached within ~1e-12 m / rad and ~1e-10 m/s (the controls differ in their last bits, 1e-15). A forger may nudge
-    every frame within the bounds, and velocity nudges add up: over F frames of dt seconds the object can drift
-    at most about F * qpos + qvel * dt * F^2 / 2, which these keep to ~4 micrometres for 150 frames at 30 fps and
-    ~1.5 mm at the service's 3000-frame limit. Frame 0 is compared with a start settled afresh here (a rollout of
-    its own, where last bits grow over the settling steps): a single state, nothing adds up, so it is allowed
-    ``start`` times more (a micrometre)."""
+    reached within ~1e-12 m / rad and mostly ~1e-10 m/s, with rare spikes to ~3e-8 m/s where a contact's solve
+    takes another path (the controls differ in their last bits, 1e-15); the per-frame bounds leave a margin of
+    ~1000 over those. A forger could nudge every frame within them, and nudges add up: the running sums bound what
+    they add up to, the displacement injected to ``running_qpos`` and the velocity to ``running_qvel``, so over T
+    seconds an object strays at most ``running_qpos + running_qvel * T`` (60 micrometres over 5 s, 1 mm over the
+    100 s of the service's 3000-frame limit at 30 fps), where the whole-rollout check allowed 5 mm + 10 % of the
+    tracking error per frame. Frame 0 is compared with a start settled afresh here (a rollout of its own, where
+    last bits grow over the settling steps), ``start`` times more (measured: 6e-11 m, 8e-10 m/s)."""
 
-    qpos: float = 1e-8  # m / rad
-    qvel: float = 1e-8  # m/s / rad/s
-    qacc_warmstart: float = 1e-6  # m/s^2 / rad/s^2: only the solver's first guess
-    act: float = 1e-8
+    qpos: float = 1e-6  # m / rad
+    qvel: float = 1e-5  # m/s / rad/s
+    qacc_warmstart: float = 1e-4  # m/s^2 / rad/s^2: only the solver's first guess
+    act: float = 1e-6
     time: float = 1e-12  # s
-    plugin_state: float = 1e-8
+    plugin_state: float = 1e-6
     inputs: float = 1e-9  # ctrl (rad), mocap pose (m, unit quaternion), equality switches against the controls
-    start: float = 100.0  # frame 0's factor (against the re-settled start)
+    running_qpos: float = 1e-5  # m / rad: the signed sum of the per-frame qpos deviations, any frame, any dof
+    running_qvel: float = 1e-5  # m/s / rad/s
+    start: float = 10.0  # frame 0's factor (against the re-settled start)
 
     def of(self, name: str, frame: int = 1) -> float:
         base = self.inputs if name in INPUT_FIELDS else float(getattr(self, name))
@@ -108,6 +113,8 @@ class StepwiseReport:
     largest: dict[str, Deviation] = field(default_factory=dict)
     #: state field -> frame 0's deviation from the start re-settled here (the settling is a rollout of its own)
     start: dict[str, Deviation] = field(default_factory=dict)
+    #: "running_qpos" / "running_qvel" -> the largest |signed sum of the per-frame deviations| up to a frame
+    running: dict[str, Deviation] = field(default_factory=dict)
     failures: list[str] = field(default_factory=list)
     seconds: float = 0.0
     steps: int = 0
@@ -123,6 +130,7 @@ class StepwiseReport:
         return {"key": self.key, "frames": self.frames, "exact": self.exact, "seconds": self.seconds,
                 "steps": self.steps, "largest": {k: v.to_dict() for k, v in self.largest.items()},
                 "start": {k: v.to_dict() for k, v in self.start.items()},
+                "running": {k: v.to_dict() for k, v in self.running.items()},
                 "failures": list(self.failures)}
 
 
@@ -173,16 +181,16 @@ class StateLayout:
         return f"{index}"
 
     def differences(self, stored: FloatArray, reached: FloatArray) -> dict[str, FloatArray]:
-        """Per part, |stored - reached| per entry; qpos in the tangent space (one value per degree of freedom:
-        metres, radians), so a quaternion's sign does not count and a rotation reads in radians."""
+        """Per part, stored - reached per entry (signed); qpos in the tangent space (one value per degree of
+        freedom: metres, radians), so a quaternion's sign does not count and a rotation reads in radians."""
         out = {}
         for name, sl in self.slices.items():
             if name == "qpos":
                 dq = np.zeros(self.model.nv)
-                mujoco.mj_differentiatePos(self.model, dq, 1.0, stored[sl], reached[sl])
-                out[name] = np.abs(dq)
+                mujoco.mj_differentiatePos(self.model, dq, 1.0, reached[sl], stored[sl])
+                out[name] = dq
             else:
-                out[name] = np.abs(stored[sl] - reached[sl])
+                out[name] = stored[sl] - reached[sl]
         return out
 
 
@@ -249,10 +257,21 @@ def _compare(report: StepwiseReport, layout: StateLayout, stored: FloatArray, re
     first frame beyond the tolerance (where the forgery starts) and the largest."""
     report.exact = bool(np.array_equal(stored, reached))
     first: dict[str, Deviation] = {}
+    running = {"qpos": np.zeros(layout.model.nv), "qvel": np.zeros(layout.model.nv)}
     for f in range(len(stored)):
-        for name, d in layout.differences(stored[f], reached[f]).items():
-            if name in FORCE_FIELDS or not d.size:
+        for name, signed in layout.differences(stored[f], reached[f]).items():
+            if name in FORCE_FIELDS or not signed.size:
                 continue
+            if name in running and f > 0:  # what the nudges add up to (the start is a state of its own)
+                running[name] += signed
+                j = int(np.argmax(np.abs(running[name])))
+                sum_name = f"running_{name}"
+                total = Deviation(float(abs(running[name][j])), f, layout.entry(name, j))
+                if total.value > report.running.setdefault(sum_name, Deviation()).value:
+                    report.running[sum_name] = total
+                if total.value > getattr(tol, sum_name) and sum_name not in first:
+                    first[sum_name] = total
+            d = np.abs(signed)
             i = int(np.argmax(d))
             here = Deviation(float(d[i]), f, layout.entry(name, i))
             where = report.start if f == 0 else report.largest
@@ -261,6 +280,12 @@ def _compare(report: StepwiseReport, layout: StateLayout, stored: FloatArray, re
             if here.value > tol.of(name, f) and name not in first:
                 first[name] = here
     for name, dev in first.items():
+        if name.startswith("running_"):
+            field_name = name[len("running_"):]
+            report.failures.append(
+                f"{key}.{field_name}: the per-frame deviations add up to {dev.value:.6g} by frame {dev.frame} "
+                f"({dev.where}; tolerance {getattr(tol, name):g} on their running sum)")
+            continue
         what = "the stored controls" if name in INPUT_FIELDS else (
             "the re-settled start" if dev.frame == 0 else f"where frame {dev.frame - 1} leads")
         worst = max(report.largest.get(name, dev), report.start.get(name, dev), key=lambda d: d.value)
