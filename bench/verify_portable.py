@@ -445,6 +445,11 @@ def summary_lines(rows: list[dict[str, Any]]) -> list[str]:
            f"{len(KERNELS)} kernel sets).", "",
            "| state field | largest honest deviation, frames 1.. | at frame 0 (re-settled start) | tolerance | "
            "tolerance at frame 0 |", "|---|---|---|---|---|"]
+    for f in ("running_qpos", "running_qvel"):
+        worst = max((s.get("running", {}).get(f, {}).get("value", 0.0) for r in good for s in r["stepwise"].values()),
+                    default=0.0)
+        out.append(f"| {f} (signed sum of the per-frame deviations, largest) | {worst:.3g} | | "
+                   f"{getattr(STATE_TOLERANCES, f):g} | |")
     for f in ("qpos", "qvel", "qacc_warmstart", "ctrl", "mocap_pos", "mocap_quat", "time"):
         step = max((s["largest"].get(f, {}).get("value", 0.0) for r in good for s in r["stepwise"].values()),
                    default=0.0)
