@@ -438,13 +438,15 @@ def summary_lines(rows: list[dict[str, Any]]) -> list[str]:
     """The largest honest deviations over every result and kernel set against the tolerances."""
     from worker.verification.stepwise import STATE_TOLERANCES
 
-    good = [r for r in rows if "error" not in r]
-    passed = sum(bool(r["verified"]) for r in good)
+    passed = [r for r in rows if r.get("verified")]
+    failed = [f"{r['name']} ({r['kernel']})" for r in rows if not r.get("verified")]
     out = ["## Summary", "",
-           f"{passed} of {len(rows)} verifications passed ({len({r['name'] for r in rows})} results x "
-           f"{len(KERNELS)} kernel sets).", "",
+           f"{len(passed)} of {len(rows)} verifications passed ({len({r['name'] for r in rows})} results x "
+           f"{len(KERNELS)} kernel sets); failed: {', '.join(failed) or 'none'}. The deviations below are those of "
+           "the verified ones.", "",
            "| state field | largest honest deviation, frames 1.. | at frame 0 (re-settled start) | tolerance | "
            "tolerance at frame 0 |", "|---|---|---|---|---|"]
+    good = passed
     for f in ("running_qpos", "running_qvel"):
         worst = max((s.get("running", {}).get(f, {}).get("value", 0.0) for r in good for s in r["stepwise"].values()),
                     default=0.0)
@@ -458,7 +460,7 @@ def summary_lines(rows: list[dict[str, Any]]) -> list[str]:
         out.append(f"| {f} | {step:.3g} | {start:.3g} | {STATE_TOLERANCES.of(f):g} | "
                    f"{STATE_TOLERANCES.of(f, 0):g} |")
     drift = max((r["drift_m"] for r in good), default=0.0)
-    olds = [r for r in good if "old_way" in r]
+    olds = [r for r in rows if "old_way" in r]
     out += ["", f"Largest whole-rollout drift (the figure the old check compared within 5 mm + 10 %): "
             f"{drift * 1000:.3g} mm. The same files without their states (the old way) off the original kernels: "
             f"{sum(r['old_way'] == 'passes' for r in olds)} of {len(olds)} pass."]
@@ -524,9 +526,9 @@ def size_table(files: list[Path]) -> list[str]:
     if sizes:
         per = max(s["per_frame"] for s in sizes)
         worst = 2 * per * limits.max_frames
-        out += ["", f"At the service's frame limit ({limits.max_frames} frames) the states of a one-hand result take "
-                f"{worst / 2**20:.1f} MiB uncompressed (two hands and an articulated object about twice that), "
-                f"below the 64 MiB an NPZ member may hold (`common.npz_safe.NpzLimits`) and the "
+        out += ["", f"At the service's frame limit ({limits.max_frames} frames) the states of the largest scene here "
+                f"({per // 8} values a frame) take {worst / 2**20:.1f} MiB uncompressed, each of the two members "
+                f"half that, below the 64 MiB an NPZ member may hold (`common.npz_safe.NpzLimits`) and the "
                 f"{limits.max_request_bytes / 2**20:.0f} MiB request limit; the service stores results in the "
                 "database with no size limit of its own."]
     return out
