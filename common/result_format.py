@@ -16,6 +16,9 @@ result has (F = frames, N = contacts over all frames):
   ``contact_body`` (N,) str hand body name, ``contact_pos_world`` (N,3), ``contact_pos_object`` (N,3),
   ``contact_normal`` (N,3) world (from object to hand), ``contact_force`` (N,3) world,
   ``contact_torque`` (N,3) world, ``contact_depth`` (N,) penetration in metres (>= 0).
+* ``state_sim`` / ``raw_state_sim`` (F, S) float64 (refinement results since issue #54): the refined and the raw
+  replay's MuJoCo integration state (``mjSTATE_INTEGRATION``) at every frame, read by ``verify``'s stepwise check
+  (``worker.verification.stepwise``).
 * an articulated object (``common.articulation``) adds ``object_articulation_sim`` / ``_ref`` (F,J) joint values
   (radians / metres) and ``contact_part`` (N,) str: the object part touched, whose frame ``contact_pos_object``
   is then given in.
@@ -59,6 +62,11 @@ CONTACT_KEYS: tuple[str, ...] = (
     "contact_torque",
     "contact_depth",
 )
+
+
+#: Each replay's integration state per frame (refinement results since issue #54): for ``verify``'s stepwise check,
+#: in the NPZ only (the JSON form of a result leaves them out: 3 KB a frame as text is no one's reading).
+INTEGRATION_STATE_KEYS: tuple[str, ...] = ("state_sim", "raw_state_sim")
 
 
 #: Contact columns of an articulated object's result only.

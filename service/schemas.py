@@ -401,7 +401,8 @@ class PlotsPublic(BaseModel):
 class ResultJson(BaseModel):
     job_id: str
     summary: dict[str, Any]
-    arrays: dict[str, Any] = Field(description="Every array of the result file as nested lists")
+    arrays: dict[str, Any] = Field(description="Every array of the result file as nested lists, but the per-frame "
+                                   "integration states (state_sim, raw_state_sim: in the NPZ, for verify)")
 
 
 class ProblemField(BaseModel):

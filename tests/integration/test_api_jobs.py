@@ -145,6 +145,24 @@ def test_auth_and_owner_scoping(api: ApiHarness) -> None:
     assert api.client.get("/v1/jobs", headers=other).json()["count"] == 0
 
 
+def test_the_json_result_leaves_the_integration_states_to_the_npz(api: ApiHarness) -> None:
+    """The per-frame integration states (issue #54, for verify) are in the NPZ only: as JSON text they would be
+    the bulk of the answer and of use to no reader."""
+    from common.result_format import read_arrays, write_result_npz
+
+    job_id = api.client.post("/v1/jobs", json=json_body(), headers=api.headers).json()["id"]
+    lease = api.queue.claim("w")
+    assert lease is not None
+    blob, summary = fake_result(frames=5)
+    arrays = {**read_arrays(blob), "state_sim": np.ones((5, 40)), "raw_state_sim": np.ones((5, 40))}
+    api.queue.complete(job_id, lease.lease_token, write_result_npz(arrays, summary), summary)
+    as_json = api.client.get(f"/v1/jobs/{job_id}/result", headers=api.headers).json()
+    assert "object_pose_sim" in as_json["arrays"]
+    assert "state_sim" not in as_json["arrays"] and "raw_state_sim" not in as_json["arrays"]
+    npz = api.client.get(f"/v1/jobs/{job_id}/result", params={"format": "npz"}, headers=api.headers)
+    assert read_arrays(npz.content)["state_sim"].shape == (5, 40)
+
+
 def test_result_contacts_and_metrics_after_completion(api: ApiHarness) -> None:
     job_id = api.client.post("/v1/jobs", json=json_body(), headers=api.headers).json()["id"]
     early = api.client.get(f"/v1/jobs/{job_id}/result", headers=api.headers)

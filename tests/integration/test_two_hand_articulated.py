@@ -51,6 +51,39 @@ def test_the_hinged_box_refines_to_success_and_verifies(refined: RefineOutcome) 
     assert arrays["object_articulation_sim"].shape == (len(arrays["object_pose_sim"]), 1)
 
 
+def test_both_hands_and_the_lid_are_checked_stepwise(refined: RefineOutcome) -> None:
+    """The stored integration state holds both hands and the object's joints (issue #54): the result verifies
+    stepwise, and a lid swung open in the stored states alone fails naming the lid's joint and the frame."""
+    import mujoco
+
+    from common.errors import ResultMismatchError
+    from common.result_format import write_result_npz
+    from worker.refine.result import prepare_from_result
+    from worker.verification import check_result
+    from worker.verification.stepwise import StateLayout
+
+    blob = refined.to_npz_bytes(wall_clock=False)
+    report = check_result(blob)
+    assert report.failures == [] and report.method == "stepwise"
+    assert all(r.exact and r.frames == refined.summary["frames"] for r in report.stepwise.values())
+    prep, _ = prepare_from_result(blob)
+    model = prep.layout.model
+    layout = StateLayout(model)
+    arrays: dict[str, Any] = read_arrays(blob)
+    assert {layout.entry("ctrl", i).split("_")[0] for i in range(model.nu)} == {"right", "left"}
+    adr = int(prep.scene.object_joint_qpos_adr[0])
+    joint = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, int(np.flatnonzero(model.jnt_qposadr == adr)[0]))
+    states = arrays["state_sim"].copy()
+    frame = len(states) // 2
+    states[frame:, layout.slices["qpos"].start + adr] += np.radians(3.0)
+    arrays["state_sim"] = states
+    arrays["object_articulation_sim"] = arrays["object_articulation_sim"].copy()
+    arrays["object_articulation_sim"][frame:] += np.radians(3.0)
+    forged = write_result_npz(arrays, read_summary(blob))
+    with pytest.raises(ResultMismatchError, match=f"state_sim.qpos: .* at frame {frame} \\({joint};"):
+        verify_result(forged)
+
+
 @pytest.mark.slow
 def test_a_forged_joint_track_fails_verify(refined: RefineOutcome) -> None:
     from common.errors import ResultMismatchError

@@ -220,7 +220,7 @@ def test_cli_prints_deviation_and_digests(
     path.write_bytes(_forged(arrays, summary))
     assert cli_main(["verify", str(path)]) == 0
     out = capsys.readouterr().out
-    assert "largest object deviation 0 mm" in out and "checked sha256 " in out and "bit-identical" in out
+    assert "whole-rollout drift 0 mm" in out and "checked sha256 " in out and "bit-identical" in out
     forged = {**arrays, "contact_force": arrays["contact_force"] * 10}
     path.write_bytes(_forged(forged, summary))
     assert cli_main(["verify", str(path), "--threads", "2"]) == 2

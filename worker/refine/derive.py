@@ -21,6 +21,7 @@ import numpy as np
 
 from common.geometry import FloatArray
 from common.job_options import JobOptions
+from common.result_format import INTEGRATION_STATE_KEYS
 from common.sequence_io import sequence_from_npz_bytes
 from worker.hand.mano.pose import mano_result_arrays
 from worker.hand.reference import HandReference
@@ -32,6 +33,9 @@ from worker.robot.reference import RobotReference
 from worker.simulation.config import SimConfig
 from worker.simulation.metrics import compute_metrics, scalar_metrics
 from worker.simulation.replay import articulation_frames
+
+#: The result arrays holding each replay's integration state per frame (``worker.refine.replay.INTEGRATION_STATE``).
+STATE_KEYS = dict(zip(("refined", "raw"), INTEGRATION_STATE_KEYS, strict=True))
 
 
 @dataclass
@@ -86,8 +90,8 @@ def derive_result(
         raise ValueError(f"{len(attempts)} attempts' keyframes but {len(details)} attempts' convex parts")
     own = [k for k, d in zip(attempts, details, strict=True) if d == config.convex_detail]
     zero = {side: sp.zero_keyframes() for side, sp in prep.spaces.items()}
-    (raw, final, *tried), steps = _replays(prep, [ReplayJob(zero), ReplayJob(keyframes), *_attempt_jobs(own)],
-                                           threads)
+    jobs = [ReplayJob(zero, record_states=True), ReplayJob(keyframes, record_states=True), *_attempt_jobs(own)]
+    (raw, final, *tried), steps = _replays(prep, jobs, threads)
     attempt_metrics: list[dict[str, Any] | None] = [None] * len(attempts)
     for detail in dict.fromkeys(details):
         mine = [i for i, d in enumerate(details) if d == detail]
@@ -162,6 +166,11 @@ def build_arrays(
         "raw_object_pose_sim": raw.object_pose,
         "sequence_npz": np.frombuffer(sequence_bytes, dtype=np.uint8).copy(),
     }
+    # Every frame's integration state, so ``verify`` can check each frame against the one before it on any host
+    # (``worker.verification.stepwise``; issue #54).
+    for key, rec in ((STATE_KEYS["refined"], final), (STATE_KEYS["raw"], raw)):
+        if rec.states is not None:
+            arrays[key] = rec.states
     if final.contact_frames is not None:
         arrays["object_table_contact"] = final.contact_frames.table
     if final.articulation is not None and raw.articulation is not None and prep.seq.articulation is not None:

@@ -21,6 +21,11 @@ from worker.refine.problem import SimWindowProblem
 from worker.simulation.contacts import ContactRecorder, empty_contact_columns
 from worker.simulation.metrics import ContactFrames
 
+#: What a result stores of every frame (``ReplayRecord.states``): MuJoCo's integration state, everything
+#: ``mj_step`` reads (time, qpos, qvel, act, the solver warmstart, ctrl, applied forces, equality switches,
+#: mocap poses, userdata, plugin state), so loading it and stepping reproduces the next frame bit for bit.
+INTEGRATION_STATE = int(mujoco.mjtState.mjSTATE_INTEGRATION)
+
 #: Keyframe intervals simulated past the optimised keyframe: 1 is the (k1..k4) window of DESIGN §1.6; 2 lets
 #: the optimiser see whether a grasp holds one interval longer (on DexYCB dev it turned a dropped lift into a
 #: success and lowered E_t elsewhere, for 28% more simulated steps; see bench/results/refine_dev.md).
@@ -53,13 +58,19 @@ class ReplayRecord:
     command: dict[str, FloatArray] = field(default_factory=dict)
     #: (F, J) an articulated object's joint values; None for a rigid one.
     articulation: FloatArray | None = None
+    #: (F, mj_stateSize(INTEGRATION)) the full integration state at every frame (``record_states``): frame f's is
+    #: the state right before physics step f * substeps, inputs and solver warmstart included.
+    states: FloatArray | None = None
 
 
 def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyframes: dict[str, FloatArray],
-           record_contacts: bool = True, on_step: StepHook | None = None) -> ReplayRecord:
-    """Simulate frame 0 -> F-1 with the given keyframes, recording every frame (and contacts).
+           record_contacts: bool = True, on_step: StepHook | None = None, record_states: bool = False
+           ) -> ReplayRecord:
+    """Simulate frame 0 -> F-1 with the given keyframes, recording every frame (and contacts, and with
+    ``record_states`` the integration state of every frame: ``ReplayRecord.states``).
 
-    ``on_step(i, data)`` also runs after physics step i (the visual tools record the full state per frame)."""
+    ``on_step(i, data)`` also runs after physics step i, after the frame's records (the visual tools record the
+    full state per frame; ``worker.verification.stepwise`` loads the stored next frame's state there)."""
     layout = prep.layout
     s = layout.substeps
     problem = window_problem(prep, evaluator, start, {})
@@ -70,6 +81,7 @@ def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyfra
     robots = {side: h for side, h in prep.scene.hands.items() if prep.hand_targets[side].joint_targets is not None}
     joints = {side: np.zeros((n_frames, len(h.qpos_adr))) for side, h in robots.items()}
     force = {side: np.zeros((n_frames, len(h.actuator_ids))) for side, h in robots.items()}
+    states = frame_states(prep, start, n_frames) if record_states else None
 
     def hook(i: int, d: mujoco.MjData) -> None:
         if i % s == 0:  # contacts and sensors of this step were computed at the frame's state
@@ -81,6 +93,8 @@ def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyfra
         for side, h in robots.items():  # the step towards frame i // s + 1 (its forces were computed at step i)
             f = min(i // s + (i % s > 0 or i == 0), n_frames - 1)
             np.maximum(force[side][f], np.abs(d.actuator_force[h.actuator_ids]), out=force[side][f])
+        if states is not None and (i + 1) % s == 0 and (i + 1) // s < n_frames:
+            mujoco.mj_getState(layout.model, d, states[(i + 1) // s], INTEGRATION_STATE)
         if on_step is not None:
             on_step(i, d)
 
@@ -99,7 +113,19 @@ def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyfra
         command={side: control[0][np.maximum(np.arange(n_frames) * s - 1, 0)][:, h.actuator_ids]
                  for side, h in robots.items()},
         articulation=articulation,
+        states=states,
     )
+
+
+def frame_states(prep: Prepared, start: SimState, n_frames: int) -> FloatArray:
+    """(n_frames, state size) zeros but frame 0: ``start`` as ``step_python`` restores it, as an integration
+    state (the inputs those of a reset MjData: each step sets its own)."""
+    model = prep.layout.model
+    data = mujoco.MjData(model)
+    start.restore(model, data)
+    states = np.zeros((n_frames, mujoco.mj_stateSize(model, INTEGRATION_STATE)))
+    mujoco.mj_getState(model, data, states[0], INTEGRATION_STATE)
+    return states
 
 
 @dataclass(frozen=True)
@@ -108,6 +134,7 @@ class ReplayJob:
 
     keyframes: dict[str, FloatArray]
     record_contacts: bool = True
+    record_states: bool = False
 
 
 def replay_all(prep: Prepared, start: SimState, jobs: list[ReplayJob], threads: int = 1
@@ -119,7 +146,8 @@ def replay_all(prep: Prepared, start: SimState, jobs: list[ReplayJob], threads: 
 
     def run(job: ReplayJob) -> tuple[ReplayRecord, int]:
         with ParallelEvaluator(prep.scene.model, 1) as ev:
-            rec = replay(prep, ev, start, job.keyframes, record_contacts=job.record_contacts)
+            rec = replay(prep, ev, start, job.keyframes, record_contacts=job.record_contacts,
+                         record_states=job.record_states)
             return rec, ev.stats.steps
 
     if threads <= 1 or len(jobs) <= 1:

@@ -5,7 +5,9 @@ Arrays (``common.result_format`` keys plus; all but the loss history made by ``w
 ``S_attempt_keyframes`` (A, N, 13|16) every attempt's when there were several (restarts, the polish),
 ``S_q_target``/``S_wrist_pos``/``S_wrist_quat`` the per-frame controls they give,
 ``S_keypoints_sim``/``S_keypoints_ref``/``S_valid``; ``raw_object_pose_sim`` (F,7) the raw replay;
-``object_table_contact`` (F,) bool, the refined object touching the table;
+``object_table_contact`` (F,) bool, the refined object touching the table; ``state_sim`` / ``raw_state_sim`` (F, S)
+each replay's integration state per frame (``worker.refine.replay.INTEGRATION_STATE``, for ``verify``'s stepwise
+check);
 ``metrics_{raw,refined}_*`` per-frame errors, penetration (mm) and hand-only hold (``worker.simulation.metrics``);
 ``window_loss_history`` (W, G) best loss per generation (NaN padded); ``sequence_npz`` (uint8) the input
 sequence in the native NPZ format, so ``verify`` needs nothing else. Summary JSON: kind, sequence, fps, frames,

@@ -116,6 +116,7 @@ def verification(
     report = check_result(blob, cache_dir=cache_dir, mano_dir=mano_dir, threads=threads)
     return {
         "verified": not report.failures,
+        "method": report.method,
         "exact": report.exact,
         "max_object_deviation_m": report.max_pos_diff_m,
         "checked_fields": len(report.checked),

@@ -19,6 +19,12 @@ restart), contacts, every derived array and both protocols' metrics. Then:
    contact-rich dynamics grow a 1e-16 difference into millimetres (measured: ``CROSS_HOST``). Then each field is
    compared within a physical tolerance instead (``Tolerances``).
 
+4. **Stepwise** (a result that stores every frame's integration state, issue #54): both replays checked frame by
+   frame against their stored states (``worker.verification.stepwise``), and every array and figure of 2-3
+   compared with the records made at those states: exact where each frame was reached bit for bit, else within
+   ``STEPWISE`` (micrometres and below); the whole re-simulation's drift is then a reported figure, not the test.
+   A result without states (older) is checked as in 3, with a note saying so.
+
 Any difference fails naming the field and its largest difference. The report carries a SHA-256 over everything
 that was checked (stored arrays and summary parts), so two parties can tell they checked the same content.
 """
@@ -37,12 +43,13 @@ from common.job_options import JobOptions
 from common.result_format import read_arrays, read_summary
 from common.sequence import Sequence
 from common.sequence_io import sequence_to_npz_bytes
-from worker.refine.derive import derive_result
+from worker.refine.derive import STATE_KEYS, derive_result
 from worker.refine.environment import versions
 from worker.refine.prepare import MIRROR_LEFT_HAND, ROTATION_PIVOT
 from worker.simulation.config import CONVEX_DETAILS, OLDER_SIM_DEFAULTS, SimConfig
 from worker.verification.arrays import ArrayChecker, check_stored_metrics
-from worker.verification.report import CROSS_HOST, Tolerances, VerifyReport
+from worker.verification.report import CROSS_HOST, STEPWISE, Tolerances, VerifyReport
+from worker.verification.stepwise import stepwise_derivation
 from worker.verification.summary import check_summary
 
 __all__ = ["CROSS_HOST", "Tolerances", "VerifyReport", "check_result", "verify_result"]
@@ -109,14 +116,28 @@ def check_result(
     except ValueError as exc:
         raise ResultMismatchError(f"the stored controls do not fit the sequence: {exc}") from exc
     _check_rescue(report, sim["convex_detail"], details, derived.attempt_metrics, allow_config)
-    c = ArrayChecker(report, arrays, derived.arrays)
-    c.compare_trajectory()
-    tol = None if report.exact else CROSS_HOST
+    ArrayChecker(report, arrays, derived.arrays).compare_trajectory()  # the whole rollout: exact, or its drift
+    tol: Tolerances | None = None if report.exact else CROSS_HOST
+    attempt_tol, attempts_decide = tol, True
+    against = derived
+    if any(key in arrays for key in STATE_KEYS.values()):
+        report.method = "stepwise"
+        against = stepwise_derivation(report, derived, arrays, seq_bytes, keyframes, threads)  # type: ignore[arg-type]
+        if not report.exact:  # the whole rollout drifted (another host): a figure, the stepwise check decides
+            exact_steps = all(r.exact for r in report.stepwise.values())
+            tol, attempts_decide = (None if exact_steps else STEPWISE), False
+            report.config_notes.append(
+                f"whole-rollout drift {report.max_pos_diff_m * 1000:.4g} mm / {report.max_rot_diff_deg:.4g} deg "
+                "(reported, not pass/fail: every stored frame was checked against the one before it)")
+    else:
+        report.config_notes.append("no stored states (older result): verified against a whole re-simulation, "
+                                   + ("bit-identical" if report.exact else "within the cross-host tolerances"))
+    c = ArrayChecker(report, arrays, against.arrays)
     c.inputs(sides, tol)
     c.simulated(sides, tol)
-    c.contacts(derived, tol)
-    c.consistency(derived, sides)
-    check_summary(report, summary, derived, attempt_kf, tol)
+    c.contacts(against, tol)
+    c.consistency(against, sides)
+    check_summary(report, summary, against, attempt_kf, tol, attempt_tol, attempts_decide)
     check_stored_metrics(report, arrays, summary, sides, tuple(j.kind for j in derived.prep.seq.object.joints))
     report.frames = int(derived.prep.num_frames)
     _environment_notes(summary.get("versions") or {}, report)

@@ -1,7 +1,7 @@
 """Verify every result in a folder (issue #54 item 3): find them, check each through ``verify_file``, in parallel.
 
-``verify_file`` is the one place a file meets the verifier (``check_result`` today; a stepwise check slots in
-there), and it never raises: a file that cannot be read or does not verify becomes a ``FileVerdict`` saying so, so
+``verify_file`` is the one place a file meets the verifier (``check_result``: stepwise where the result stores its
+states), and it never raises: a file that cannot be read or does not verify becomes a ``FileVerdict`` saying so, so
 one bad file does not stop the others. ``verify_files`` runs it over a process pool (each process its own MuJoCo
 and NumPy: the checks share nothing) and reports each verdict as it arrives.
 """

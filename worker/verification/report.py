@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from worker.verification.stepwise import StepwiseReport
 
 
 @dataclass(frozen=True)
@@ -45,6 +48,10 @@ class Tolerances:
     penetration_mm: float = 3.0  # per frame and sequence maximum
     penetration_mean_mm: float = 0.5
     fraction: float = 0.15  # hand_only_fraction
+    #: Where the comparison is against records made at the stored states (``STEPWISE``): contacts row for row
+    #: within this (m, N, N m; None: only the per-frame net force, ``force_rel``), the table-contact and hand-only
+    #: flags exactly, and a success never flips.
+    contact_rows: float | None = None
 
     def summary_limit(self, key: str, value: float) -> float | None:
         """The tolerance of summary figure ``key`` whose re-computed value is ``value`` (None: must be equal)."""
@@ -60,6 +67,14 @@ class Tolerances:
 
 
 CROSS_HOST = Tolerances()
+#: Against the records a stepwise check made at the stored states (``worker.verification.stepwise``): each
+#: frame's pose, keypoints and contacts are computed at the very state stored, so they agree on any host to far
+#: below anything a figure is read to (measured: ``bench/results/verify_portable.md``); only the inputs no
+#: simulation touches keep ``inputs``. Rotations: the angle between two equal unit quaternions reads up to ~2e-6 deg
+#: (arccos of a dot product rounded below 1), so 1e-5 deg.
+STEPWISE = Tolerances(object_pos_m=1e-9, object_rot_deg=1e-5, drift_fraction=0.0, object_vel_rel=1e-9,
+                      force_rel=1e-6, keypoints_m=1e-9, mean_keypoint_cm=1e-7, penetration_mm=1e-6,
+                      penetration_mean_mm=1e-6, fraction=0.0, contact_rows=1e-6)
 
 
 @dataclass
@@ -75,9 +90,21 @@ class VerifyReport:
     checked: list[str] = field(default_factory=list)
     failures: list[str] = field(default_factory=list)
     digest: str = ""
+    #: "stepwise": each stored frame's state checked against the one before it, the arrays and figures against
+    #: the records made at those states (``worker.verification.stepwise``); "rollout": a result without stored
+    #: states, checked against a whole re-simulation (exact here, within ``CROSS_HOST`` elsewhere).
+    method: str = "rollout"
+    stepwise: dict[str, StepwiseReport] = field(default_factory=dict)  # per replay ("refined", "raw")
+
+    @property
+    def verified(self) -> bool:
+        return not self.failures
 
     def to_dict(self) -> dict[str, Any]:
         return {
+            "verified": self.verified, "method": self.method,
+            "stepwise": {k: v.to_dict() for k, v in self.stepwise.items()},
+            "notes": list(self.config_notes),
             "frames": self.frames, "exact": self.exact, "max_pos_diff_m": self.max_pos_diff_m,
             "max_rot_diff_deg": self.max_rot_diff_deg, "max_keypoint_diff_m": self.max_keypoint_diff_m,
             "config_changes": [{"setting": n, "default": d, "stored": s} for n, d, s in self.config_changes],
