@@ -54,6 +54,19 @@ class JobOptions(BaseModel):
         "mean, another sweep over its windows in which each keyframe sees the later ones; kept only if better, "
         "and repeated from it while kept and still above that level (at most 10 sweeps)",
     )
+    tail: Literal["bounded", "full"] = Field(
+        default="bounded",
+        description="'bounded': when the first attempt fails where the recording turns the object faster than any "
+        "grasp can follow (more than 45 deg between two frames at 30 fps, and the result leaves the 3 cm / 30 deg "
+        "limit there and not before), the further attempts, polish sweeps and the rescue on finer convex parts are "
+        "skipped and the result's outcome says plan_cut_short; 'full': the whole plan always runs",
+    )
+    evaluation_budget: int | None = Field(
+        default=None, ge=1, le=100_000_000,
+        description="Start no further attempt, polish sweep or rescue once this many candidate evaluations (CMA-ES "
+        "candidates simulated) are spent; the run under way finishes and the first attempt always runs whole. "
+        "The result's outcome then says plan_cut_short. Default: no budget",
+    )  # fmt: skip
     hand: HandDescription | None = Field(
         default=None,
         description="The hand that executes the motion: None, the built-in human hand; a packed robot hand "

@@ -43,7 +43,7 @@ from worker.refine.prepare import MIRROR_LEFT_HAND, ROTATION_PIVOT
 from worker.simulation.config import CONVEX_DETAILS, OLDER_SIM_DEFAULTS, SimConfig
 from worker.verification.arrays import ArrayChecker, check_stored_metrics
 from worker.verification.report import CROSS_HOST, Tolerances, VerifyReport
-from worker.verification.summary import check_summary
+from worker.verification.summary import check_outcome, check_summary
 
 __all__ = ["CROSS_HOST", "Tolerances", "VerifyReport", "check_result", "verify_result"]
 
@@ -117,6 +117,7 @@ def check_result(
     c.contacts(derived, tol)
     c.consistency(derived, sides)
     check_summary(report, summary, derived, attempt_kf, tol)
+    check_outcome(report, summary, derived, tol, cache_dir)
     check_stored_metrics(report, arrays, summary, sides, tuple(j.kind for j in derived.prep.seq.object.joints))
     report.frames = int(derived.prep.num_frames)
     _environment_notes(summary.get("versions") or {}, report)
