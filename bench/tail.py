@@ -119,7 +119,8 @@ def report() -> str:
     from common.outcome import FAILURE_CODES
 
     walls = {name: read_sequence_rows(path) for name, path in REPORTS.items()}
-    rows, confusion = [], {}
+    rows: list[str] = []
+    confusion: dict[tuple[str, str], int] = {}
     for stem, (sample, hand, note) in HAND_FOUND.items():
         got = _cached(stem)
         reasons = [] if got is None else got["outcome"]["reasons"]
