@@ -58,12 +58,15 @@ def main() -> None:
     p.add_argument("--run", action="store_true", help="refine the sequences not yet cached")
     p.add_argument("--first-attempt", action="store_true", help="with --run: the first attempt only")
     p.add_argument("--only", nargs="*", default=None, help="sequence stems (default: every listed failure)")
+    p.add_argument("--reclassify", action="store_true", help="classify the cached results again (current code)")
     p.add_argument("--report", action="store_true", help="write bench/results/tail.md")
     p.add_argument("--out", type=Path, default=ROOT / "bench/results/tail.md")
     args = p.parse_args()
     if args.run:
         for stem in args.only or list(HAND_FOUND):
             print(json.dumps(run_one(stem, args.first_attempt)), flush=True)
+    if args.reclassify:
+        reclassify()
     if args.report:
         text = report()
         args.out.write_text(text)
@@ -94,8 +97,38 @@ def run_one(stem: str, first_attempt: bool) -> dict[str, Any]:
            "success": paper["success"], "E_t": paper["E_t"], "E_r": paper["E_r"],
            "load_1min": os.getloadavg()[0], "at": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")}
     CACHE.mkdir(parents=True, exist_ok=True)
+    (CACHE / f"{stem}.{mode}.npz").write_bytes(out.to_npz_bytes())
     hit.write_text(json.dumps(row, indent=1))
     return row
+
+
+def reclassify() -> None:
+    """Classify every cached result again with the classifier as it is now (``verify``'s derivation, then
+    ``worker.refine.outcome``), keeping its plan_cut_short; rewrites the cached outcomes."""
+    from common.outcome import ReasonCode
+    from common.result_format import read_arrays, read_summary
+    from common.settings import get_settings
+    from worker.refine.derive import derive_result
+    from worker.refine.outcome import classify_outcome, was_rescued
+    from worker.refine.result import prepare_from_result
+
+    cache_dir = get_settings().resolved_cache_dir()
+    for npz in sorted(CACHE.glob("*.npz")):
+        blob = npz.read_bytes()
+        summary, arrays = read_summary(blob), read_arrays(blob)
+        prep, keyframes = prepare_from_result(blob, cache_dir=cache_dir)
+        derived = derive_result(arrays["sequence_npz"].tobytes(), prep.options, prep.scene.config, prep.rotation_pivot,
+                                keyframes, cache_dir=cache_dir, mirror_left=prep.mirror_left)
+        contact = derived.final.contact_frames
+        fresh = classify_outcome(derived.prep, derived.metrics["refined"], derived.final.object_pose,
+                                 hand_contact=None if contact is None else contact.hand,
+                                 rescued=was_rescued(derived.prep), cache_dir=cache_dir).model_dump(mode="json")
+        fresh["reasons"] += [r for r in summary["outcome"]["reasons"] if r["code"] == ReasonCode.PLAN_CUT_SHORT]
+        hit = npz.with_suffix(".json")
+        row = json.loads(hit.read_text())
+        row["outcome"] = fresh
+        hit.write_text(json.dumps(row, indent=1))
+        print(npz.stem, [r["code"] for r in fresh["reasons"]], flush=True)
 
 
 def _cached(stem: str) -> dict[str, Any] | None:

@@ -19,6 +19,7 @@ from worker.refine.evaluator import ParallelEvaluator
 from worker.refine.outcome import (
     FINGERS_THROUGH_MM,
     classify_outcome,
+    fingers_through_object,
     recorded_depth,
     recording_too_fast,
     unsupported_start,
@@ -128,13 +129,19 @@ def test_recorded_fingers_inside_the_object_pass_through_it() -> None:
     prep = prepare(short_example_sequence(), JobOptions())
     depth, _ = recorded_depth(prep)
     assert depth <= FINGERS_THROUGH_MM  # the example's fingers sink 4 mm and a few more by its observation errors
-    # Every keypoint moved onto the box's axis: the fingers lie 2.8 cm deep in it once the hand is down.
+    assert fingers_through_object(prep) is None
+    # The fingers gathered around the box's centre (a tenth of their spread): 2.8 cm from its nearest face.
     seq = short_example_sequence()
     for hand in seq.hands:
-        centre = hand.keypoints[:, 1:].mean(axis=1, keepdims=True)
-        hand.keypoints[:, 1:] += seq.object_pose[:, None, :3] - centre
-    depth, frame = recorded_depth(prepare(seq, JobOptions()))
+        fingers = hand.keypoints[:, 1:]
+        centre = fingers.mean(axis=1, keepdims=True)
+        hand.keypoints[:, 1:] = seq.object_pose[:, None, :3] + 0.1 * (fingers - centre)
+    prep = prepare(seq, JobOptions())
+    depth, frame = recorded_depth(prep)
     assert depth > FINGERS_THROUGH_MM and 0 <= frame < seq.num_frames
+    reason = fingers_through_object(prep)
+    assert reason is not None and reason.code == ReasonCode.FINGERS_THROUGH_OBJECT and reason.unit == "mm"
+    assert reason.value == pytest.approx(depth, abs=0.1)
 
 
 def test_an_executable_result_has_no_reasons_but_a_rescue() -> None:
