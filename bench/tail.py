@@ -176,7 +176,7 @@ def report() -> str:
                 and any(r["code"] == "plan_cut_short" for r in got["outcome"]["reasons"])]
     timing = []
     if cut_rows:
-        full, cut = np.array([b for b, _ in cut_rows]), np.array([a for _, a in cut_rows])
+        full, cut_short = np.array([b for b, _ in cut_rows]), np.array([a for _, a in cut_rows])
         timing = [
             "## The bounded tail's saving on the sequences it cuts",
             "",
@@ -184,8 +184,8 @@ def report() -> str:
             "|---|---|---|---|---|",
             f"| before: full plan (the reports' runs) | {len(full)} | {full.sum():.0f} | "
             f"{np.percentile(full, 90):.0f} | {full.max():.0f} |",
-            f"| after: cut after the first attempt (here, loaded) | {len(cut)} | {cut.sum():.0f} | "
-            f"{np.percentile(cut, 90):.0f} | {cut.max():.0f} |",
+            f"| after: cut after the first attempt (here, loaded) | {len(cut_short)} | {cut_short.sum():.0f} | "
+            f"{np.percentile(cut_short, 90):.0f} | {cut_short.max():.0f} |",
             "",
         ]
     lines = [
