@@ -1,12 +1,12 @@
 """Failure reasons against the hand-found classes, and the bounded tail's saving (issue #53 items 2-3).
 
-    .venv/bin/python bench/tail.py --run                  # refine the listed failures with the product's defaults
+    .venv/bin/python bench/tail.py --run                  # refine the listed failures, the bounded tail on
     .venv/bin/python bench/tail.py --run --first-attempt  # only the first attempt (restarts 0, no polish)
     .venv/bin/python bench/tail.py --report               # write bench/results/tail.md from what was run
 
 Reads the failures ``bench/results/refine_dev120.md`` and ``refine_holdout80.md`` list and the class each was given
 by hand there (and in ``reference_jumps*.md``). ``--run`` refines each sequence (``--only`` a few) with the product's
-defaults, the bounded tail included (``JobOptions.tail``), and caches its outcome, attempts, evaluations and wall
+defaults and the bounded tail on (``JobOptions.tail="bounded"``), and caches its outcome, attempts, evaluations and wall
 time in ``var/bench/tail/``; ``--first-attempt`` refines only the first attempt, which is the whole plan of a
 sequence the tail cuts and otherwise a stand-in for the classification of one it does not (marked so).
 ``--report`` writes the confusion table (hand-found class against the outcome's most telling reason) and the wall
@@ -77,7 +77,7 @@ def main() -> None:
 
 def run_one(stem: str, first_attempt: bool) -> dict[str, Any]:
     """Refine ``stem`` (cached per mode) and return its row."""
-    mode = "first_attempt" if first_attempt else "product"
+    mode = "first_attempt" if first_attempt else "bounded"
     hit = CACHE / f"{stem}.{mode}.json"
     if hit.exists():
         cached: dict[str, Any] = json.loads(hit.read_text())
@@ -87,7 +87,7 @@ def run_one(stem: str, first_attempt: bool) -> dict[str, Any]:
     from common.settings import get_settings
     from worker.refine.run import refine_sequence
 
-    options = JobOptions(restarts=0, polish=False) if first_attempt else JobOptions()
+    options = JobOptions(restarts=0, polish=False) if first_attempt else JobOptions(tail="bounded")
     seq = load_sequence(DATA / f"{stem}.npz")
     t0 = time.perf_counter()
     out = refine_sequence(seq, options, cache_dir=get_settings().resolved_cache_dir())
@@ -133,8 +133,17 @@ def reclassify() -> None:
         print(npz.stem, [r["code"] for r in fresh["reasons"]], flush=True)
 
 
+MODES = (
+    "Mode: `bounded` is the product's defaults with the bounded tail on (`JobOptions.tail`); `first attempt` refines "
+    "the first attempt only (restarts 0, no polish): for a sequence the tail cuts it is the bounded plan's whole "
+    "result, otherwise its reasons are those of the first attempt's replay, a stand-in for the final result's. Wall "
+    "before: the full plan in the report's run (dev120: 2026-12-06 on this VM kind, with the rescue; holdout80: "
+    "2026-12-06 on an Intel Xeon before the rescue existed, so a lower bound of today's full plan)."
+)
+
+
 def _cached(stem: str) -> dict[str, Any] | None:
-    for mode in ("product", "first_attempt"):
+    for mode in ("bounded", "first_attempt"):
         hit = CACHE / f"{stem}.{mode}.json"
         if hit.exists():
             row: dict[str, Any] = json.loads(hit.read_text())
@@ -172,7 +181,7 @@ def report() -> str:
             f"{before} | {'' if got is None else got['wall_s']} | {'' if got is None else got['attempts']} |"
         )
     cut_rows = [(float(walls[HAND_FOUND[st][0]][st]["wall s"]), got["wall_s"]) for st in HAND_FOUND
-                if (got := _cached(st)) is not None and got["mode"] == "product"
+                if (got := _cached(st)) is not None and got["mode"] == "bounded"
                 and any(r["code"] == "plan_cut_short" for r in got["outcome"]["reasons"])]
     timing = []
     if cut_rows:
@@ -204,11 +213,7 @@ def report() -> str:
         *timing,
         "## Per sequence",
         "",
-        "Mode: `product` is the product's defaults (the bounded tail on); `first attempt` refines the first attempt "
-        "only (restarts 0, no polish): for a sequence the tail cuts it is the product's whole plan, otherwise its "
-        "reasons are those of the first attempt's replay, a stand-in for the final result's. Wall before: the full "
-        "plan in the report's run (dev120: 2026-12-06 on this VM kind, with the rescue; holdout80: 2026-12-06 on an "
-        "Intel Xeon before the rescue existed, so a lower bound of today's full plan).",
+        MODES,
         "",
         "| sequence | sample | what the reports say | hand-found | primary reason | further reasons | mode | "
         "plan cut | wall s before (report) | wall s after (here) | attempts after |",

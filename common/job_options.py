@@ -54,12 +54,13 @@ class JobOptions(BaseModel):
         "mean, another sweep over its windows in which each keyframe sees the later ones; kept only if better, "
         "and repeated from it while kept and still above that level (at most 10 sweeps)",
     )
-    tail: Literal["bounded", "full"] = Field(
-        default="bounded",
-        description="'bounded': when the first attempt fails where the recording turns the object faster than any "
-        "grasp can follow (more than 45 deg between two frames at 30 fps, and the result leaves the 3 cm / 30 deg "
-        "limit there and not before), the further attempts, polish sweeps and the rescue on finer convex parts are "
-        "skipped and the result's outcome says plan_cut_short; 'full': the whole plan always runs",
+    tail: Literal["full", "bounded"] = Field(
+        default="full",
+        description="'full': the whole plan runs (attempts, polish sweeps, the rescue on finer convex parts). "
+        "'bounded': when the first attempt fails where the recording turns the object faster than any grasp can "
+        "follow (more than 45 deg between two frames at 30 fps, and the result leaves the 3 cm / 30 deg limit there "
+        "and not before), the rest of the plan is skipped and the result's outcome says plan_cut_short: a fraction "
+        "of the time, for a result that stays a failure (and is often worse than the full plan's)",
     )
     evaluation_budget: int | None = Field(
         default=None, ge=1, le=100_000_000,

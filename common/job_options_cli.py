@@ -62,9 +62,9 @@ def add_job_option_arguments(parser: argparse.ArgumentParser, queue: bool = Fals
         "repeated while kept, at most 10)",
     )  # fmt: skip
     g.add_argument(
-        "--full-tail", dest="tail", action="store_const", const="full", default="bounded",
-        help="run the whole plan (attempts, polish, rescue) even when the first attempt fails at a recorded step "
-        "no grasp can follow (by default the rest is skipped and the outcome says plan_cut_short)",
+        "--bounded-tail", dest="tail", action="store_const", const="bounded", default="full",
+        help="skip the rest of the plan (attempts, polish, rescue) when the first attempt fails at a recorded step "
+        "no grasp can follow; the outcome then says plan_cut_short (default: the whole plan runs)",
     )  # fmt: skip
     g.add_argument(
         "--evaluation-budget", type=int, default=None, metavar="N",
@@ -105,7 +105,7 @@ def job_options_from_args(args: argparse.Namespace) -> JobOptions:
             free_wrist_translation=args.free_wrist_translation,
             restarts=args.restarts,
             polish=getattr(args, "polish", True),
-            tail=getattr(args, "tail", "bounded"),
+            tail=getattr(args, "tail", "full"),
             evaluation_budget=getattr(args, "evaluation_budget", None),
             priority=getattr(args, "priority", 0),
             preview_video=getattr(args, "preview_video", True),

@@ -55,7 +55,7 @@ def _raw_outcome(seq: Sequence) -> tuple[Prepared, Outcome]:
 
 
 def test_a_recording_that_jumps_is_too_fast_and_the_plan_stops_after_the_first_attempt() -> None:
-    out = refine_sequence(_jumping(short_example_sequence()), JobOptions(**QUICK))
+    out = refine_sequence(_jumping(short_example_sequence()), JobOptions(**QUICK, tail="bounded"))
     outcome = Outcome.model_validate(out.summary["outcome"])
     assert not outcome.executable
     first = outcome.reasons[0]
@@ -71,10 +71,10 @@ def test_a_recording_that_jumps_is_too_fast_and_the_plan_stops_after_the_first_a
 
 def test_the_full_tail_runs_the_plan_and_an_evaluation_budget_cuts_it() -> None:
     seq = _jumping(short_example_sequence())
-    full = refine_sequence(seq, JobOptions(**QUICK, tail="full", restarts=1, polish=False))
+    full = refine_sequence(seq, JobOptions(**QUICK, restarts=1, polish=False))  # the default: the full plan
     assert len(full.summary["attempts"]) == 2
     assert ReasonCode.PLAN_CUT_SHORT not in Outcome.model_validate(full.summary["outcome"]).codes
-    budget = refine_sequence(seq, JobOptions(**QUICK, tail="full", restarts=2, polish=False, evaluation_budget=1))
+    budget = refine_sequence(seq, JobOptions(**QUICK, restarts=2, polish=False, evaluation_budget=1))
     assert len(budget.summary["attempts"]) == 1
     reasons = Outcome.model_validate(budget.summary["outcome"]).reasons
     cut = [r for r in reasons if r.code == ReasonCode.PLAN_CUT_SHORT]
