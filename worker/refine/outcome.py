@@ -348,7 +348,7 @@ def fingers_through_object(prep: Prepared, per_frame: dict[str, np.ndarray] | No
     if inside is None:
         return None
     depth, outside, valid = inside
-    deep = np.where(valid[:, None], depth, 0.0)
+    deep = np.where(valid, depth, 0.0)
     f, _ = np.unravel_index(int(np.argmax(deep)), deep.shape)
     if deep[f].max() * 1000.0 > FINGERS_THROUGH_MM:
         mm = float(deep[f].max()) * 1000.0
@@ -357,7 +357,7 @@ def fingers_through_object(prep: Prepared, per_frame: dict[str, np.ndarray] | No
                                      f"geometry at frame {f}: the recorded grasp cannot be reproduced.")
     if outside is None or per_frame is None:
         return None
-    filled = (depth > 0) & (outside > FILLED_MM / 1000.0) & valid[:, None]
+    filled = (depth > 0) & (outside > FILLED_MM / 1000.0) & valid
     frames = np.nonzero(filled.any(axis=1))[0]
     if filled.sum() < FILLED_MIN or not frames.size:
         return None
@@ -380,7 +380,7 @@ def recorded_depth(prep: Prepared) -> tuple[float, int]:
     inside = finger_depths(prep)
     if inside is None:
         return 0.0, 0
-    depth = np.where(inside[2][:, None], inside[0], 0.0)
+    depth = np.where(inside[2], inside[0], 0.0)
     f, _ = np.unravel_index(int(np.argmax(depth)), depth.shape)
     return max(0.0, 1000.0 * float(depth[f].max())), int(f)
 
@@ -388,8 +388,8 @@ def recorded_depth(prep: Prepared) -> tuple[float, int]:
 def finger_depths(prep: Prepared) -> tuple[np.ndarray, np.ndarray | None, np.ndarray] | None:
     """For every hand's finger keypoints (not the wrist, which lies inside the palm) at the recorded object pose:
     (F, K) depth inside the base part's collision geoms (m, positive inside), (F, K) signed distance outside the
-    object's mesh (m; None for a primitive or articulated object), (F,) whether the hand is annotated (several
-    hands: concatenated along K, annotated where every hand is)."""
+    object's mesh (m; None for a primitive or articulated object), (F, K) whether its hand is annotated (several
+    hands: concatenated along K)."""
     scene = prep.scene
     model = scene.model
     base = [int(g) for g in scene.object_geom_ids if int(scene.geom_part[g]) <= 0]
@@ -405,9 +405,9 @@ def finger_depths(prep: Prepared) -> tuple[np.ndarray, np.ndarray | None, np.nda
         depths.append(np.max([sh.depth(local, model, scene.object_body_id) for sh in shapes], axis=0))
         if mesh is not None:
             outsides.append(mesh.outside(local))
-        valids.append(valid)
+        valids.append(np.repeat(valid[:, None], local.shape[1], axis=1))
     return (np.concatenate(depths, axis=1), np.concatenate(outsides, axis=1) if mesh is not None else None,
-            np.logical_and.reduce(valids))
+            np.concatenate(valids, axis=1))
 
 
 @dataclass
