@@ -1,6 +1,7 @@
 """A result's outcome and its reasons on crafted synthetic sequences, and the bounded tail (issue #53 items 2-3):
 a recording that jumps, an object that falls before the hand arrives, a hand that never touches, fingers through
-the object, an executable replay, and the plan cut short by a reason or by the evaluation budget."""
+the object, a hand annotated in few frames, an executable replay, and the plan cut short by a reason or by the
+evaluation budget."""
 
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ from worker.refine.outcome import (
     FINGERS_THROUGH_MM,
     classify_outcome,
     fingers_through_object,
+    hand_sparse,
     recorded_depth,
     recording_too_fast,
     unsupported_start,
@@ -157,3 +159,12 @@ def test_an_executable_result_has_no_reasons_but_a_rescue() -> None:
     assert outcome.executable and outcome.reasons == []
     rescued = classify_outcome(prep, exact, recorded, hand_contact=touching, rescued=True)
     assert rescued.executable and rescued.codes == [ReasonCode.RESCUED_ON_FINER_PARTS]
+
+
+def test_a_hand_annotated_in_few_frames_is_sparse() -> None:
+    seq = short_example_sequence()
+    seq.hands[0].valid[6:20] = False  # annotated in 10 of 24 frames, the longest gap from frame 6
+    reason = hand_sparse(prepare(seq, JobOptions()))
+    assert reason is not None and reason.code == ReasonCode.HAND_SPARSE
+    assert reason.frame == 6 and reason.unit == "fraction" and reason.value == pytest.approx(10 / 24, abs=1e-3)
+    assert hand_sparse(prepare(short_example_sequence(), JobOptions())) is None
