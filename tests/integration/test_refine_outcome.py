@@ -115,6 +115,7 @@ def test_an_object_standing_on_its_edge_falls_before_the_hand_arrives() -> None:
 
 def _hand_moved(seq: Sequence, offset: tuple[float, float, float]) -> Sequence:
     for hand in seq.hands:
+        assert hand.keypoints is not None
         hand.keypoints[:] = hand.keypoints + np.asarray(offset)
     return seq
 
@@ -135,6 +136,7 @@ def test_recorded_fingers_inside_the_object_pass_through_it() -> None:
     # The fingers gathered around the box's centre (a tenth of their spread): 2.8 cm from its nearest face.
     seq = short_example_sequence()
     for hand in seq.hands:
+        assert hand.keypoints is not None
         fingers = hand.keypoints[:, 1:]
         centre = fingers.mean(axis=1, keepdims=True)
         hand.keypoints[:, 1:] = seq.object_pose[:, None, :3] + 0.1 * (fingers - centre)
