@@ -202,6 +202,26 @@ def report() -> str:
             f"{np.percentile(cut_short, 90):.0f} | {cut_short.max():.0f} |",
             "",
         ]
+    cost = []
+    for sample, size in (("dev120", 120), ("holdout80", 80)):
+        pairs = [(walls[sample][st], got) for st, (smp, _, _) in HAND_FOUND.items() if smp == sample
+                 and (got := _cached(st)) is not None and got["mode"] == "bounded"
+                 and any(r["code"] == "plan_cut_short" for r in got["outcome"]["reasons"])]
+        if pairs:
+            dt = sum(g["E_t"] - float(r["E_t 10+"]) for r, g in pairs)
+            dr = sum(g["E_r"] - float(r["E_r 10+"]) for r, g in pairs)
+            cost.append(f"| {sample} | {len(pairs)} of {size} | {dt / len(pairs):+.2f} / {dr / len(pairs):+.2f} | "
+                        f"{dt / size:+.3f} / {dr / size:+.3f} |")
+    if cost:
+        timing += [
+            "The cost: a cut result stays a failure (so SR is unchanged) but loses what the rest of the plan gained "
+            "on it; paper's protocol, after minus the report's full plan:",
+            "",
+            "| sample | cut | per cut sequence E_t cm / E_r deg | the sample's mean E_t cm / E_r deg |",
+            "|---|---|---|---|",
+            *cost,
+            "",
+        ]
     lines = [
         "# Failure reasons and the bounded tail (bench/tail.py)",
         "",
