@@ -13,6 +13,7 @@ import pytest
 from common.geometry import quat_mul
 from common.job_options import JobOptions
 from common.outcome import Outcome, ReasonCode
+from common.result_format import read_arrays, read_summary, write_result_npz
 from common.sequence import Sequence
 from worker.example.sequences import example_sequence, short_example_sequence
 from worker.refine.derive import replay_metrics
@@ -31,6 +32,7 @@ from worker.refine.replay import replay
 from worker.refine.result import verify_result
 from worker.refine.run import refine_sequence
 from worker.simulation.metrics import compute_metrics
+from worker.verification import check_result
 
 #: A budget that runs in seconds: the outcome does not depend on how well the grasp is refined.
 QUICK: dict[str, Any] = {"max_generations": 2, "popsize": 4}
@@ -67,8 +69,15 @@ def test_a_recording_that_jumps_is_too_fast_and_the_plan_stops_after_the_first_a
     assert len(out.summary["attempts"]) == 1
     cut = [r for r in outcome.reasons if r.code == ReasonCode.PLAN_CUT_SHORT]
     assert len(cut) == 1 and cut[0].value == out.summary["timings"]["evaluations"] and cut[0].unit == "evaluations"
-    # verify recomputes the outcome from the embedded sequence and the stored controls.
-    verify_result(out.to_npz_bytes())
+    # verify recomputes the outcome from the embedded sequence and the stored controls: a forged one fails.
+    blob = out.to_npz_bytes()
+    verify_result(blob)
+    arrays, summary = read_arrays(blob), read_summary(blob)
+    summary["outcome"]["reasons"][0]["frame"] = JUMP_FRAME + 5
+    summary["outcome"]["reasons"][-1]["value"] = 1.0
+    failures = check_result(write_result_npz(arrays, summary)).failures
+    assert any(f.startswith("outcome.reasons[0].frame") for f in failures), failures
+    assert any("plan_cut_short says 1.0 evaluations" in f for f in failures), failures
 
 
 def test_the_full_tail_runs_the_plan_and_an_evaluation_budget_cuts_it() -> None:
