@@ -90,6 +90,9 @@ def test_the_full_tail_runs_the_plan_and_an_evaluation_budget_cuts_it() -> None:
     reasons = Outcome.model_validate(budget.summary["outcome"]).reasons
     cut = [r for r in reasons if r.code == ReasonCode.PLAN_CUT_SHORT]
     assert len(cut) == 1 and "budget" in cut[0].message
+    # A plan of one run has nothing to cut: the bounded tail claims no cut there.
+    single = refine_sequence(seq, JobOptions(**QUICK, tail="bounded", restarts=0, polish=False))
+    assert ReasonCode.PLAN_CUT_SHORT not in Outcome.model_validate(single.summary["outcome"]).codes
 
 
 def test_a_recording_without_a_jump_is_not_too_fast() -> None:

@@ -202,10 +202,14 @@ def refine_sequence(
     attempts: list[dict[str, Any]] = []
     tried: list[dict[str, FloatArray]] = []
     weights = resolve_weights(options.loss_weights, robot=options.hand is not None)
-    cut: list[str] = []  # why the plan stopped short (``PlanCut.why``), once it has
+    hopeless: list[bool] = []  # the first attempt failed where no grasp can follow the recording
+    cut: list[str] = []  # why the plan stopped short (``PlanCut.why``), once a run it had planned was skipped
 
     def cut_short() -> bool:
-        """Whether to start no further run: the plan was cut, or the evaluation budget is spent."""
+        """Whether to skip the run the plan would start now: the bounded tail after a hopeless first attempt, or
+        the evaluation budget spent. Asked only where a run would start, so a cut is claimed only if one was."""
+        if not cut and hopeless:
+            cut.append("recording")
         if not cut and options.evaluation_budget is not None and spent() >= options.evaluation_budget:
             cut.append("budget")
         return bool(cut)
@@ -252,7 +256,7 @@ def refine_sequence(
             if attempts_done(best.metrics, attempt):
                 break
             if len(attempts) == 1 and options.tail == "bounded" and tail_cut_reason(on.prep, this.metrics):
-                cut.append("recording")  # the first attempt failed where no grasp can follow the recording
+                hopeless.append(True)
         assert best is not None
         for _sweep in range(POLISH_SWEEPS if options.polish else 0):
             if object_error(best.metrics) <= POLISH_OBJECT_ERROR or cut_short():
