@@ -226,8 +226,8 @@ def report() -> str:
         "# Failure reasons and the bounded tail (bench/tail.py)",
         "",
         f"Generated {datetime.now(UTC):%Y-%m-%d %H:%M} UTC on {platform.machine()} ({os.cpu_count()} cores, "
-        "shared with other sessions: load average 8-10 during the runs, so wall times here are several times "
-        "an idle machine's).",
+        "shared with other sessions: load average 4-12 during the runs, so wall times here are 3-7 times "
+        "their CPU times).",
         "",
         "## Confusion: hand-found class against the outcome's most telling reason",
         "",
