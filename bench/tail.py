@@ -59,6 +59,8 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--run", action="store_true", help="refine the sequences not yet cached")
     p.add_argument("--first-attempt", action="store_true", help="with --run: the first attempt only")
+    p.add_argument("--full-tail", action="store_true", help="with --run: the whole plan (the default tail), for the "
+                   "same machine's before")
     p.add_argument("--only", nargs="*", default=None, help="sequence stems (default: every listed failure)")
     p.add_argument("--reclassify", action="store_true", help="classify the cached results again (current code)")
     p.add_argument("--report", action="store_true", help="write bench/results/tail.md")
@@ -66,7 +68,8 @@ def main() -> None:
     args = p.parse_args()
     if args.run:
         for stem in args.only or list(HAND_FOUND):
-            print(json.dumps(run_one(stem, args.first_attempt)), flush=True)
+            print(json.dumps(run_one(stem, "first_attempt" if args.first_attempt else
+                                     "full" if args.full_tail else "bounded")), flush=True)
     if args.reclassify:
         reclassify()
     if args.report:
@@ -75,9 +78,8 @@ def main() -> None:
         print(text)
 
 
-def run_one(stem: str, first_attempt: bool) -> dict[str, Any]:
-    """Refine ``stem`` (cached per mode) and return its row."""
-    mode = "first_attempt" if first_attempt else "bounded"
+def run_one(stem: str, mode: str) -> dict[str, Any]:
+    """Refine ``stem`` in ``mode`` (bounded, full, first_attempt; cached per mode) and return its row."""
     hit = CACHE / f"{stem}.{mode}.json"
     if hit.exists():
         cached: dict[str, Any] = json.loads(hit.read_text())
@@ -87,7 +89,8 @@ def run_one(stem: str, first_attempt: bool) -> dict[str, Any]:
     from common.settings import get_settings
     from worker.refine.run import refine_sequence
 
-    options = JobOptions(restarts=0, polish=False) if first_attempt else JobOptions(tail="bounded")
+    options = {"first_attempt": JobOptions(restarts=0, polish=False), "full": JobOptions(tail="full"),
+               "bounded": JobOptions(tail="bounded")}[mode]
     seq = load_sequence(DATA / f"{stem}.npz")
     t0, c0 = time.perf_counter(), time.process_time()
     out = refine_sequence(seq, options, cache_dir=get_settings().resolved_cache_dir())
@@ -202,6 +205,16 @@ def report() -> str:
             f"{np.percentile(cut_short, 90):.0f} | {cut_short.max():.0f} |",
             "",
         ]
+    same = []
+    for stem in HAND_FOUND:
+        full_hit, cut_hit = CACHE / f"{stem}.full.json", CACHE / f"{stem}.bounded.json"
+        if full_hit.exists() and cut_hit.exists():
+            f, c = json.loads(full_hit.read_text()), json.loads(cut_hit.read_text())
+            same.append(f"| {stem} | {f['cpu_s']} / {f['wall_s']} / {f['attempts']} / {f['E_t']:.2f} / {f['E_r']:.2f} | "
+                        f"{c['cpu_s']} / {c['wall_s']} / {c['attempts']} / {c['E_t']:.2f} / {c['E_r']:.2f} |")
+    if same:
+        timing += ["The same machine, both ways (CPU s / wall s / attempts / paper E_t cm / E_r deg):", "",
+                   "| sequence | full plan | bounded tail |", "|---|---|---|", *same, ""]
     cost = []
     for sample, size in (("dev120", 120), ("holdout80", 80)):
         pairs = [(walls[sample][st], got) for st, (smp, _, _) in HAND_FOUND.items() if smp == sample
