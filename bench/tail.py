@@ -157,6 +157,10 @@ def _cached(stem: str) -> dict[str, Any] | None:
     return None
 
 
+def _run_cell(row: dict[str, Any]) -> str:
+    return f"{row['cpu_s']} / {row['wall_s']} / {row['attempts']} / {row['E_t']:.2f} / {row['E_r']:.2f}"
+
+
 def _reason_cell(reason: dict[str, Any] | None) -> str:
     if reason is None:
         return "-"
@@ -210,8 +214,7 @@ def report() -> str:
         full_hit, cut_hit = CACHE / f"{stem}.full.json", CACHE / f"{stem}.bounded.json"
         if full_hit.exists() and cut_hit.exists():
             f, c = json.loads(full_hit.read_text()), json.loads(cut_hit.read_text())
-            same.append(f"| {stem} | {f['cpu_s']} / {f['wall_s']} / {f['attempts']} / {f['E_t']:.2f} / {f['E_r']:.2f} | "
-                        f"{c['cpu_s']} / {c['wall_s']} / {c['attempts']} / {c['E_t']:.2f} / {c['E_r']:.2f} |")
+            same.append(f"| {stem} | {_run_cell(f)} | {_run_cell(c)} |")
     if same:
         timing += ["The same machine, both ways (CPU s / wall s / attempts / paper E_t cm / E_r deg):", "",
                    "| sequence | full plan | bounded tail |", "|---|---|---|", *same, ""]
