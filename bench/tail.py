@@ -182,11 +182,17 @@ def report() -> str:
         primary = failure[0] if failure else None
         cut = any(r["code"] == "plan_cut_short" for r in reasons)
         before = walls[sample].get(stem, {}).get("wall s", "")
+        first_hit = CACHE / f"{stem}.first_attempt.json"
+        first = json.loads(first_hit.read_text()) if first_hit.exists() and got and got["mode"] != "first_attempt" \
+            else None
+        first_primary = None if first is None else next(
+            (r for r in first["outcome"]["reasons"] if r["code"] in FAILURE_CODES), None)
         key = (hand or "(none found by hand)", primary["code"] if primary else "(not run)")
         confusion[key] = confusion.get(key, 0) + 1
         rows.append(
             f"| {stem} | {sample} | {note} | {hand or '-'} | {_reason_cell(primary)} | "
             f"{'; '.join(_reason_cell(r) for r in failure[1:]) or '-'} | "
+            f"{'' if first is None else _reason_cell(first_primary)} | "
             f"{'' if got is None else got['mode'].replace('_', ' ')} | {'yes' if cut else 'no'} | "
             f"{before} | {'' if got is None else got['wall_s']} | {'' if got is None else got.get('cpu_s', '')} | "
             f"{'' if got is None else got['attempts']} |"
@@ -256,9 +262,10 @@ def report() -> str:
         "",
         MODES,
         "",
-        "| sequence | sample | what the reports say | hand-found | primary reason | further reasons | mode | "
-        "plan cut | wall s before (report) | wall s after (here) | CPU s after (here) | attempts after |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| sequence | sample | what the reports say | hand-found | primary reason | further reasons | "
+        "first attempt's primary (product parts) | mode | plan cut | wall s before (report) | wall s after (here) | "
+        "CPU s after (here) | attempts after |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
         *rows,
     ]
     return "\n".join(lines) + "\n"
