@@ -56,6 +56,20 @@ class JobOptions(BaseModel):
         "mean, another sweep over its windows in which each keyframe sees the later ones; kept only if better, "
         "and repeated from it while kept and still above that level (at most 10 sweeps)",
     )
+    tail: Literal["full", "bounded"] = Field(
+        default="full",
+        description="'full': the whole plan runs (attempts, polish sweeps, the rescue on finer convex parts). "
+        "'bounded': when the first attempt fails where the recording turns the object faster than any grasp can "
+        "follow (more than 45 deg between two frames at 30 fps, and the result leaves the 3 cm / 30 deg limit there "
+        "and not before), the rest of the plan is skipped and the result's outcome says plan_cut_short: a fraction "
+        "of the time, for a result that stays a failure (and is often worse than the full plan's)",
+    )
+    evaluation_budget: int | None = Field(
+        default=None, ge=1, le=100_000_000,
+        description="Start no further attempt, polish sweep or rescue once this many candidate evaluations (CMA-ES "
+        "candidates simulated) are spent; the run under way finishes and the first attempt always runs whole. "
+        "The result's outcome then says plan_cut_short. Default: no budget",
+    )  # fmt: skip
     hand: HandDescription | None = Field(
         default=None,
         description="The hand that executes the motion: None, the built-in human hand; a packed robot hand "

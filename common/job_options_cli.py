@@ -61,6 +61,16 @@ def add_job_option_arguments(parser: argparse.ArgumentParser, queue: bool = Fals
         "published method's mean; each keyframe optimised again with the later ones in view, kept only if better, "
         "repeated while kept, at most 10)",
     )  # fmt: skip
+    g.add_argument(
+        "--bounded-tail", dest="tail", action="store_const", const="bounded", default="full",
+        help="skip the rest of the plan (attempts, polish, rescue) when the first attempt fails at a recorded step "
+        "no grasp can follow; the outcome then says plan_cut_short (default: the whole plan runs)",
+    )  # fmt: skip
+    g.add_argument(
+        "--evaluation-budget", type=int, default=None, metavar="N",
+        help="start no further attempt, polish sweep or rescue once N candidate evaluations are spent (the first "
+        "attempt always runs whole; default: no budget)",
+    )  # fmt: skip
     if queue:
         g.add_argument("--priority", type=int, default=0, help="queue priority, -100..100 (higher runs first)")
         g.add_argument(
@@ -95,6 +105,8 @@ def job_options_from_args(args: argparse.Namespace) -> JobOptions:
             free_wrist_translation=args.free_wrist_translation,
             restarts=args.restarts,
             polish=getattr(args, "polish", True),
+            tail=getattr(args, "tail", "full"),
+            evaluation_budget=getattr(args, "evaluation_budget", None),
             priority=getattr(args, "priority", 0),
             preview_video=getattr(args, "preview_video", True),
             hand=load_packed_hand(args.hand_file) if getattr(args, "hand_file", None) else None,

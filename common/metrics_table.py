@@ -123,3 +123,22 @@ def run_footer(summary: Mapping[str, Any]) -> str:
                           f"{'ok' if a['success'] else 'failed'}" for a in attempts)
         lines.append(f"{len(attempts)} attempts ({seeds}); the result is the best")
     return "\n".join(lines)
+
+
+def outcome_lines(summary: Mapping[str, Any]) -> list[str]:
+    """The result's outcome first (``common.outcome``): executable or not on the paper's protocol, then each reason
+    (code, frame, value) with its sentence, most telling first; nothing for a summary without one."""
+    from common.outcome import outcome_of
+
+    outcome = outcome_of(dict(summary))
+    if outcome is None:
+        return []
+    verdict = "executable" if outcome.executable else "NOT executable"
+    lines = [f"outcome: {verdict} (the paper's protocol: every frame from 10 on within 3 cm / 30 deg)"]
+    for r in outcome.reasons:
+        where = [f"frame {r.frame}"] if r.frame is not None else []
+        if r.value is not None:
+            where.append(f"{r.value:g} {r.unit or ''}".rstrip())
+        detail = f" ({', '.join(where)})" if where else ""
+        lines.append(f"  {r.code.value}{detail}: {r.message}")
+    return lines

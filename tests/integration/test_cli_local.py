@@ -42,7 +42,7 @@ def test_replay_writes_a_result(example_file: Path, tmp_path: Path, capsys: pyte
     out = tmp_path / "result.npz"
     assert main(["replay", str(example_file), "--out", str(out)]) == 0
     text = capsys.readouterr().out
-    assert "E_t" in text and "IK residual" in text
+    assert "E_t" in text and "IK residual" in text and text.index("outcome (raw replay") < text.index("E_t")
     summary = read_summary(out.read_bytes())
     assert summary["kind"] == "replay" and np.isfinite(summary["metrics"]["raw"]["E_t"])
 

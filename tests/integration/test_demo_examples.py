@@ -48,6 +48,10 @@ def test_local_demo_hinged_box(tmp_path: Path, capsys: pytest.CaptureFixture[str
     assert run_local_demo(threads=1, short=True, out_dir=tmp_path, example="hinged_box", options=CHEAP) == 0
     text = capsys.readouterr().out
     assert "hinged_box_32f" in text and "articulation error E_a" in text
+    # Two hands on an articulated object: the outcome is classified too, and printed before the metrics.
+    assert text.index("outcome: ") < text.index("articulation error E_a")
+    summary = read_summary((tmp_path / "hinged_box_32f.result.npz").read_bytes())
+    assert isinstance(summary["outcome"]["executable"], bool)
     arrays = read_arrays((tmp_path / "hinged_box_32f.result.npz").read_bytes())
     assert {"object_articulation_sim", "contact_part", "left_keypoints_sim", "right_keypoints_sim"} <= set(arrays)
     assert (tmp_path / "hinged_box_32f.mp4").stat().st_size > 1000

@@ -48,6 +48,7 @@ def test_parameter_recovery_from_a_shifted_hand(recovered: tuple[Any, RefineOutc
     assert not raw["success"] and raw["max_E_t"] > 3.0
     assert refined["success"]
     assert refined["E_t"] < 0.5, refined
+    assert outcome.summary["outcome"] == {"executable": True, "protocol": "paper", "reasons": []}
     # The recovered offset is the perturbation undone: once the push is under way the simulated wrist runs the
     # shift ahead of the recorded (shifted) one. Checked on the wrist track, not on the keyframes' translation
     # coefficients: CMA-ES spreads the same track over the spline's keyframes differently on different CPU kinds

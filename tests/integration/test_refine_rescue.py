@@ -55,6 +55,11 @@ def test_a_failed_refinement_on_a_decomposed_object_runs_again_on_finer_parts(re
     assert (refined["E_t"], refined["E_r"]) == (best["E_t"], best["E_r"])
     # The paper runs one attempt: the first-attempt figure is the product's first, on the coarse parts.
     assert refined["success_first_attempt"] is attempts[0]["success"]
+    # The outcome says why it fails (the ring rises where the hand does not lift it) and whether it was rescued.
+    outcome = summary["outcome"]
+    codes = [r["code"] for r in outcome["reasons"]]
+    assert outcome["executable"] is False and codes[0] in ("not_lifted", "slipped", "off_track"), codes
+    assert ("rescued_on_finer_parts" in codes) == (summary["config"]["sim"]["convex_detail"] == "fine")
 
 
 def test_a_rescued_result_verifies_bit_for_bit(rescued: RefineOutcome) -> None:

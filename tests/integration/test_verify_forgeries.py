@@ -185,6 +185,7 @@ def test_a_high_friction_config_fails_without_allow_config(
     """The worst forgery: friction 3.0 and the whole result re-derived under it (so every array is consistent)."""
     from common.job_options import JobOptions as Options
     from worker.refine.derive import add_attempt_metrics, attempt_figures, derive_result
+    from worker.refine.outcome import classify_outcome
     from worker.simulation.config import SimConfig
 
     arrays, summary = honest
@@ -197,8 +198,11 @@ def test_a_high_friction_config_fails_without_allow_config(
     attempts = [{**attempt_figures(derived.metrics["refined"]), "seed": 0, "evaluations": 1}]
     add_attempt_metrics(metrics["refined"], attempts)
     sim = {**summary["config"]["sim"], "hand_friction": [3.0, 0.02, 0.001], "object_friction": 3.0}
+    contact = derived.final.contact_frames
+    outcome = classify_outcome(derived.prep, derived.metrics["refined"], derived.final.object_pose,
+                               hand_contact=None if contact is None else contact.hand)
     forged = {**summary, "metrics": metrics, "attempts": attempts, "config": {**summary["config"], "sim": sim},
-              "num_contacts": len(derived.final.contacts["contact_frame"])}
+              "num_contacts": len(derived.final.contacts["contact_frame"]), "outcome": outcome.model_dump(mode="json")}
     blob = RefineOutcome(dict(derived.arrays), forged).to_npz_bytes(wall_clock=False)
     _fails_naming(blob, "sim.hand_friction", "sim.object_friction", "--allow-config")
     report = verify_result(blob, allow_config=True)  # honest under its own config: accepted, and said so

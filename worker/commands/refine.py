@@ -79,10 +79,13 @@ def with_hand(options: Any, args: argparse.Namespace, robot_dir: Path | None) ->
 
 
 def print_refine_metrics(summary: dict[str, Any]) -> None:
-    """Raw replay vs refined (``common.metrics_table``), then how the refinement ran."""
+    """The outcome (executable, and why not), raw replay vs refined (``common.metrics_table``), then how the
+    refinement ran."""
     from rich.console import Console
 
-    from common.metrics_table import metrics_table, run_footer
+    from common.metrics_table import metrics_table, outcome_lines, run_footer
 
+    for line in outcome_lines(summary):
+        print(line)
     Console().print(metrics_table({"raw": summary["metrics"]["raw"], "refined": summary["metrics"]["refined"]}))
     print(run_footer(summary))

@@ -35,6 +35,11 @@ def run_replay(seq: Any, out: Path | None) -> Any:
     with console.status(f"raw replay of {seq.name} ({seq.num_frames} frames)..."):
         settings = get_settings()
         result = raw_replay(seq, cache_dir=settings.resolved_cache_dir(), mano_dir=settings.mano_dir)
+    paper = result.metrics.get("paper") or {}
+    if "success" in paper:  # the raw replay's own outcome; a refinement's result says why (``refine``)
+        verdict = "executable" if paper["success"] else "NOT executable"
+        console.print(f"outcome (raw replay, not refined): {verdict} (the paper's protocol: every frame from 10 on "
+                      "within 3 cm / 30 deg)", highlight=False)
     console.print(metrics_table({"raw": result.metrics}, title=f"raw replay: {seq.name}"))
     t = result.timings
     ik = ", ".join(f"{side} {v:.2f} mm" for side, v in result.ik_residual_mm().items())

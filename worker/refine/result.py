@@ -11,6 +11,7 @@ check);
 ``metrics_{raw,refined}_*`` per-frame errors, penetration (mm) and hand-only hold (``worker.simulation.metrics``);
 ``window_loss_history`` (W, G) best loss per generation (NaN padded); ``sequence_npz`` (uint8) the input
 sequence in the native NPZ format, so ``verify`` needs nothing else. Summary JSON: kind, sequence, fps, frames,
+outcome (executable on the paper's protocol and why not: ``common.outcome``, ``worker.refine.outcome``),
 metrics.raw / metrics.refined (both protocols, plausibility, first-attempt success), options, config (simulation
 settings, keyframe interval, CMA-ES settings, loss weights), seed, versions, table (the plane under the frame-0
 object: point, normal, tilt_deg), attempts (seed, lookahead rotation factor, polish, success, E_t, E_r on both
@@ -57,6 +58,7 @@ def build_summary(
     num_contacts: int = 0,
     attempts: list[dict[str, Any]] | None = None,
     lookahead_rotation_weight: float | None = None,
+    outcome: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     cfg = prep.scene.config.to_dict()
     return {
@@ -65,6 +67,8 @@ def build_summary(
         "fps": float(prep.seq.fps),
         "frames": int(prep.num_frames),
         "sides": list(prep.spaces),
+        # Executable on the paper's protocol, and why not (``common.outcome``, ``worker.refine.outcome``).
+        **({} if outcome is None else {"outcome": outcome}),
         "metrics": {"raw": m_raw, "refined": m_ref},
         "options": prep.options.model_dump(mode="json"),
         "seed": int(settings.seed),

@@ -29,6 +29,7 @@ from worker.refine.derive import add_attempt_metrics, attempt_figures, derive_re
 from worker.refine.evaluator import ParallelEvaluator, SimState
 from worker.refine.joint_hands import JointHandsProblem
 from worker.refine.losses import ROT_SCALE, resolve_weights
+from worker.refine.outcome import PlanCut, classify_outcome, tail_cut_reason, was_rescued
 from worker.refine.prepare import DEFAULT_MAX_GENERATIONS, DEFAULT_POPSIZE, Prepared, prepare, settled_start
 from worker.refine.problem import COMBINED
 from worker.refine.replay import LOOKAHEAD_ROTATION_WEIGHT, ReplayRecord, replay, window_problem
@@ -201,6 +202,20 @@ def refine_sequence(
     attempts: list[dict[str, Any]] = []
     tried: list[dict[str, FloatArray]] = []
     weights = resolve_weights(options.loss_weights, robot=options.hand is not None)
+    hopeless: list[bool] = []  # the first attempt failed where no grasp can follow the recording
+    cut: list[str] = []  # why the plan stopped short (``PlanCut.why``), once a run it had planned was skipped
+
+    def cut_short() -> bool:
+        """Whether to skip the run the plan would start now: the bounded tail after a hopeless first attempt, or
+        the evaluation budget spent. Asked only where a run would start, so a cut is claimed only if one was."""
+        if not cut and hopeless:
+            cut.append("recording")
+        if not cut and options.evaluation_budget is not None and spent() >= options.evaluation_budget:
+            cut.append("budget")
+        return bool(cut)
+
+    def spent() -> int:
+        return int(sum(a["evaluations"] for a in attempts))
 
     def run(on: _Geometry, settings: CmaSettings, rotation_weight: float,
             start_keyframes: dict[str, FloatArray] | None = None) -> _Attempt:
@@ -232,6 +247,8 @@ def refine_sequence(
         """The attempts of ``attempt_plan`` until one is good enough, then the polish sweeps of the best."""
         best: _Attempt | None = None
         for attempt in range(options.restarts + 1):
+            if attempt > 0 and cut_short():
+                break
             seed, rotation_weight = attempt_plan(options.seed, attempt)
             settings = cma_settings(options, prep.interval, len(prep.references))
             this = run(on, replace(settings, **(cma_overrides or {}), seed=seed), rotation_weight)
@@ -239,9 +256,11 @@ def refine_sequence(
                 best = this
             if attempts_done(best.metrics, attempt):
                 break
+            if len(attempts) == 1 and options.tail == "bounded" and tail_cut_reason(on.prep, this.metrics):
+                hopeless.append(True)
         assert best is not None
         for _sweep in range(POLISH_SWEEPS if options.polish else 0):
-            if object_error(best.metrics) <= POLISH_OBJECT_ERROR:
+            if object_error(best.metrics) <= POLISH_OBJECT_ERROR or cut_short():
                 break
             # The rotation error is charged in full: the lookahead's wrist turn is the later keyframes' own now.
             # Each sweep starts from the best so far with half its step (``polish_settings``).
@@ -255,7 +274,7 @@ def refine_sequence(
         start, settle_steps = settled_start(prep, ev)
         best = plan(_Geometry(prep, start))
         stats = ev.stats
-        if rescue_due(best.metrics, prep, options):
+        if rescue_due(best.metrics, prep, options) and not cut_short():
             # The same plan on finer convex parts, from zero offsets: kept only if it ranks higher (``RESCUE``).
             fine = prepare(sequence_from_npz_bytes(seq_bytes), options, replace(prep.scene.config, **RESCUE),
                            cache_dir=cache_dir, mano_dir=mano_dir, references=prep.references)
@@ -285,6 +304,11 @@ def refine_sequence(
     final = derived.final
     m_raw, m_ref = scalar_metrics(derived.metrics["raw"]), scalar_metrics(derived.metrics["refined"])
     add_attempt_metrics(m_ref, attempts)
+    contact = final.contact_frames
+    outcome = classify_outcome(derived.prep, derived.metrics["refined"], final.object_pose,
+                               hand_contact=None if contact is None else contact.hand,
+                               rescued=was_rescued(derived.prep), cut=PlanCut(spent(), cut[0]) if cut else None,
+                               cache_dir=cache_dir)
     arrays = derived.arrays
     if logs:
         width = max([len(w.history) for w in logs] + [1])
@@ -317,6 +341,7 @@ def refine_sequence(
         num_contacts=len(final.contacts["contact_frame"]),
         attempts=attempts,
         lookahead_rotation_weight=kept_rotation_weight,
+        outcome=outcome.model_dump(mode="json"),
     )
     return RefineOutcome(arrays, summary, keyframes)
 

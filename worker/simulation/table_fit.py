@@ -122,6 +122,29 @@ def _drift_scores(
     articulation: FloatArray | None = None,
 ) -> list[float]:
     """Degrees + millimetres between ``target`` and where the object is after ``config.table_fit_s``."""
+    model, data, table, adr, joints = _alone_model(seq, config, target, cache_dir)
+    steps = round(config.table_fit_s / model.opt.timestep)
+    scores = []
+    for pose, plane in candidates:
+        mujoco.mj_resetData(model, data)
+        data.mocap_pos[table] = plane.point
+        data.mocap_quat[table] = plane.quat()
+        data.qpos[adr : adr + 7] = pose
+        if joints:
+            data.qpos[joints] = articulation
+        for _ in range(steps):
+            mujoco.mj_step(model, data)
+        end = data.qpos[adr : adr + 7]
+        angle = float(rotation_error_deg(end[3:], target[3:]))
+        scores.append(angle + 1000 * float(np.linalg.norm(end[:3] - target[:3])))
+    return scores
+
+
+def _alone_model(
+    seq: Sequence, config: SimConfig, target: FloatArray, cache_dir: Path | None
+) -> tuple[mujoco.MjModel, mujoco.MjData, int, int, list[int]]:
+    """The object and a table alone: model, data, the table's mocap index, the object's qpos address and its
+    joints' qpos addresses."""
     obj = object_mjcf(seq.object, config, target[:3], target[3:], cache_dir=cache_dir)
     xml = f"""<mujoco model="table-fit">
   <compiler angle="radian" autolimits="true"/>
@@ -145,18 +168,25 @@ def _drift_scores(
     adr = int(model.jnt_qposadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, OBJECT_JOINT)])
     joints = [int(model.jnt_qposadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, joint_name(k))])
               for k in range(len(seq.object.parts))]  # fmt: skip
-    steps = round(config.table_fit_s / model.opt.timestep)
-    scores = []
-    for pose, plane in candidates:
-        mujoco.mj_resetData(model, data)
-        data.mocap_pos[table] = plane.point
-        data.mocap_quat[table] = plane.quat()
-        data.qpos[adr : adr + 7] = pose
-        if joints:
-            data.qpos[joints] = articulation
-        for _ in range(steps):
+    return model, data, table, adr, joints
+
+
+def released_motion(
+    seq: Sequence, config: SimConfig, pose: FloatArray, plane: SupportPlane, frames: int, *,
+    cache_dir: Path | None = None, articulation: FloatArray | None = None,
+) -> FloatArray:
+    """(frames + 1, 7) the object's pose at each video frame when released at ``pose`` on ``plane`` with nothing
+    else in the scene (no hand, no hold): how an object no table holds falls or rolls before a hand arrives."""
+    model, data, table, adr, joints = _alone_model(seq, config, pose, cache_dir)
+    data.mocap_pos[table] = plane.point
+    data.mocap_quat[table] = plane.quat()
+    data.qpos[adr : adr + 7] = pose
+    if joints and articulation is not None:
+        data.qpos[joints] = articulation
+    substeps = config.substeps_per_frame(seq.fps)
+    out = [np.array(data.qpos[adr : adr + 7])]
+    for _ in range(frames):
+        for _ in range(substeps):
             mujoco.mj_step(model, data)
-        end = data.qpos[adr : adr + 7]
-        angle = float(rotation_error_deg(end[3:], target[3:]))
-        scores.append(angle + 1000 * float(np.linalg.norm(end[:3] - target[:3])))
-    return scores
+        out.append(np.array(data.qpos[adr : adr + 7]))
+    return np.stack(out)

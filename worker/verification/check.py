@@ -50,7 +50,7 @@ from worker.simulation.config import CONVEX_DETAILS, OLDER_SIM_DEFAULTS, SimConf
 from worker.verification.arrays import ArrayChecker, check_stored_metrics
 from worker.verification.report import CROSS_HOST, STEPWISE, Tolerances, VerifyReport
 from worker.verification.stepwise import stepwise_derivation
-from worker.verification.summary import check_summary
+from worker.verification.summary import check_outcome, check_summary
 
 __all__ = ["CROSS_HOST", "Tolerances", "VerifyReport", "check_result", "verify_result"]
 
@@ -138,6 +138,7 @@ def check_result(
     c.contacts(against, tol)
     c.consistency(against, sides)
     check_summary(report, summary, against, attempt_kf, tol, attempt_tol, attempts_decide)
+    check_outcome(report, summary, against, tol, cache_dir)
     check_stored_metrics(report, arrays, summary, sides, tuple(j.kind for j in derived.prep.seq.object.joints))
     report.frames = int(derived.prep.num_frames)
     _environment_notes(summary.get("versions") or {}, report)

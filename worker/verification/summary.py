@@ -3,11 +3,14 @@ fresh derivation, exactly on the build that made the result and within ``Toleran
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from common.outcome import ReasonCode
 from worker.refine.derive import add_attempt_metrics, attempt_figures
+from worker.refine.outcome import classify_outcome, was_rescued
 from worker.simulation.metrics import scalar_metrics
 from worker.verification.report import CROSS_HOST, Tolerances, VerifyReport
 
@@ -71,6 +74,38 @@ def check_summary(
             _compare_dict(report, key, summary[key], value, tol)
     report.checked.extend(["summary.metrics", "summary.attempts", "summary.config", "summary.table"]
                           + (["summary.object_hold"] if "object_hold" in summary else []))
+
+
+def check_outcome(report: VerifyReport, summary: dict[str, Any], derived: Any, tol: Tolerances | None,
+                  cache_dir: Path | None = None) -> None:
+    """The stored outcome (``summary["outcome"]``, absent from results made before it) against one classified
+    again from the derivation (``worker.refine.outcome``). ``plan_cut_short`` is a fact of the optimisation, not of
+    the replay: its value is checked against the attempts' evaluations. On another host a reason found from the
+    simulation may move by a frame where the trajectory does (a note); ``executable`` is always the stored
+    paper-protocol success (which ``check_stored_metrics`` checks against the stored trajectory)."""
+    stored = summary.get("outcome")
+    if stored is None:
+        return
+    contact = derived.final.contact_frames
+    fresh = classify_outcome(derived.prep, derived.metrics["refined"], derived.final.object_pose,
+                             hand_contact=None if contact is None else contact.hand,
+                             rescued=was_rescued(derived.prep), cache_dir=cache_dir).model_dump(mode="json")
+    cut = [r for r in stored.get("reasons") or [] if r.get("code") == ReasonCode.PLAN_CUT_SHORT]
+    kept = {**stored, "reasons": [r for r in stored.get("reasons") or [] if r not in cut]}
+    evaluations = sum(int(a.get("evaluations", 0)) for a in summary.get("attempts") or [])
+    for r in cut:
+        if r.get("value") != evaluations:
+            report.failures.append(f"outcome: plan_cut_short says {r.get('value')} evaluations, the attempts "
+                                   f"{evaluations}")
+    if tol is None:
+        _compare_dict(report, "outcome", kept, fresh, tol)
+    elif kept != fresh:  # as a success near its threshold may flip there (``_near_threshold``)
+        report.config_notes.append("outcome differs on re-simulation (within the trajectory's cross-host "
+                                   "tolerance)")
+    if bool(kept.get("executable")) != bool(summary.get("metrics", {}).get("refined", {}).get("paper", {})
+                                            .get("success")):
+        report.failures.append("outcome.executable: not the stored paper-protocol success")
+    report.checked.append("summary.outcome")
 
 
 def _compare_dict(report: VerifyReport, path: str, stored: Any, fresh: Any, tol: Tolerances | None) -> None:
