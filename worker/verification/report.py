@@ -3,10 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
-
-if TYPE_CHECKING:
-    from worker.verification.stepwise import StepwiseReport
+from typing import Any
 
 
 @dataclass(frozen=True)
@@ -94,7 +91,9 @@ class VerifyReport:
     #: the records made at those states (``worker.verification.stepwise``); "rollout": a result without stored
     #: states, checked against a whole re-simulation (exact here, within ``CROSS_HOST`` elsewhere).
     method: str = "rollout"
-    stepwise: dict[str, StepwiseReport] = field(default_factory=dict)  # per replay ("refined", "raw")
+    #: per replay ("refined", "raw"): a ``worker.verification.stepwise.StepwiseReport`` (not imported here: that
+    #: module reports into this one)
+    stepwise: dict[str, Any] = field(default_factory=dict)
 
     @property
     def verified(self) -> bool:
