@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import csv
 import io
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +22,7 @@ import pytest
 from common.api_client import ApiClient
 from common.api_key_store import ApiKeyStore
 from common.sequence_io import sequence_to_npz_bytes
-from tests.support.browser import CHROMIUM_ARGS, Deployment, chromium_path, use_key
+from tests.support.browser import CHROMIUM_ARGS, Deployment, use_key
 from tests.support.queue_fixtures import fake_result, tiny_sequence
 from tests.support.visual import DOCS, update_docs
 
@@ -49,20 +48,6 @@ def summary(
             "metrics": {"raw": stage(4.2, 35.0, 4.6, 38.0, False), "refined": stage(ref_t, ref_r, paper_t, paper_r,
                                                                                     executable),
                         "verification": {"verified": True}, "outcome": outcome}}  # fmt: skip
-
-
-@pytest.fixture(scope="session")
-def chromium() -> str:
-    return chromium_path()
-
-
-@pytest.fixture
-def deployment(tmp_path: Path) -> Iterator[Deployment]:
-    dep = Deployment(tmp_path)
-    try:
-        yield dep
-    finally:
-        dep.close()
 
 
 def _batch(dep: Deployment, key: str) -> tuple[str, dict[str, str]]:

@@ -13,35 +13,19 @@ missing); where it cannot be installed the test skips.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 import pytest
 
 from common.job_options import JobOptions
 from common.sequence_io import sequence_to_npz_bytes
-from tests.support.browser import CHROMIUM_ARGS, Deployment, chromium_path, use_key
+from tests.support.browser import CHROMIUM_ARGS, Deployment, use_key
 from tests.support.visual import DOCS, update_docs
 
 pytestmark = pytest.mark.slow
 
 #: The default CMA-ES budget without restarts: about 10 s here, and the refined hand lifts the box.
 OPTIONS = JobOptions(restarts=0)
-
-
-@pytest.fixture(scope="session")
-def chromium() -> str:
-    return chromium_path()
-
-
-@pytest.fixture
-def deployment(tmp_path: Path) -> Iterator[Deployment]:
-    dep = Deployment(tmp_path)
-    try:
-        yield dep
-    finally:
-        dep.close()
 
 
 @pytest.mark.usefixtures("offscreen_gl")  # the worker renders the preview video

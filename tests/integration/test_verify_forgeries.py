@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from common.cli import main as cli_main
-from common.errors import ResultMismatchError
 from common.job_options import JobOptions
 from common.result_format import read_arrays, read_summary, write_result_npz
+from tests.support.verify_failures import fails_naming
 from worker.refine.run import RefineOutcome, refine_sequence
 from worker.verification import check_result, verify_result
 
@@ -36,15 +36,6 @@ def honest() -> tuple[dict[str, np.ndarray], dict[str, Any]]:
 
 def _forged(arrays: dict[str, np.ndarray], summary: dict[str, Any]) -> bytes:
     return write_result_npz(arrays, summary, wall_clock=False)
-
-
-def _fails_naming(blob: bytes, *fields: str) -> str:
-    with pytest.raises(ResultMismatchError) as info:
-        verify_result(blob)
-    text = str(info.value)
-    for name in fields:
-        assert name in text, text
-    return text
 
 
 def test_the_honest_result_verifies_bit_for_bit(honest: tuple[dict[str, np.ndarray], dict[str, Any]]) -> None:
@@ -109,13 +100,13 @@ def test_rewritten_summary_metrics_fail(honest: tuple[dict[str, np.ndarray], dic
         "raw": {**summary["metrics"]["raw"], "success": not summary["metrics"]["raw"]["success"]},
         "refined": {**summary["metrics"]["refined"], "E_t": 0.01},
     }}
-    _fails_naming(_forged(arrays, forged), "metrics.refined.E_t", "metrics.raw.success")
+    fails_naming(_forged(arrays, forged), "metrics.refined.E_t", "metrics.raw.success")
     paper = {**summary, "metrics": {**summary["metrics"], "refined": {
         **summary["metrics"]["refined"], "paper": {**summary["metrics"]["refined"]["paper"], "E_r": 0.1}}}}
-    _fails_naming(_forged(arrays, paper), "metrics.refined.paper.E_r")
+    fails_naming(_forged(arrays, paper), "metrics.refined.paper.E_r")
     pen = {**summary, "metrics": {**summary["metrics"], "refined": {
         **summary["metrics"]["refined"], "penetration_max_mm": 0.0}}}
-    _fails_naming(_forged(arrays, pen), "metrics.refined.penetration_max_mm")
+    fails_naming(_forged(arrays, pen), "metrics.refined.penetration_max_mm")
 
 
 def test_a_rewritten_object_hold_fails(honest: tuple[dict[str, np.ndarray], dict[str, Any]]) -> None:
@@ -125,7 +116,7 @@ def test_a_rewritten_object_hold_fails(honest: tuple[dict[str, np.ndarray], dict
     hold = summary["object_hold"]
     forged = {**summary, "object_hold": {**hold, "until_recording_moves": not hold["until_recording_moves"],
                                          "release_frame": hold["release_frame"] + 5}}
-    _fails_naming(_forged(arrays, forged), "object_hold.release_frame", "object_hold.until_recording_moves")
+    fails_naming(_forged(arrays, forged), "object_hold.release_frame", "object_hold.until_recording_moves")
     without = {k: v for k, v in summary.items() if k != "object_hold"}  # made before it was recorded
     assert check_result(_forged(arrays, without)).failures == []
 
@@ -133,9 +124,9 @@ def test_a_rewritten_object_hold_fails(honest: tuple[dict[str, np.ndarray], dict
 def test_replaced_per_frame_metrics_and_keypoints_fail(honest: tuple[dict[str, np.ndarray], dict[str, Any]]) -> None:
     arrays, summary = honest
     for key in ("metrics_refined_e_t_cm", "metrics_raw_e_j_cm", "metrics_refined_penetration_mm"):
-        _fails_naming(_forged({**arrays, key: np.zeros_like(arrays[key])}, summary), key)
+        fails_naming(_forged({**arrays, key: np.zeros_like(arrays[key])}, summary), key)
     ref = {**arrays, "right_keypoints_sim": arrays["right_keypoints_ref"].copy()}
-    _fails_naming(_forged(ref, summary), "right_keypoints_sim")
+    fails_naming(_forged(ref, summary), "right_keypoints_sim")
 
 
 def test_per_frame_figures_may_differ_only_in_their_last_bits_on_an_exact_replay(
@@ -151,32 +142,32 @@ def test_per_frame_figures_may_differ_only_in_their_last_bits_on_an_exact_replay
                                      "refined": {**refined, "E_r": float(np.nextafter(refined["E_r"], np.inf))}}}
     report = check_result(_forged(last_bits, nudged))
     assert report.exact and report.failures == []
-    _fails_naming(_forged({**arrays, key: arrays[key] + 1e-6}, summary), key)
+    fails_naming(_forged({**arrays, key: arrays[key] + 1e-6}, summary), key)
     rewritten = {**summary, "metrics": {**summary["metrics"], "refined": {**refined, "E_r": refined["E_r"] + 1e-6}}}
-    _fails_naming(_forged(arrays, rewritten), "metrics.refined.E_r")
+    fails_naming(_forged(arrays, rewritten), "metrics.refined.E_r")
 
 
 def test_moved_wrist_and_replaced_reference_fail(honest: tuple[dict[str, np.ndarray], dict[str, Any]]) -> None:
     arrays, summary = honest
     wrist = arrays["right_wrist_pos"].copy()
     wrist[:, 2] += 0.05
-    _fails_naming(_forged({**arrays, "right_wrist_pos": wrist}, summary), "right_wrist_pos")
+    fails_naming(_forged({**arrays, "right_wrist_pos": wrist}, summary), "right_wrist_pos")
     # The reference replaced by the simulated trajectory (E_t would read 0).
-    _fails_naming(_forged({**arrays, "object_pose_ref": arrays["object_pose_sim"].copy()}, summary),
+    fails_naming(_forged({**arrays, "object_pose_ref": arrays["object_pose_sim"].copy()}, summary),
                   "object_pose_ref")
 
 
 def test_contact_forces_times_ten_fail(honest: tuple[dict[str, np.ndarray], dict[str, Any]]) -> None:
     arrays, summary = honest
     assert len(arrays["contact_force"]) > 0
-    _fails_naming(_forged({**arrays, "contact_force": arrays["contact_force"] * 10}, summary), "contact_force")
+    fails_naming(_forged({**arrays, "contact_force": arrays["contact_force"] * 10}, summary), "contact_force")
 
 
 def test_a_moved_object_trajectory_fails_at_its_frame(honest: tuple[dict[str, np.ndarray], dict[str, Any]]) -> None:
     arrays, summary = honest
     moved = arrays["object_pose_sim"].copy()
     moved[20, 0] += 0.002  # within the cross-host tolerance, but no longer the trajectory the metrics describe
-    _fails_naming(_forged({**arrays, "object_pose_sim": moved}, summary), "frame 20")
+    fails_naming(_forged({**arrays, "object_pose_sim": moved}, summary), "frame 20")
 
 
 def test_a_high_friction_config_fails_without_allow_config(
@@ -204,7 +195,7 @@ def test_a_high_friction_config_fails_without_allow_config(
     forged = {**summary, "metrics": metrics, "attempts": attempts, "config": {**summary["config"], "sim": sim},
               "num_contacts": len(derived.final.contacts["contact_frame"]), "outcome": outcome.model_dump(mode="json")}
     blob = RefineOutcome(dict(derived.arrays), forged).to_npz_bytes(wall_clock=False)
-    _fails_naming(blob, "sim.hand_friction", "sim.object_friction", "--allow-config")
+    fails_naming(blob, "sim.hand_friction", "sim.object_friction", "--allow-config")
     report = verify_result(blob, allow_config=True)  # honest under its own config: accepted, and said so
     assert {c["setting"] for c in report["config_changes"]} == {"sim.hand_friction", "sim.object_friction"}
     path = tmp_path / "sticky.npz"
@@ -283,4 +274,4 @@ def test_a_result_of_an_older_version_still_verifies(honest: tuple[dict[str, np.
     report = check_result(_forged(old_arrays, old))
     assert report.failures == [] and report.exact
     forged = {**old, "metrics": {**old_metrics, "refined": {**old_metrics["refined"], "E_t": 0.01}}}
-    _fails_naming(_forged(old_arrays, forged), "metrics.refined.E_t")
+    fails_naming(_forged(old_arrays, forged), "metrics.refined.E_t")

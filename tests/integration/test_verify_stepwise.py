@@ -14,13 +14,13 @@ import mujoco
 import numpy as np
 import pytest
 
-from common.errors import ResultMismatchError
 from common.job_options import JobOptions
 from common.result_format import read_arrays, read_summary, write_result_npz
+from tests.support.verify_failures import fails_naming
 from worker.refine.prepare import Prepared
 from worker.refine.result import prepare_from_result
 from worker.refine.run import refine_sequence
-from worker.verification import check_result, verify_result
+from worker.verification import check_result
 from worker.verification.stepwise import StateLayout
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -48,15 +48,6 @@ def prep(honest: Result) -> Prepared:
 
 def _blob(arrays: dict[str, np.ndarray], summary: dict[str, Any]) -> bytes:
     return write_result_npz(arrays, summary, wall_clock=False)
-
-
-def _fails_naming(blob: bytes, *fields: str) -> str:
-    with pytest.raises(ResultMismatchError) as info:
-        verify_result(blob)
-    text = str(info.value)
-    for name in fields:
-        assert name in text, text
-    return text
 
 
 def test_a_result_stores_both_replays_states_and_verifies_stepwise(honest: Result, prep: Prepared) -> None:
@@ -112,7 +103,7 @@ def test_a_teleported_object_fails_at_its_frame(honest: Result, prep: Prepared) 
     states, pose = arrays["state_sim"].copy(), arrays["object_pose_sim"].copy()
     states[12, layout.slices["qpos"].start + a] += 0.05
     pose[12, 0] += 0.05
-    _fails_naming(_blob({**arrays, "state_sim": states, "object_pose_sim": pose}, summary),
+    fails_naming(_blob({**arrays, "state_sim": states, "object_pose_sim": pose}, summary),
                   "state_sim.qpos", "at frame 12", "x position")
 
 
@@ -124,7 +115,7 @@ def test_a_trajectory_shifted_3_mm_fails_at_its_first_frame(honest: Result, prep
     states, pose = arrays["state_sim"].copy(), arrays["object_pose_sim"].copy()
     states[10:16, layout.slices["qpos"].start + a + 2] += 0.003
     pose[10:16, 2] += 0.003
-    text = _fails_naming(_blob({**arrays, "state_sim": states, "object_pose_sim": pose}, summary),
+    text = fails_naming(_blob({**arrays, "state_sim": states, "object_pose_sim": pose}, summary),
                          "state_sim.qpos", "at frame 10", "z position")
     assert "0.003" in text
 
@@ -135,11 +126,11 @@ def test_an_added_force_fails(honest: Result, prep: Prepared) -> None:
     states = arrays["state_sim"].copy()
     body = prep.scene.object_body_id
     states[8:, layout.slices["xfrc_applied"].start + 6 * body + 2] = 0.5  # 0.5 N upwards on the object
-    _fails_naming(_blob({**arrays, "state_sim": states}, summary), "state_sim.xfrc_applied", "at frame 8",
+    fails_naming(_blob({**arrays, "state_sim": states}, summary), "state_sim.xfrc_applied", "at frame 8",
                   "force", "only through contact")
     qfrc = arrays["raw_state_sim"].copy()
     qfrc[3, layout.slices["qfrc_applied"].start] = 1.0
-    _fails_naming(_blob({**arrays, "raw_state_sim": qfrc}, summary), "raw_state_sim.qfrc_applied", "at frame 3")
+    fails_naming(_blob({**arrays, "raw_state_sim": qfrc}, summary), "raw_state_sim.qfrc_applied", "at frame 3")
 
 
 def test_a_force_simulated_then_hidden_fails_where_it_acted(honest: Result, prep: Prepared) -> None:
@@ -163,7 +154,7 @@ def test_a_force_simulated_then_hidden_fails_where_it_acted(honest: Result, prep
     states = rec.states.copy()
     states[:, layout.slices["xfrc_applied"]] = 0.0
     assert not np.array_equal(rec.object_pose, arrays["object_pose_sim"])
-    _fails_naming(_blob({**arrays, "state_sim": states, "object_pose_sim": rec.object_pose}, summary),
+    fails_naming(_blob({**arrays, "state_sim": states, "object_pose_sim": rec.object_pose}, summary),
                   "state_sim.q", "at frame 11")
 
 
@@ -198,23 +189,23 @@ def test_a_hand_moved_off_its_controls_fails(honest: Result, prep: Prepared) -> 
     states = arrays["state_sim"].copy()
     states[15, layout.slices["qpos"].start + joint] += 0.05  # a finger bent 3 degrees further
     name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, int(np.flatnonzero(model.jnt_qposadr == joint)[0]))
-    _fails_naming(_blob({**arrays, "state_sim": states}, summary), "state_sim.qpos", "at frame 15", str(name))
+    fails_naming(_blob({**arrays, "state_sim": states}, summary), "state_sim.qpos", "at frame 15", str(name))
     ctrl = arrays["state_sim"].copy()
     ctrl[15, layout.slices["ctrl"].start + 3] += 0.1  # a servo target the keyframes do not give
-    _fails_naming(_blob({**arrays, "state_sim": ctrl}, summary), "state_sim.ctrl", "at frame 15",
+    fails_naming(_blob({**arrays, "state_sim": ctrl}, summary), "state_sim.ctrl", "at frame 15",
                   "the stored controls")
     wrist = arrays["state_sim"].copy()
     wrist[9:, layout.slices["mocap_pos"].start + 3 * hand.mocap_id] += 0.002  # the wrist's target moved 2 mm
-    _fails_naming(_blob({**arrays, "state_sim": wrist}, summary), "state_sim.mocap_pos", "at frame 9")
+    fails_naming(_blob({**arrays, "state_sim": wrist}, summary), "state_sim.mocap_pos", "at frame 9")
 
 
 def test_states_of_another_shape_or_not_numbers_fail(honest: Result, prep: Prepared) -> None:
     arrays, summary = honest
-    _fails_naming(_blob({**arrays, "raw_state_sim": arrays["raw_state_sim"][:, :-1]}, summary),
+    fails_naming(_blob({**arrays, "raw_state_sim": arrays["raw_state_sim"][:, :-1]}, summary),
                   "raw_state_sim: shape")
     states = arrays["state_sim"].copy()
     states[7, StateLayout(prep.layout.model).slices["qvel"].start] = np.nan
-    _fails_naming(_blob({**arrays, "state_sim": states}, summary), "state_sim.qvel: not a finite number at frame 7")
+    fails_naming(_blob({**arrays, "state_sim": states}, summary), "state_sim.qvel: not a finite number at frame 7")
 
 
 def test_an_older_result_without_states_verifies_the_old_way_with_a_note(honest: Result) -> None:
@@ -225,7 +216,7 @@ def test_an_older_result_without_states_verifies_the_old_way_with_a_note(honest:
     assert any(n.startswith("no stored states (older result)") for n in report.config_notes), report.config_notes
     moved = old["object_pose_sim"].copy()
     moved[20, 0] += 0.002
-    _fails_naming(_blob({**old, "object_pose_sim": moved}, summary), "frame 20")
+    fails_naming(_blob({**old, "object_pose_sim": moved}, summary), "frame 20")
 
 
 def test_recording_the_states_leaves_the_replay_as_it_was(honest: Result, prep: Prepared) -> None:
