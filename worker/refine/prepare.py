@@ -175,7 +175,7 @@ def prepare(
     if references is None:
         references = retarget_sequence(seq, mano_dir=mano_dir)
         if options.hand is not None:  # a robot hand: the recorded hand retargeted to it (issue #55)
-            references = robot_references(references, options.hand)
+            references = robot_references(references, options.hand, float(seq.fps))
     scene = build_scene(seq, references, config, cache_dir=cache_dir)
     layout = SimLayout.from_scene(scene)
     interval = options.keyframe_interval or default_keyframe_interval(seq.fps)
@@ -215,6 +215,9 @@ def prepare(
             pivot=None if pivot is None else lead_values(pivot, lead),
             mirrored=mirror_left and r.side == "left",
         )
+    for r in robots:  # the ``robot_speed`` term: the commands and joints against the robot's speed limits
+        hands[r.side].step_limits = r.embodiment.velocity_limits / float(seq.fps)
+        hands[r.side].commands = spaces[r.side].frame_joint_targets
     return Prepared(seq, options, interval, references, scene, layout, spaces, obj, hands, provenance, pivot_kind,
                     mano_dir, mirror_left)
 
