@@ -26,7 +26,7 @@ def test_speed_limited_keeps_each_step_within_the_limit_and_the_rest_as_it_was()
     q = _closing()
     vmax = np.array([3.14, 3.14, np.inf])
     limits = np.array([[0.0, 1.5], [-1.0, 1.0], [0.0, 1.5]])
-    assert step_ratio(q, vmax, FPS) > 2.0
+    assert (step_ratio(q, vmax, FPS) or 0.0) > 2.0
     out = speed_limited(q, vmax, FPS, limits)
     assert np.abs(np.diff(out[:, 0])).max() <= SPEED_FRACTION * 3.14 / FPS + 1e-12
     assert (out[:, 1:] == q[:, 1:]).all()  # within its limit / no limit: bit for bit
@@ -40,7 +40,7 @@ def test_speed_limited_keeps_each_step_within_the_limit_and_the_rest_as_it_was()
     for i in range(1, len(q)):
         lag[i] = lag[i - 1] + np.clip(q[i, 0] - lag[i - 1], -bound, bound)
     assert np.sum((out[:, 0] - q[:, 0]) ** 2) < np.sum((lag - q[:, 0]) ** 2)
-    assert step_ratio(out, vmax, FPS) <= SPEED_FRACTION + 1e-9
+    assert (step_ratio(out, vmax, FPS) or np.inf) <= SPEED_FRACTION + 1e-9
     assert step_ratio(q, np.full(3, np.inf), FPS) is None
 
 
@@ -73,7 +73,7 @@ def test_the_metrics_and_the_outcome_say_when_a_robot_exceeds_its_speed_limits()
     reasons = robot_too_fast({"robot": {"right": fast, "left": slow}})
     assert [r.code for r in reasons] == [ReasonCode.ROBOT_TOO_FAST]
     (reason,) = reasons
-    assert reason.unit == "ratio" and reason.frame == fast["speed_limit_frame"] and reason.value > 2.0
+    assert reason.unit == "ratio" and reason.frame == fast["speed_limit_frame"] and (reason.value or 0.0) > 2.0
     assert "right robot hand" in reason.message
     # Informative: an executable result carries it, and it is never the failure's primary reason.
     outcome = Outcome(executable=True, reasons=reasons)
