@@ -54,12 +54,13 @@ scale so the default weights read as "how much one scale unit of error costs":
   ``hand_joints`` (the robot's keypoint sites against their retargeted positions) leaves the joints the sites do not
   pin free. Weight 0.1 (``ROBOT_WEIGHTS``).
 * ``robot_speed`` (robot hands only): per frame, the sum over the actuated joints of (max(0, |dq| / (v_max / fps)
-  - 1))^2 for the simulated joints and for the commanded servo targets, dq their step from the frame before and
+  - 1) / 0.1)^2 for the simulated joints and for the commanded servo targets, dq their step from the frame before and
   v_max the joint's speed limit (``Embodiment.velocity_limits``; joints without one are not charged): zero while
-  the motion stays within the limits a real hand can follow (``worker.robot.metrics``' ratios), and one unit for a
-  joint at twice its limit for one frame. The retargeted motion itself is brought within the limits first
-  (``worker.robot.speed``); this term keeps the refinement's offsets from speeding it up again. Weight 1
-  (``ROBOT_WEIGHTS``).
+  the motion stays within the limits a real hand can follow (``worker.robot.metrics``' ratios), one unit for a joint
+  10 % over its limit for one frame. The retargeted motion itself is brought within the limits first
+  (``worker.robot.speed``); this term keeps the refinement's offsets from speeding it up again. At scale 1 (one unit
+  for twice the limit) the refined Allegro commands still ran 7-18 % over the limit on two DexYCB sequences
+  (``bench/results/robot_speed_limits.md``). Weight 1 (``ROBOT_WEIGHTS``).
 
 * ``object_articulation`` (an articulated object only, issue #52): per joint |a_sim - a_ref| / 0.04 rad (or / 1 cm
   for a sliding part), the scale of ``object_pose``'s rotation and position parts, plus (max(0, |a_sim - a_ref| -
@@ -102,6 +103,7 @@ DEFAULT_WEIGHTS: dict[str, float] = {
 ROBOT_WEIGHTS: dict[str, float] = {"robot_joints": 0.1, "robot_speed": 1.0}
 assert set(DEFAULT_WEIGHTS) | set(ROBOT_WEIGHTS) == set(LOSS_NAMES)
 JOINT_SCALE = 0.1  # rad
+SPEED_EXCESS_SCALE = 0.1  # ``robot_speed``: a joint's speed over its limit, as a fraction of the limit
 
 POSE_ETA = 0.5
 ROT_SCALE = 0.04  # rad
@@ -423,7 +425,7 @@ def hand_terms(rec: WindowRecord, side: str, ref: HandKeypointTargets) -> dict[s
 
 def speed_excess(q: FloatArray, step_limits: FloatArray) -> FloatArray:
     """(C,) ``robot_speed`` of joint tracks (C, n, H) against steps per frame (H,) (inf: no limit)."""
-    over = np.maximum(np.abs(np.diff(q, axis=1)) / step_limits - 1.0, 0.0)
+    over = np.maximum(np.abs(np.diff(q, axis=1)) / step_limits - 1.0, 0.0) / SPEED_EXCESS_SCALE
     return np.asarray((over**2).sum(axis=(1, 2)))
 
 
