@@ -53,6 +53,12 @@ def test_the_robot_result_verifies_and_a_changed_description_does_not(robot_resu
     assert report.exact
     # A description whose servos are stiffer re-simulates to another trajectory: verify names what differs.
     summary, arrays = read_summary(blob), read_arrays(blob)
+    # Made with the retargeted motion within the robot's speed limits; a robot result without the key is an older
+    # one, re-derived without them (and says so).
+    assert summary["config"]["robot_joint_speed"] == "within limits"
+    older = {**summary, "config": {k: v for k, v in summary["config"].items() if k != "robot_joint_speed"}}
+    notes = check_result(write_result_npz(arrays, older)).config_notes
+    assert any("robot_joint_speed not recorded" in n for n in notes)
     summary["options"]["hand"]["actuator"] = {"kp": 200.0, "kv": 3.0}
     forged = write_result_npz(arrays, summary)
     assert check_result(forged).failures
