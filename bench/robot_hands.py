@@ -7,6 +7,8 @@ hand's figures of the same sequences (``bench/results/refine_dev120.md``'s per-s
 Takes the first ``--per-side`` right and left sequences of ``bench/samples/dev120.txt`` in file order, refines each
 with every ``--hands`` hand (the product's options), keeps one JSON line per (sequence, hand) in ``--cache`` (a re-run
 skips what is there) and writes the Markdown report. Figures are the paper's protocol (frames 10 onward).
+``--sequences A,B`` restricts the run to those sequences of the sample (names without ``.npz``), e.g. the two of
+``bench/results/robot_speed_limits.md``.
 """
 
 from __future__ import annotations
@@ -137,7 +139,7 @@ def report(rows: list[dict[str, Any]], hands: list[str], names: list[str], args:
                          f"{_mean(hs, 'E_r'):.2f} | | {_mean(hs, 'pen'):.2f} / | | | | "
                          f"{np.median([h['wall_s'] for h in hs]):.0f} | {max(h['wall_s'] for h in hs):.0f} | | |")
     lines += ["", "## Per sequence", "", "| sequence | side | hand | retarget tip mm | raw ok | raw E_t | ok | E_t | "
-              "E_r | pen max mm | speed ratio | wall s | CPU s | human ok / E_t / E_r |",
+              "E_r | pen max mm | speed ratio (sim, command) | wall s | CPU s | human ok / E_t / E_r |",
               "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         h = human.get(r["sequence"])
@@ -145,7 +147,7 @@ def report(rows: list[dict[str, Any]], hands: list[str], names: list[str], args:
         lines.append(f"| {r['sequence']} | {r['side']} | {r['hand']} | {r['retarget_tip_mm']:.1f} | "
                      f"{'yes' if raw['success'] else 'no'} | {raw['E_t']:.2f} | {'yes' if f['success'] else 'no'} | "
                      f"{f['E_t']:.2f} | {f['E_r']:.2f} | {f['pen_max'] or 0:.2f} | "
-                     f"{f.get('velocity_ratio') or 0:.2f} | "
+                     f"{f.get('velocity_ratio') or 0:.2f}, {f.get('command_velocity_ratio') or 0:.2f} | "
                      f"{r['wall_s']:.0f} | {r.get('cpu_s', float('nan')):.0f} | "
                      + (f"{'yes' if h['success'] else 'no'} / {h['E_t']:.2f} / {h['E_r']:.2f} |"
                                                 if h else "- |"))
@@ -166,9 +168,13 @@ def main() -> int:
     ap.add_argument("--cache", type=Path, default=Path("var/bench_robot_hands.jsonl"))
     ap.add_argument("--out", type=Path, default=ROOT / "bench/results/robot_hands.md")
     ap.add_argument("--report-only", action="store_true")
+    ap.add_argument("--sequences", default=None, help="only these sequences of the sample (comma-separated names)")
     args = ap.parse_args()
     hands = args.hands.split(",")
     names = sample(args.per_side)
+    if args.sequences:
+        wanted = {n.removesuffix(".npz") for n in args.sequences.split(",")}
+        names = [n for n in names if n.removesuffix(".npz") in wanted]
     args.cache.parent.mkdir(parents=True, exist_ok=True)
     rows = [json.loads(line) for line in args.cache.read_text().splitlines()] if args.cache.exists() else []
     done = {(r["sequence"], r["hand"]) for r in rows}

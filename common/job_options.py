@@ -24,6 +24,7 @@ LossName = Literal[
     "penetration",
     "grasp_reach",
     "robot_joints",
+    "robot_speed",
     "object_articulation",
 ]
 LOSS_NAMES: tuple[str, ...] = LossName.__args__  # type: ignore[attr-defined]

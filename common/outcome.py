@@ -12,9 +12,11 @@ recorded object, ``worker.simulation.metrics``). The job's metrics (``summary["m
 ``GET /v1/jobs/{id}/metrics``) carry the same object under ``outcome``. ``reasons`` explain a result that is not
 executable, found from the sequence's own data and its simulation (``worker.refine.outcome``), most telling first;
 an executable result has none, except a rescued one (kept on the finer convex parts), which carries
-``rescued_on_finer_parts``. Each reason is one of the fixed ``ReasonCode`` set: machine-readable (code, the frame
-it concerns, a value in a stated unit) and one human sentence. The set, the units and the schema are defined here
-once, so the service, the client and the worker share them.
+``rescued_on_finer_parts``, and a robot hand's whose motion exceeds the robot's joint speed limits, which carries
+``robot_too_fast`` (the object is held in simulation, but the real hand cannot move that fast). Each reason is one
+of the fixed ``ReasonCode`` set: machine-readable (code, the frame it concerns, a value in a stated unit) and one
+human sentence. The set, the units and the schema are defined here once, so the service, the client and the worker
+share them.
 """
 
 from __future__ import annotations
@@ -64,6 +66,10 @@ class ReasonCode(StrEnum):
     #: The result was reached on the finer convex parts after every attempt on the product's parts failed
     #: (carried by executable results too). frame and value: null.
     RESCUED_ON_FINER_PARTS = "rescued_on_finer_parts"
+    #: A robot hand's simulated joints or commanded servo targets move faster than the robot's joint speed limits
+    #: (carried by executable results too: the real hand cannot follow them). value: the largest joint speed over
+    #: its limit (unit "ratio"), frame: where (``worker.robot.metrics``).
+    ROBOT_TOO_FAST = "robot_too_fast"
 
 
 #: A one-line description of each code, for documentation, the dashboard's legend and ``--help`` texts.
@@ -78,14 +84,15 @@ REASON_DESCRIPTIONS: dict[ReasonCode, str] = {
     ReasonCode.OFF_TRACK: "the object leaves the 3 cm / 30 deg limit for no reason found",
     ReasonCode.PLAN_CUT_SHORT: "the refinement stopped before its whole plan ran",
     ReasonCode.RESCUED_ON_FINER_PARTS: "kept on the object's finer convex parts",
+    ReasonCode.ROBOT_TOO_FAST: "the robot hand's joints move faster than its speed limits",
 }
 
 #: Codes that explain why a result is not executable (every code but the informative ones).
 FAILURE_CODES: frozenset[ReasonCode] = frozenset(ReasonCode) - {ReasonCode.RESCUED_ON_FINER_PARTS,
-                                                                 ReasonCode.PLAN_CUT_SHORT}
+                                                                 ReasonCode.PLAN_CUT_SHORT, ReasonCode.ROBOT_TOO_FAST}
 
 #: The units a reason's ``value`` is stated in.
-Unit = Literal["deg/frame", "cm/frame", "cm", "deg", "mm", "fraction", "evaluations", "s"]
+Unit = Literal["deg/frame", "cm/frame", "cm", "deg", "mm", "fraction", "evaluations", "s", "ratio"]
 
 
 class OutcomeReason(BaseModel):

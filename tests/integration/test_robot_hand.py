@@ -15,7 +15,7 @@ import pytest
 
 from common.job_options import JobOptions
 from common.result_format import read_arrays, read_summary, write_result_npz
-from tests.support.robot_hand import JOINTS, write_robot_hand
+from tests.support.robot_hand import JOINTS, description, write_robot_hand
 from worker.example import short_example_sequence
 from worker.refine.run import RefineOutcome, refine_sequence
 from worker.robot import resolve_hand
@@ -53,6 +53,12 @@ def test_the_robot_result_verifies_and_a_changed_description_does_not(robot_resu
     assert report.exact
     # A description whose servos are stiffer re-simulates to another trajectory: verify names what differs.
     summary, arrays = read_summary(blob), read_arrays(blob)
+    # Made with the retargeted motion within the robot's speed limits; a robot result without the key is an older
+    # one, re-derived without them (and says so).
+    assert summary["config"]["robot_joint_speed"] == "within limits"
+    older = {**summary, "config": {k: v for k, v in summary["config"].items() if k != "robot_joint_speed"}}
+    notes = check_result(write_result_npz(arrays, older)).config_notes
+    assert any("robot_joint_speed not recorded" in n for n in notes)
     summary["options"]["hand"]["actuator"] = {"kp": 200.0, "kv": 3.0}
     forged = write_result_npz(arrays, summary)
     assert check_result(forged).failures
@@ -78,3 +84,39 @@ def test_the_export_replays_the_robot_trajectory_without_hoi_refine(robot_result
                          cwd=folder, timeout=300)  # fmt: skip
     assert run.returncode == 0, run.stdout + run.stderr
     assert "OK: the replay follows the stored trajectory" in run.stdout
+
+
+def test_replay_drives_the_robot_hand_and_render_rebuilds_it(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """``hoi-refine replay --hand``: the same option as ``refine`` (help, validation), the raw replay of the robot,
+    and a result file that keeps the description so render / view / export re-simulate the same scene."""
+    from common.cli import build_parser
+    from common.cli import main as cli_main
+    from worker.example.sequences import example_sequence
+    from worker.visual.playback import resimulate
+
+    commands = next(a for a in build_parser()._actions if a.dest == "command").choices
+    assert commands is not None
+
+    def hand_help(command: str) -> str | None:
+        return next(a.help for a in commands[command]._actions if "--hand" in a.option_strings)  # type: ignore[index]
+
+    assert hand_help("replay") == hand_help("refine")
+    monkeypatch.delenv("HOI_REFINE_ROBOT_DIR", raising=False)
+    assert cli_main(["replay", "--example", "--hand", "allegro"]) == 2
+    assert "HOI_REFINE_ROBOT_DIR" in capsys.readouterr().err
+    bad = write_robot_hand(tmp_path / "bad", keypoints={**description()["keypoints"], "wrist": {"body": "gone"}})
+    assert cli_main(["replay", "--example", "--hand", str(bad)]) == 2
+    assert "hand.keypoints.wrist.body: no body named 'gone'" in capsys.readouterr().err
+    out = tmp_path / "replay.npz"
+    assert cli_main(["replay", "--example", "--hand", str(write_robot_hand(tmp_path / "ok")), "--out", str(out)]) == 0
+    blob = out.read_bytes()
+    summary, arrays = read_summary(blob), read_arrays(blob)
+    assert summary["kind"] == "replay" and summary["hand"]["name"] == "test-hand"
+    assert summary["hand_model"] == {"right": "test-hand"}
+    assert arrays["right_q_target"].shape[1] == len(JOINTS)
+    assert summary["ik_residual_mm"]["right"] < 10.0
+    # The re-simulation rebuilds the robot's scene from the stored description and reproduces the stored object
+    # trajectory (``resimulate`` raises otherwise).
+    playback = resimulate(blob, example_sequence())
+    assert list(playback.trajectories) == ["raw"]

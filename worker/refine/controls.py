@@ -180,6 +180,11 @@ class HandControlSpace:
             pos += TRANSLATION_SCALE * (dp * MIRROR_TRANSLATION if self.mirrored else dp)
         return q, pos, quat
 
+    def frame_joint_targets(self, offsets: FloatArray, frames: IntArray) -> FloatArray:
+        """Hinge targets (C, n, H) at frames (n,) for offsets (C, n, dim) there: ``controls``' first part alone."""
+        q = self._q_sub[frames * self.substeps][None] + offsets[..., :N_POSE] @ self._pose_map.T
+        return np.clip(q, self.q_limits[:, 0], self.q_limits[:, 1])
+
     def frame_controls(self, keyframes: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Per-frame hinge targets (T, H), wrist positions (T, 3), quaternions (T, 4) for the result."""
         idx = np.arange(self.num_frames) * self.substeps

@@ -66,6 +66,7 @@ def derive_result(
     references: list[HandReference] | None = None,
     threads: int = 1,
     attempt_details: list[str] | None = None,
+    robot_speed_limits: bool = True,
 ) -> Derived:
     """See the module docstring. ``attempt_keyframes`` the keyframes of every attempt (restarts) in order, stored
     so ``verify`` can check the first attempt's success too; ``attempt_details`` the convex parts each ran on
@@ -75,10 +76,11 @@ def derive_result(
     left hand's control convention, ``config.left_hand_controls``) as for ``prepare``. ``references``: the
     retargeting of these very bytes, when the caller made it already (``refine_sequence``; ``verify`` never passes
     it, so a retargeting that did not reproduce would fail there). ``threads``: replays run side by side
-    (``replay_all``; the same records whatever the number)."""
+    (``replay_all``; the same records whatever the number). ``robot_speed_limits`` as for ``prepare``
+    (``config.robot_joint_speed``)."""
     seq = sequence_from_npz_bytes(sequence_bytes)
     prep = prepare(seq, options, config, rotation_pivot=rotation_pivot, cache_dir=cache_dir, mano_dir=mano_dir,
-                   mirror_left=mirror_left, references=references)
+                   mirror_left=mirror_left, references=references, robot_speed_limits=robot_speed_limits)
     for side, space in prep.spaces.items():
         k = keyframes.get(side)
         if k is None or k.shape != (space.n_keyframes, space.dim):
@@ -98,7 +100,8 @@ def derive_result(
         on, records = prep, tried
         if detail != config.convex_detail:  # a rescued result's attempts on the product's parts, or the other way
             on = prepare(seq, options, replace(config, convex_detail=detail), rotation_pivot=rotation_pivot,
-                         cache_dir=cache_dir, mano_dir=mano_dir, mirror_left=mirror_left, references=prep.references)
+                         cache_dir=cache_dir, mano_dir=mano_dir, mirror_left=mirror_left, references=prep.references,
+                         robot_speed_limits=robot_speed_limits)
             records, more = _replays(on, _attempt_jobs([attempts[i] for i in mine]), threads)
             steps += more
         for i, rec in zip(mine, records, strict=True):

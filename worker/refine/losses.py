@@ -53,6 +53,14 @@ scale so the default weights read as "how much one scale unit of error costs":
   with q_ret the retargeted joint angles: keeps the robot near its retargeted motion in joint space, where
   ``hand_joints`` (the robot's keypoint sites against their retargeted positions) leaves the joints the sites do not
   pin free. Weight 0.1 (``ROBOT_WEIGHTS``).
+* ``robot_speed`` (robot hands only): per frame, the sum over the actuated joints of (max(0, |dq| / (v_max / fps)
+  - 1) / 0.1)^2 for the simulated joints and for the commanded servo targets, dq their step from the frame before and
+  v_max the joint's speed limit (``Embodiment.velocity_limits``; joints without one are not charged): zero while
+  the motion stays within the limits a real hand can follow (``worker.robot.metrics``' ratios), one unit for a joint
+  10 % over its limit for one frame. The retargeted motion itself is brought within the limits first
+  (``worker.robot.speed``); this term keeps the refinement's offsets from speeding it up again. At scale 1 (one unit
+  for twice the limit) the refined Allegro commands still ran 7-18 % over the limit on two DexYCB sequences
+  (``bench/results/robot_speed_limits.md``). Weight 1 (``ROBOT_WEIGHTS``).
 
 * ``object_articulation`` (an articulated object only, issue #52): per joint |a_sim - a_ref| / 0.04 rad (or / 1 cm
   for a sliding part), the scale of ``object_pose``'s rotation and position parts, plus (max(0, |a_sim - a_ref| -
@@ -92,9 +100,10 @@ DEFAULT_WEIGHTS: dict[str, float] = {
     "object_articulation": 1.0,
 }
 #: Terms only a robot hand has (``HandKeypointTargets.joint_targets``), added to the defaults for one.
-ROBOT_WEIGHTS: dict[str, float] = {"robot_joints": 0.1}
+ROBOT_WEIGHTS: dict[str, float] = {"robot_joints": 0.1, "robot_speed": 1.0}
 assert set(DEFAULT_WEIGHTS) | set(ROBOT_WEIGHTS) == set(LOSS_NAMES)
 JOINT_SCALE = 0.1  # rad
+SPEED_EXCESS_SCALE = 0.1  # ``robot_speed``: a joint's speed over its limit, as a fraction of the limit
 
 POSE_ETA = 0.5
 ROT_SCALE = 0.04  # rad
@@ -187,6 +196,10 @@ class HandKeypointTargets:
     surface: Callable[[FloatArray], FloatArray] | None = None
     #: (T, H) the retargeted joint angles of a robot hand (``robot_joints``); None: the human hand.
     joint_targets: FloatArray | None = None
+    #: (H,) a robot's joint speed limits as steps per frame (rad; inf: none) and the map from offsets (C, n, dim)
+    #: at frames (n,) to its commanded joint targets (C, n, H) (``robot_speed``); None: the term is off.
+    step_limits: FloatArray | None = None
+    commands: Callable[[FloatArray, npt.NDArray[np.int64]], FloatArray] | None = None
     #: An articulated object: the part each contact target is on (T, n_tips), its parts' surfaces (then
     #: ``contact_local`` is in that part's frame and ``surface`` is unused).
     contact_part: npt.NDArray[np.int64] | None = None
@@ -402,7 +415,18 @@ def hand_terms(rec: WindowRecord, side: str, ref: HandKeypointTargets) -> dict[s
     if ref.joint_targets is not None and side in rec.joints:
         dq = (rec.joints[side] - ref.joint_targets[f][None]) / JOINT_SCALE
         out["robot_joints"] = (np.mean(dq**2, axis=2) * valid).sum(axis=1)
+    if ref.step_limits is not None and ref.commands is not None:
+        command = ref.commands(offs, np.r_[f[0] - 1, f])  # (C, F + 1, H)
+        out["robot_speed"] = speed_excess(command, ref.step_limits)
+        if side in rec.joints:
+            out["robot_speed"] = out["robot_speed"] + speed_excess(rec.joints[side], ref.step_limits)
     return out
+
+
+def speed_excess(q: FloatArray, step_limits: FloatArray) -> FloatArray:
+    """(C,) ``robot_speed`` of joint tracks (C, n, H) against steps per frame (H,) (inf: no limit)."""
+    over = np.maximum(np.abs(np.diff(q, axis=1)) / step_limits - 1.0, 0.0) / SPEED_EXCESS_SCALE
+    return np.asarray((over**2).sum(axis=(1, 2)))
 
 
 def window_losses(

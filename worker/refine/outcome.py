@@ -12,7 +12,8 @@ the paper's protocol) and, for a result that is not, every reason found, most te
 * then what the simulated object did: never lifted (``not_lifted``), slipped out of a hand that held it
   (``slipped``), or left the limit for no reason found (``off_track``);
 * then informative ones: a recorded step too fast away from the failing frames, ``plan_cut_short``,
-  ``rescued_on_finer_parts`` (the only one an executable result can carry).
+  ``rescued_on_finer_parts`` and ``robot_too_fast`` (a robot hand's joints or servo targets beyond its speed
+  limits, ``worker.robot.metrics``): the only ones an executable result can carry.
 
 Everything is deterministic and cheap (one object-alone simulation of the approach, forward kinematics of the
 recorded poses), so ``verify`` recomputes it. ``tail_cut_reason`` is the check ``worker.refine.run`` makes after a
@@ -115,7 +116,23 @@ def classify_outcome(
         reasons.append(OutcomeReason(code=ReasonCode.RESCUED_ON_FINER_PARTS,
                                      message="Every attempt on the object's convex parts failed; this result was "
                                              "reached on its finer convex parts."))
+    reasons += robot_too_fast(refined)
     return Outcome(executable=executable, reasons=reasons)
+
+
+def robot_too_fast(refined: dict[str, Any]) -> list[OutcomeReason]:
+    """``robot_too_fast`` for each robot hand whose joints or commands exceed its speed limits (``refined``'s
+    ``robot`` metrics; none for the human hand)."""
+    out = []
+    for side, m in sorted((refined.get("robot") or {}).items()):
+        if not m.get("speed_limit_exceeded"):
+            continue
+        sim, command = m["velocity_ratio"], m["command_velocity_ratio"]
+        out.append(OutcomeReason(
+            code=ReasonCode.ROBOT_TOO_FAST, frame=m.get("speed_limit_frame"), value=round(max(sim, command), 3),
+            unit="ratio", message=f"The {side} robot hand's joints move at up to {sim:.2f}x its joint speed limit "
+                                  f"(servo targets {command:.2f}x): the real hand cannot follow this motion."))
+    return out
 
 
 def was_rescued(prep: Prepared) -> bool:

@@ -82,6 +82,8 @@ class Prepared:
     #: The MANO model folder the references were made with (None: no MANO hand), for the result's MANO arrays.
     mano_dir: Path | None = None
     mirror_left: bool = True  # a left hand's control coordinates mirror a right hand's (``prepare``)
+    #: A robot hand's retargeted motion is brought within its joint speed limits (``prepare``).
+    robot_speed_limits: bool = True
 
     @property
     def num_frames(self) -> int:
@@ -160,6 +162,7 @@ def prepare(
     mano_dir: Path | None = None,
     mirror_left: bool | None = None,
     references: list[HandReference] | list[Any] | None = None,
+    robot_speed_limits: bool = True,
 ) -> Prepared:
     """``rotation_pivot``: ``ROTATION_PIVOT`` when None (``verify`` passes the one a result was made with).
     ``cache_dir``: where convex parts are cached (None: memory only); ``mano_dir``: the MANO model folder
@@ -168,14 +171,16 @@ def prepare(
     ``controls``); ``MIRROR_LEFT_HAND`` when None; False reproduces results made before issue #15, which
     recorded no ``config.left_hand_controls``. ``references``: this very sequence's ``retarget_sequence`` output
     when the caller has it already (``derive`` from the refinement, which read the same bytes); retargeting is
-    a third of a preparation."""
+    a third of a preparation. ``robot_speed_limits``: a robot hand's retargeted motion is brought within its joint
+    speed limits (``worker.robot.speed``); False reproduces robot results made before that
+    (``config.robot_joint_speed`` absent)."""
     if mirror_left is None:
         mirror_left = MIRROR_LEFT_HAND
     config = config or SimConfig()
     if references is None:
         references = retarget_sequence(seq, mano_dir=mano_dir)
         if options.hand is not None:  # a robot hand: the recorded hand retargeted to it (issue #55)
-            references = robot_references(references, options.hand)
+            references = robot_references(references, options.hand, float(seq.fps) if robot_speed_limits else None)
     scene = build_scene(seq, references, config, cache_dir=cache_dir)
     layout = SimLayout.from_scene(scene)
     interval = options.keyframe_interval or default_keyframe_interval(seq.fps)
@@ -215,8 +220,11 @@ def prepare(
             pivot=None if pivot is None else lead_values(pivot, lead),
             mirrored=mirror_left and r.side == "left",
         )
+    for r in robots:  # the ``robot_speed`` term: the commands and joints against the robot's speed limits
+        hands[r.side].step_limits = r.embodiment.velocity_limits / float(seq.fps)
+        hands[r.side].commands = spaces[r.side].frame_joint_targets
     return Prepared(seq, options, interval, references, scene, layout, spaces, obj, hands, provenance, pivot_kind,
-                    mano_dir, mirror_left)
+                    mano_dir, mirror_left, robot_speed_limits)
 
 
 def _hand_targets(

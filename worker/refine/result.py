@@ -45,6 +45,9 @@ RESULT_KIND = "refine"
 #: The visual tools' tolerance on a re-simulated object trajectory (m): on the same build it reproduces bit for
 #: bit (``verify`` has its own, cross-host tolerances: ``worker.verification.report``).
 VERIFY_TOLERANCE_M = 1e-6
+#: ``config.robot_joint_speed`` of a robot hand's result: whether its retargeted motion was brought within the
+#: robot's joint speed limits (``prepare.prepare(robot_speed_limits=...)``).
+ROBOT_JOINT_SPEED = {True: "within limits", False: "as retargeted"}
 
 
 def build_summary(
@@ -89,6 +92,10 @@ def build_summary(
             # "mirrored": a left hand's coordinates mirror a right hand's (``prepare.prepare(mirror_left=...)``);
             # results without this key were made with the right hand's coordinates for both sides.
             "left_hand_controls": "mirrored" if prep.mirror_left else "as right",
+            # A robot hand's: "within limits", its retargeted motion brought within its joint speed limits
+            # (``prepare.prepare(robot_speed_limits=...)``); robot results without this key were made without.
+            **({"robot_joint_speed": ROBOT_JOINT_SPEED[prep.robot_speed_limits]}
+               if prep.options.hand is not None else {}),
             "pose_basis": prep.basis_provenance,
         },
         "versions": versions(),
@@ -138,6 +145,7 @@ def prepare_from_result(
     prep = prepare(sequence, options, sim_config_from_summary(summary["config"]["sim"]),
                    rotation_pivot=summary["config"].get("rotation_pivot", "wrist"), cache_dir=cache_dir,
                    mano_dir=mano_dir, mirror_left=summary["config"].get("left_hand_controls") == "mirrored",
+                   robot_speed_limits=summary["config"].get("robot_joint_speed") == ROBOT_JOINT_SPEED[True],
                    )  # fmt: skip
     keyframes = {}
     for side, space in prep.spaces.items():

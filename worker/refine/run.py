@@ -297,6 +297,7 @@ def refine_sequence(
     derived = derive_result(seq_bytes, options, prep.scene.config, prep.rotation_pivot, keyframes,
                             tried if len(tried) > 1 else None, cache_dir=cache_dir, mano_dir=mano_dir,
                             mirror_left=prep.mirror_left, references=prep.references,
+                            robot_speed_limits=prep.robot_speed_limits,
                             threads=threads,
                             attempt_details=[a["convex_detail"] for a in attempts] if len(tried) > 1 else None)
     derive_s = time.perf_counter() - t_derive

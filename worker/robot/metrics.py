@@ -11,6 +11,8 @@ From a replay's per-frame joint positions (F, H) and the peak actuator force of 
 * ``peak_velocity`` (rad/s) and ``velocity_ratio`` = the largest |dq/dt| / the joint's speed limit (URDF ``limit
   velocity`` or the description's; None without), by central differences at the frame rate, for the simulated
   joints and for the commanded servo targets (``command_velocity_ratio``): above 1 the motion is too fast to send;
+* ``speed_limit_exceeded``: whether either ratio is above 1 (None without limits), and ``speed_limit_frame`` the
+  frame of the larger one's peak (None within the limits): the outcome says so (``robot_too_fast``);
 * ``peak_acceleration`` (rad/s²): the largest |d²q/dt²| of the simulated joints (the models give no limit).
 """
 
@@ -49,6 +51,13 @@ def robot_motion_metrics(q_sim: FloatArray, q_command: FloatArray, force_peak: F
     out["peak_acceleration"] = float(np.abs(acc).max())
     vmax = np.where(np.isfinite(velocity_limits) & (velocity_limits > 0), velocity_limits, np.nan)
     has_v = bool(np.isfinite(vmax).any())
-    out["velocity_ratio"] = float(np.nanmax(np.abs(vel).max(axis=0) / vmax)) if has_v else None
-    out["command_velocity_ratio"] = float(np.nanmax(np.abs(cmd_vel).max(axis=0) / vmax)) if has_v else None
+    out["velocity_ratio"] = out["command_velocity_ratio"] = out["speed_limit_exceeded"] = None
+    out["speed_limit_frame"] = None
+    if has_v:
+        ratios = [np.nan_to_num(np.abs(v) / vmax) for v in (vel, cmd_vel)]  # (F, H) each
+        out["velocity_ratio"], out["command_velocity_ratio"] = (float(r.max()) for r in ratios)
+        peak = max(ratios, key=lambda r: float(r.max()))
+        out["speed_limit_exceeded"] = bool(peak.max() > 1.0)
+        if out["speed_limit_exceeded"]:
+            out["speed_limit_frame"] = int(np.unravel_index(int(np.argmax(peak)), peak.shape)[0])
     return out

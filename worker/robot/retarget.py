@@ -17,6 +17,10 @@ MuJoCo's site Jacobians (``mj_jacSite``), with the joints held at a limit the st
 active set; clipping after the step alone stalled against the limits and left the fingertips 12-22 mm off where
 mink, a QP-based IK, reached 1 mm: ``bench/results/robot_retarget.md``); the object is ignored (the refinement
 makes the grasp hold).
+
+Given the frame rate, each joint's track is then brought within the robot's joint speed limits
+(``worker.robot.speed.speed_limited``) and the keypoint sites recomputed on it: the reference the refinement
+keeps the robot near is one the real hand can follow.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ from worker.hand.retarget import kabsch
 from worker.robot.embodiment import Embodiment
 from worker.robot.fragment import robot_fragment
 from worker.robot.reference import RobotReference
+from worker.robot.speed import speed_limited
 from worker.simulation.config import SimConfig
 
 TIP_WEIGHT = 1.0
@@ -101,8 +106,9 @@ def fit_mount(emb: Embodiment, human: HandReference) -> tuple[FloatArray, FloatA
     return shift[0], matrix_to_quat(rot[0])
 
 
-def retarget_robot(human: HandReference, emb: Embodiment) -> RobotReference:
-    """The robot's reference for one recorded hand (see the module docstring)."""
+def retarget_robot(human: HandReference, emb: Embodiment, fps: float | None = None) -> RobotReference:
+    """The robot's reference for one recorded hand (see the module docstring); with ``fps``, within the joint
+    speed limits."""
     model, layout = ik_model(emb)
     data = mujoco.MjData(model)
     ids = list(emb.keypoint_ids)
@@ -123,6 +129,13 @@ def retarget_robot(human: HandReference, emb: Embodiment) -> RobotReference:
         q_prev = data.qpos[layout.qpos_adr].copy()
         out_pos[t], out_quat[t], out_q[t] = data.qpos[:3], data.qpos[3:7], q_prev
         out_sites[t] = data.site_xpos[layout.site_ids]
+    if fps is not None:
+        limited = speed_limited(out_q, emb.velocity_limits, fps, emb.q_limits)
+        for t in np.flatnonzero((limited != out_q).any(axis=1)).tolist():
+            data.qpos[:3], data.qpos[3:7], data.qpos[layout.qpos_adr] = out_pos[t], out_quat[t], limited[t]
+            mujoco.mj_kinematics(model, data)
+            out_sites[t] = data.site_xpos[layout.site_ids]
+        out_q = limited
     # Sign-continuous quaternions, as the human wrist track is.
     flip = np.cumprod(np.r_[1.0, np.sign(np.sum(out_quat[1:] * out_quat[:-1], axis=1) + 1e-12)])
     return RobotReference(human.side, emb, out_pos, out_quat * flip[:, None], out_q, out_sites, targets,
@@ -192,7 +205,8 @@ def _log(rot: FloatArray) -> FloatArray:
     return v * angle / (2.0 * np.sin(angle))
 
 
-def robot_references(human: list[HandReference], desc: HandDescription) -> list[RobotReference]:
+def robot_references(human: list[HandReference], desc: HandDescription, fps: float | None = None
+                     ) -> list[RobotReference]:
     """The recorded hands' references (``worker.hand.retarget.retarget_sequence``) retargeted to the robot hand
-    ``desc`` describes, one per side."""
-    return [retarget_robot(r, Embodiment.from_description(desc, r.side)) for r in human]
+    ``desc`` describes, one per side; with ``fps`` (the recording's), within the joint speed limits."""
+    return [retarget_robot(r, Embodiment.from_description(desc, r.side), fps) for r in human]

@@ -3,7 +3,10 @@
 ``raw_replay(seq)`` retargets every hand, builds the scene, simulates the object from its rest pose
 (``rest_pose``) and returns trajectories, contacts, metrics and timings; ``replay_result_bytes`` writes
 it in the ``common.result_format`` layout (summary: ``metrics.raw``, config, versions, timings, IK residual,
-hand model), plus ``S_mano_*`` parameters of the driven pose for hands whose reference came from MANO. The
+hand model), plus ``S_mano_*`` parameters of the driven pose for hands whose reference came from MANO. With
+``hand`` (a packed robot hand description, issue #55) the recorded hand is retargeted to that robot
+(``worker.robot.retarget``) and the summary keeps the description (``hand``), so render, view and export rebuild
+the same scene. The
 timings are all wall clock (``*_s``, ``steps_per_second``): the file stores them in ``timings_json``; the
 deterministic step count is ``simulated_steps``.
 """
@@ -21,6 +24,7 @@ import mujoco
 import numpy as np
 
 from common.cpu_kind import cpu_model, numpy_simd
+from common.hand_description import HandDescription
 from common.result_format import write_result_npz
 from common.sequence import Sequence
 from worker.hand.mano.pose import reference_mano_arrays
@@ -43,7 +47,7 @@ class ReplayResult:
     """Everything a raw replay produced. ``timings`` in seconds; ``steps`` counts settle + rollout steps."""
 
     sequence: str
-    references: list[HandReference]
+    references: list[Any]  # HandReference, or RobotReference for a robot hand
     scene: Scene
     controls: Controls
     record: RolloutRecord
@@ -53,6 +57,7 @@ class ReplayResult:
     steps: int = 0
     mano_arrays: dict[str, np.ndarray] = field(default_factory=dict)  # S_mano_* of MANO hands
     articulation_ref: np.ndarray | None = None  # (F, J) recorded joint values of an articulated object
+    hand: HandDescription | None = None  # the robot hand driven (None: the human hand)
 
     @property
     def contacts(self) -> dict[str, np.ndarray]:
@@ -60,7 +65,16 @@ class ReplayResult:
         return self.record.contacts
 
     def ik_residual_mm(self) -> dict[str, float]:
-        return {r.side: r.mean_residual_mm() for r in self.references}
+        """Per side, the retargeting's mean keypoint residual (a robot's: its sites to the human keypoints)."""
+        return {r.side: r.mean_residual_mm() if isinstance(r, HandReference)
+                else float(np.mean(r.residual_mm()[r.valid])) if r.valid.any() else float("nan")
+                for r in self.references}
+
+
+def residual_mm(ref: Any) -> np.ndarray:
+    """(T,) a reference's keypoint residual (mm): ``HandReference.residual_mm``, or a robot's sites to the human
+    keypoints they follow (``RobotReference.residual_mm()``)."""
+    return np.asarray(ref.residual_mm() if callable(ref.residual_mm) else ref.residual_mm)
 
 
 def versions() -> dict[str, str]:
@@ -87,12 +101,20 @@ def raw_replay(
     *,
     cache_dir: Path | None = None,
     mano_dir: Path | None = None,
+    hand: HandDescription | None = None,
 ) -> ReplayResult:
     """Retarget, build the scene and replay the reference open-loop; see the module docstring. ``cache_dir``:
-    where convex parts are cached (None: memory only); ``mano_dir``: the MANO model folder (None: no MANO)."""
+    where convex parts are cached (None: memory only); ``mano_dir``: the MANO model folder (None: no MANO);
+    ``hand``: a packed robot hand description to drive instead of the human hand."""
     config = config or SimConfig()
     t0 = time.perf_counter()
-    references = retarget_sequence(seq, mano_dir=mano_dir)
+    references: list[Any] = list(retarget_sequence(seq, mano_dir=mano_dir))
+    fingertips = None
+    if hand is not None:
+        from worker.robot.retarget import robot_references
+
+        references = list(robot_references(references, hand, float(seq.fps)))
+        fingertips = {r.side: tuple(r.embodiment.fingertips) for r in references}
     t1 = time.perf_counter()
     scene = build_scene(seq, references, config, cache_dir=cache_dir)
     data = scene.make_data()
@@ -113,6 +135,7 @@ def raw_replay(
         {r.side: r.valid for r in references},
         record.contact_frames,
         articulation_frames(seq, record.articulation),
+        fingertips,
     )
     steps = settle_steps + record.steps
     mano_arrays: dict[str, np.ndarray] = {}
@@ -137,6 +160,7 @@ def raw_replay(
         steps=steps,
         mano_arrays=mano_arrays,
         articulation_ref=seq.articulation,
+        hand=hand,
     )
 
 
@@ -150,7 +174,8 @@ def articulation_frames(seq: Sequence, simulated: np.ndarray | None) -> Articula
 def replay_summary(result: ReplayResult) -> dict[str, Any]:
     """The JSON summary stored in the result file."""
     cfg = result.scene.config.to_dict()
-    return {
+    robot = result.hand is not None
+    summary = {
         "kind": "replay",
         "sequence": result.sequence,
         "fps": result.scene.fps,
@@ -161,13 +186,17 @@ def replay_summary(result: ReplayResult) -> dict[str, Any]:
         "timings": result.timings,
         "simulated_steps": result.steps,
         "ik_residual_mm": result.ik_residual_mm(),
-        "hand_length_m": {r.side: r.geometry.hand_length for r in result.references},
-        "hand_model": {r.side: "MANO" if r.from_mano else "built-in" for r in result.references},
+        "hand_length_m": {} if robot else {r.side: r.geometry.hand_length for r in result.references},
+        "hand_model": {r.side: result.hand.name if result.hand is not None else "MANO" if r.from_mano else "built-in"
+                       for r in result.references},
         "object_collision": result.scene.object_collision,
         "table": result.scene.table.to_dict(),
         "object_hold": result.scene.hold_summary(),
         "num_contacts": len(result.contacts["contact_frame"]),
     }
+    if result.hand is not None:  # the packed description: render / view / export rebuild the robot's scene
+        summary["hand"] = result.hand.model_dump(mode="json")
+    return summary
 
 
 def replay_arrays(result: ReplayResult) -> dict[str, np.ndarray]:
@@ -186,7 +215,7 @@ def replay_arrays(result: ReplayResult) -> dict[str, np.ndarray]:
         arrays[f"{s}_keypoints_sim"] = rec.keypoints[s]
         arrays[f"{s}_keypoints_ref"] = ref.keypoints
         arrays[f"{s}_valid"] = ref.valid
-        arrays[f"{s}_ik_residual_mm"] = ref.residual_mm
+        arrays[f"{s}_ik_residual_mm"] = residual_mm(ref)
     if rec.articulation is not None and result.articulation_ref is not None:
         arrays["object_articulation_sim"] = rec.articulation
         arrays["object_articulation_ref"] = result.articulation_ref

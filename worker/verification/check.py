@@ -46,6 +46,7 @@ from common.sequence_io import sequence_to_npz_bytes
 from worker.refine.derive import STATE_KEYS, derive_result
 from worker.refine.environment import versions
 from worker.refine.prepare import MIRROR_LEFT_HAND, ROTATION_PIVOT
+from worker.refine.result import ROBOT_JOINT_SPEED
 from worker.simulation.config import CONVEX_DETAILS, OLDER_SIM_DEFAULTS, SimConfig
 from worker.verification.arrays import ArrayChecker, check_stored_metrics
 from worker.verification.report import CROSS_HOST, STEPWISE, Tolerances, VerifyReport
@@ -104,6 +105,7 @@ def check_result(
     config = summary.get("config", {})
     sim, pivot, mirror_left = _config(config, report, allow_config)
     options = JobOptions.model_validate(summary["options"])
+    robot_speed = _robot_joint_speed(config, report) if options.hand is not None else True
     sides = list(summary.get("sides") or [k[: -len("_keyframes")] for k in arrays if k.endswith("_keyframes")
                                           and not k.endswith("_attempt_keyframes")])
     keyframes = {s: arrays.get(f"{s}_keyframes") for s in sides}
@@ -112,7 +114,7 @@ def check_result(
     try:
         derived = derive_result(seq_bytes, options, SimConfig(**sim), pivot, keyframes,  # type: ignore[arg-type]
                                 attempt_kf, cache_dir=cache_dir, mano_dir=mano_dir, mirror_left=mirror_left,
-                                threads=threads, attempt_details=details)
+                                threads=threads, attempt_details=details, robot_speed_limits=robot_speed)
     except ValueError as exc:
         raise ResultMismatchError(f"the stored controls do not fit the sequence: {exc}") from exc
     _check_rescue(report, sim["convex_detail"], details, derived.attempt_metrics, allow_config)
@@ -153,6 +155,19 @@ def check_result(
 
 
 # ---------------------------------------------------------------------------------------------- config
+
+
+def _robot_joint_speed(config: dict[str, Any], report: VerifyReport) -> bool:
+    """Whether a robot hand's result was made with its retargeted motion within the joint speed limits
+    (``config.robot_joint_speed``; robot results made before it have no key and were not)."""
+    recorded = config.get("robot_joint_speed")
+    if recorded is None:
+        report.config_notes.append(f"robot_joint_speed not recorded (older result): read as "
+                                   f"{ROBOT_JOINT_SPEED[False]!r}")
+        return False
+    if recorded not in ROBOT_JOINT_SPEED.values():
+        raise UnsupportedFormatError(f"config.robot_joint_speed: unknown value {recorded!r}")
+    return bool(recorded == ROBOT_JOINT_SPEED[True])
 
 
 def _config(config: dict[str, Any], report: VerifyReport, allow_config: bool) -> tuple[dict[str, Any], str, bool]:

@@ -127,7 +127,9 @@ def _prepare(
     from worker.refine.prepare import prepare
 
     # The refinement's zero-offset replay is the raw replay (same controls, same start): checked below.
-    prep = prepare(sequence, JobOptions(), sim_config_from_summary(summary["config"]), cache_dir=cache_dir,
+    # A robot hand's replay keeps its packed description (``hoi-refine replay --hand``).
+    options = JobOptions.model_validate({"hand": summary["hand"]}) if summary.get("hand") else JobOptions()
+    prep = prepare(sequence, options, sim_config_from_summary(summary["config"]), cache_dir=cache_dir,
                    mano_dir=mano_dir)  # fmt: skip
     return prep, {side: sp.zero_keyframes() for side, sp in prep.spaces.items()}
 
