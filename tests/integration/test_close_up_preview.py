@@ -34,7 +34,7 @@ def test_a_job_with_the_option_gets_the_close_up_and_its_link_resolves(
 ) -> None:
     from worker.visual import read_mp4
 
-    ids = {}
+    ids: dict[str, str] = {}
     for name, options in (("close", {"preview_close_up": True}), ("default", {})):
         resp = api.client.post("/v1/jobs", json=json_body(len(ids), **options), headers=api.headers)
         assert resp.status_code == 202, resp.text

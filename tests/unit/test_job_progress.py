@@ -5,9 +5,10 @@ apart from the refinement's."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from common.progress import STEPS, finished_progress
-from worker.refine.job_progress import RESERVE_PER_PASS, TAIL_PASSES, JobProgress
+from worker.refine.job_progress import CLOSE_UP_PASSES, RESERVE_PER_PASS, TAIL_PASSES, JobProgress
 from worker.refine.windowed import RefineProgress
 from worker.runtime.heartbeat import Heartbeat
 
@@ -105,6 +106,16 @@ def test_the_rescues_compilation_has_a_stage_holds_the_bar_and_stays_out_of_the_
     clock.now += 2.0
     # The verification as long as the derivation, then the preview at under 20 s a pass (CoACD's 300 s left out).
     assert tracker.stage("verify")["eta_s"] < 2.0 + TAIL_PASSES["preview"] * 20.0
+
+
+def test_the_close_up_weighs_on_the_previews_eta() -> None:
+    etas = []
+    for close_up in (False, True):
+        clock = Clock()
+        tracker = JobProgress(0, polish=False, verify=True, preview=True, close_up=close_up, clock=clock)
+        etas.append(_run(tracker, clock, [_pass(4, attempts=1)])[-1]["eta_s"])  # the preview starts
+    # Six seconds a pass (from its first report to the derivation): the close-up adds its share of a pass.
+    assert etas[1] - etas[0] == pytest.approx(CLOSE_UP_PASSES * 6.0, abs=0.11)
 
 
 def test_a_plan_that_does_not_grow_fills_the_bar_in_proportion() -> None:

@@ -30,6 +30,9 @@ from worker.refine.windowed import RefineProgress
 #: measured its own, of the ETA. Measured on DexYCB jobs (bench/results/speed_experiments.md): a pass takes tens
 #: of seconds, the derivation and the worker's verification well under one each, the preview 2-3 s.
 TAIL_PASSES: dict[str, float] = {"derive": 0.05, "verify": 0.05, "preview": 0.15}
+#: What the close-up video (``JobOptions.preview_close_up``) adds to the preview's weight: two thirds of the preview
+#: again (bench/results/video_framing.md: 8.3 -> 13.8 s at 640x480).
+CLOSE_UP_PASSES = 0.1
 #: No ETA until this much of a pass and this many seconds have run: the first generations' pace says little, and
 #: the first windows are often skipped in milliseconds (no hand near the object yet).
 MIN_PACE_PASSES = 0.02
@@ -44,16 +47,17 @@ RESERVE_PER_PASS = 1.0
 class JobProgress:
     """The progress of one job refined with ``restarts`` and ``polish`` (``JobOptions``); ``verify`` / ``preview``:
     whether the job verifies its result and draws a preview after the refinement (the worker's job does both;
-    ``hoi-refine refine`` neither)."""
+    ``hoi-refine refine`` neither); ``close_up``: the preview draws the close-up video too."""
 
     def __init__(self, restarts: int, polish: bool = True, *, verify: bool = False, preview: bool = False,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 close_up: bool = False, clock: Callable[[], float] = time.monotonic) -> None:
         self._clock = clock
         self._t0 = clock()
         self._attempts = restarts + 1
         self._polish = polish
         self._passes_started = 0
         self._tail = ["derive", *(["verify"] if verify else []), *(["preview"] if preview else [])]
+        self._weights = {**TAIL_PASSES, "preview": TAIL_PASSES["preview"] + (CLOSE_UP_PASSES if close_up else 0.0)}
         self._passes_done = 0.0  # finished passes of the window loop
         self._pass: tuple[bool, int, int] | None = None  # (rescue, attempt, polish sweep) of the running pass
         self._pass_fraction = 0.0
@@ -117,7 +121,7 @@ class JobProgress:
         if self._step == "derive":
             self._derive_s = now - self._step_started_at
         order = self._tail.index(step)
-        self._tail_done = sum(TAIL_PASSES[s] for s in self._tail[:order])
+        self._tail_done = sum(self._weights[s] for s in self._tail[:order])
         self._step, self._step_started_at = step, now
         return self._document({})
 
@@ -143,7 +147,7 @@ class JobProgress:
     # ------------------------------------------------------------------ the plan and the document
 
     def _tail_units(self) -> float:
-        return sum(TAIL_PASSES[s] for s in self._tail)
+        return sum(self._weights[s] for s in self._tail)
 
     def _done(self) -> float:
         """Work done, in passes: the finished passes, the running one's share and the tail's finished steps."""
@@ -203,7 +207,7 @@ class JobProgress:
     def _tail_seconds(self, step: str, pace: float) -> float:
         if step in ("derive", "verify") and self._derive_s is not None:
             return self._derive_s  # the verification repeats the derivation
-        return TAIL_PASSES[step] * pace
+        return self._weights[step] * pace
 
     def _document(self, fields: dict[str, Any]) -> dict[str, Any]:
         now = self._clock()

@@ -76,7 +76,8 @@ class RefineJob:
 
         # One document over the whole job (``common.progress``): the refinement's passes, then the derivation,
         # the verification below and the preview the worker loop draws after this function.
-        tracker = JobProgress(options.restarts, options.polish, verify=True, preview=options.preview_video)
+        tracker = JobProgress(options.restarts, options.polish, verify=True, preview=options.preview_video,
+                              close_up=options.preview_video and options.preview_close_up)
         progress(tracker.preparing())
         seq = sequence_from_npz_bytes(payload)
         if self._evaluator is None:
