@@ -9,8 +9,9 @@ does, and writes ``docs/dexycb_frame.png`` (the first frame where the simulated 
     .venv/bin/python bench/docs_pictures.py [--sequence PATH | --result PATH] [--prefix NAME]
     .venv/bin/python bench/docs_pictures.py --arctic RESULT [--frame F] [--camera AZIMUTH,ELEVATION,DISTANCE]
 
-``--prefix allegro --result R.npz`` writes ``docs/allegro_frame.png`` / ``_errors.png`` from a robot hand's result
-(issue #55: ``hoi-refine refine SEQ --hand allegro``).
+``--prefix allegro --result R.npz`` writes ``docs/allegro_frame.png`` / ``_closeup.png`` / ``_errors.png`` from a
+robot hand's result (issue #55: ``hoi-refine refine SEQ --hand allegro --robot-dir DEX_URDF``, the default
+sequence).
 
 ``--arctic`` takes a refinement result of an ARCTIC sequence (``bench/arctic.py`` writes them under var/arctic/)
 and writes ``docs/arctic_frame.png``: the refined replay at frame F (default: the frame where the joint is

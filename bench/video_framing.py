@@ -6,7 +6,8 @@ writes ``bench/results/video_framing.md``:
 * the refined hand's keypoints' extent in pixels at the docs frame (the first where the object has risen 60 % of its
   lift), with the automatic camera and with the close-up, at 320x240 and 640x480 panels;
 * the stored preview's wall time (``preview_artifacts``: video, plots, recording, export) at 320x240 and 640x480,
-  the two sizes alternated ``--rounds`` times after a warm-up, and the video's size.
+  and at 640x480 with the close-up video (``preview_close_up``), the three alternated ``--rounds`` times after a
+  warm-up, and the videos' sizes.
 
     .venv/bin/python bench/video_framing.py [--result R.npz | --sequence S.npz] [--rounds 3]
 """
@@ -25,6 +26,8 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 SIZES = ((320, 240), (640, 480))
+#: The timed previews: (panel size, with the close-up video).
+PREVIEWS = (((320, 240), False), ((640, 480), False), ((640, 480), True))
 
 
 def main() -> int:
@@ -58,7 +61,7 @@ def main() -> int:
 
     from worker.visual.framing import View, project
     from worker.visual.playback import resimulate
-    from worker.visual.preview import VIDEO, preview_artifacts
+    from worker.visual.preview import CLOSE_UP, VIDEO, preview_artifacts
     from worker.visual.render import auto_camera
 
     pb = resimulate(blob)
@@ -79,19 +82,21 @@ def main() -> int:
                 view = "close-up" if close_up else "automatic"
                 share = 100 * sx * sy / (w * h)
                 lines.append(f"| {view} ({side} hand) | {w}x{h} | {sx:.0f} x {sy:.0f} | {share:.1f} % |")
-    preview_artifacts(blob, SIZES[0])  # warm-up: imports, the scene's convex parts
-    seconds: dict[tuple[int, int], list[float]] = {s: [] for s in SIZES}
-    video_kib: dict[tuple[int, int], int] = {}
+    preview_artifacts(blob, SIZES[0], close_up=True)  # warm-up: imports, the scene's convex parts
+    seconds: dict[tuple[tuple[int, int], bool], list[float]] = {p: [] for p in PREVIEWS}
+    video_kib: dict[tuple[tuple[int, int], bool], str] = {}
     for _ in range(args.rounds):
-        for size in SIZES:
+        for size, close_up in PREVIEWS:
             t0 = time.perf_counter()
-            parts = preview_artifacts(blob, size)
-            seconds[size].append(time.perf_counter() - t0)
-            video_kib[size] = next(len(p.data) for p in parts if p.name == VIDEO) // 1024
+            parts = preview_artifacts(blob, size, close_up=close_up)
+            seconds[size, close_up].append(time.perf_counter() - t0)
+            video_kib[size, close_up] = " + ".join(str(len(p.data) // 1024) for p in parts
+                                                   if p.name in (VIDEO, CLOSE_UP))  # fmt: skip
     lines += ["", "| preview panel | wall s (each round) | median s | video KiB |", "|---|---|---|---|"]
-    for size, values in seconds.items():
-        lines.append(f"| {size[0]}x{size[1]} | {', '.join(f'{v:.2f}' for v in values)} | "
-                     f"{float(np.median(values)):.2f} | {video_kib[size]} |")  # fmt: skip
+    for (size, close_up), values in seconds.items():
+        lines.append(f"| {size[0]}x{size[1]}{' + close-up' if close_up else ''} | "
+                     f"{', '.join(f'{v:.2f}' for v in values)} | {float(np.median(values)):.2f} | "
+                     f"{video_kib[size, close_up]} |")  # fmt: skip
     text = "\n".join(lines) + "\n"
     print(text)
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -86,8 +86,16 @@ class JobOptions(BaseModel):
     priority: JsonInt = Field(default=0, ge=-100, le=100, description="Higher runs first (queue only)")
     preview_video: bool = Field(
         default=True,
-        description="After the job succeeds, the worker also renders a preview video (320x240 per panel, raw vs "
+        description="After the job succeeds, the worker also renders a preview video (640x480 per panel, raw vs "
         "refined), plots, a Rerun recording and a plain-MuJoCo export, served under /v1/jobs/{id}/video etc. "
+        "(the service only; no effect on the result)",
+    )
+    # Off by default: the preview already costs seconds per job, and the close-up's video adds to that
+    # (bench/results/video_framing.md). Ignored without preview_video, so that no pair of values is refused.
+    preview_close_up: bool = Field(
+        default=False,
+        description="With preview_video: also a close-up video (the camera follows the recorded object and frames it "
+        "with the fingers at it), served at /v1/jobs/{id}/close-up; adds a few seconds to the preview "
         "(the service only; no effect on the result)",
     )
 

@@ -82,6 +82,11 @@ def add_job_option_arguments(parser: argparse.ArgumentParser, queue: bool = Fals
             "--no-preview", dest="preview_video", action="store_false",
             help="skip the preview the worker renders after a job succeeds (video, plots, recording, export)",
         )  # fmt: skip
+        g.add_argument(
+            "--preview-close-up", dest="preview_close_up", action="store_true",
+            help="add a close-up video to each job's preview (the camera follows the object, the fingers at it; a "
+            "few seconds more per job)",
+        )  # fmt: skip
 
 
 def load_packed_hand(path: Path) -> HandDescription:
@@ -109,6 +114,7 @@ def job_options_from_args(args: argparse.Namespace) -> JobOptions:
             evaluation_budget=getattr(args, "evaluation_budget", None),
             priority=getattr(args, "priority", 0),
             preview_video=getattr(args, "preview_video", True),
+            preview_close_up=getattr(args, "preview_close_up", False),
             hand=load_packed_hand(args.hand_file) if getattr(args, "hand_file", None) else None,
         )
     except ValidationError as exc:

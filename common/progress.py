@@ -9,8 +9,9 @@ The worker sends it with every lease renewal; the API, the dashboard, ``submit``
   derivation, its verification and the preview); it only goes forward, also when the plan grows (a further
   attempt, a rescue): the rest of the bar then fills more slowly;
 * ``stage``: what runs now, for people: ``"preparing"``, ``"attempt 2 of 4"``, ``"polish sweep 3"``,
-  ``"rescue on finer parts: attempt 1 of 4"``, ``"rescue on finer parts: polish sweep 2"``, ``"deriving the
-  result"``, ``"verifying"``, ``"preview"``, ``"done"``;
+  ``"compiling finer parts for a rescue"`` (the rescue's convex decomposition and scene: seconds to minutes, the
+  fraction holds still), ``"rescue on finer parts: attempt 1 of 4"``, ``"rescue on finer parts: polish sweep 2"``,
+  ``"deriving the result"``, ``"verifying"``, ``"preview"``, ``"done"``;
 * ``step``: the same for programs, one of ``STEPS``;
 * ``eta_s``: seconds until the whole job is done (estimated from this job's own pace; null before any pace is
   known; 0 when done);
@@ -31,11 +32,12 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-Step = Literal["prepare", "attempt", "polish", "rescue", "derive", "verify", "preview", "done"]
+Step = Literal["prepare", "attempt", "polish", "rescue_compile", "rescue", "derive", "verify", "preview", "done"]
 STEPS: tuple[str, ...] = Step.__args__  # type: ignore[attr-defined]
 #: The ``stage`` texts of the steps that have a single one.
-STAGE_TEXT: dict[str, str] = {"prepare": "preparing", "derive": "deriving the result", "verify": "verifying",
-                              "preview": "preview", "done": "done"}
+STAGE_TEXT: dict[str, str] = {"prepare": "preparing", "rescue_compile": "compiling finer parts for a rescue",
+                              "derive": "deriving the result", "verify": "verifying", "preview": "preview",
+                              "done": "done"}
 #: Keys that describe the pass running now, dropped once the job is done.
 PASS_KEYS: tuple[str, ...] = ("window", "windows", "best_loss", "skipped", "refine_attempt", "refine_attempts",
                               "polish_sweep", "generation")

@@ -2,8 +2,8 @@
 and batch body carries, so a client needs nothing but the body to find the result, the files and the reports.
 
 Hrefs are relative to the API's base URL (as ``Location`` headers are). A stored artifact's name (as the worker
-names it: ``video.mp4``, ``recording.rrd``, ``export.zip``, ``plots/NAME.png``) maps to its route here; the
-routes in ``service.routes.artifacts`` read the same names.
+names it: ``video.mp4``, ``close_up.mp4``, ``recording.rrd``, ``export.zip``, ``plots/NAME.png``) maps to its route
+here; the routes in ``service.routes.artifacts`` read the same names.
 """
 
 from __future__ import annotations
@@ -12,10 +12,18 @@ from typing import Any
 
 from common.job_state import JobState
 
-VIDEO, RECORDING, EXPORT, PLOTS_PREFIX = "video.mp4", "recording.rrd", "export.zip", "plots/"
+VIDEO, CLOSE_UP, RECORDING, EXPORT, PLOTS_PREFIX = "video.mp4", "close_up.mp4", "recording.rrd", "export.zip", "plots/"
 JSON = "application/json"
 #: Artifact name -> the link relation naming its route (plots are listed at ``plots`` and linked one by one).
-ARTIFACT_RELS: dict[str, str] = {VIDEO: "video", RECORDING: "recording", EXPORT: "export"}
+ARTIFACT_RELS: dict[str, str] = {VIDEO: "video", CLOSE_UP: "close_up", RECORDING: "recording", EXPORT: "export"}
+#: Artifact name -> its route's last path segment (a relation's underscore is a hyphen in the URL).
+ARTIFACT_PATHS: dict[str, str] = {name: rel.replace("_", "-") for name, rel in ARTIFACT_RELS.items()}
+ARTIFACT_TITLES: dict[str, str] = {
+    VIDEO: "preview video: raw replay and refined side by side",
+    CLOSE_UP: "close-up video: the camera follows the object, the fingers at it",
+    RECORDING: "Rerun recording",
+    EXPORT: "plain-MuJoCo export (zip)",
+}
 REPORT_TYPES: dict[str, str] = {"csv": "text/csv", "parquet": "application/vnd.apache.parquet"}
 EVENT_STREAM = "text/event-stream"
 
@@ -30,8 +38,8 @@ def job_href(job_id: str) -> str:
 
 def artifact_href(job_id: str, name: str) -> str | None:
     """The route serving a stored artifact, or None for a name this service has no route for."""
-    if name in ARTIFACT_RELS:
-        return f"{job_href(job_id)}/{ARTIFACT_RELS[name]}"
+    if name in ARTIFACT_PATHS:
+        return f"{job_href(job_id)}/{ARTIFACT_PATHS[name]}"
     if name.startswith(PLOTS_PREFIX) and "/" not in name[len(PLOTS_PREFIX):]:
         return f"{job_href(job_id)}/{name}"
     return None
@@ -57,11 +65,9 @@ def job_links(
     out["result_npz"] = link(f"{base}/result?format=npz", "application/octet-stream", "the result file (NPZ)")
     out["contacts"] = link(f"{base}/contacts", JSON, "per-frame hand-object contacts")
     out["metrics"] = link(f"{base}/metrics", JSON, "raw-replay and refined metrics")
-    titles = {VIDEO: "preview video: raw replay and refined side by side", RECORDING: "Rerun recording",
-              EXPORT: "plain-MuJoCo export (zip)"}  # fmt: skip
     for name, media_type in files:
         if name in ARTIFACT_RELS:
-            out[ARTIFACT_RELS[name]] = link(f"{base}/{ARTIFACT_RELS[name]}", media_type, titles[name])
+            out[ARTIFACT_RELS[name]] = link(f"{base}/{ARTIFACT_PATHS[name]}", media_type, ARTIFACT_TITLES[name])
     if any(name.startswith(PLOTS_PREFIX) for name, _ in files):
         out["plots"] = link(f"{base}/plots", JSON, "the job's plots, by name")
     return out

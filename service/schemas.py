@@ -177,7 +177,8 @@ class ProgressPublic(BaseModel):
     model_config = ConfigDict(extra="allow")
     fraction: float | None = Field(default=None, description="0..1 over the whole job; only goes forward")
     stage: str | None = Field(default=None, description="what runs now, e.g. 'attempt 2 of 4', 'polish sweep 3', "
-                              "'rescue on finer parts: attempt 1 of 4', 'verifying', 'preview', 'done'")  # fmt: skip
+                              "'compiling finer parts for a rescue', 'rescue on finer parts: attempt 1 of 4', "
+                              "'verifying', 'preview', 'done'")  # fmt: skip
     step: str | None = Field(default=None, description="the same for programs: " + ", ".join(STEPS))
     eta_s: float | None = Field(default=None, description="seconds until the whole job is done (0 when done)")
     elapsed_s: float | None = Field(default=None, description="seconds since the job's computation started")

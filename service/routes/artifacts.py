@@ -1,7 +1,8 @@
-"""``/v1/jobs/{id}/video | recording | export | plots``: the files a worker stored beside a job's result
+"""``/v1/jobs/{id}/video | close-up | recording | export | plots``: the files a worker stored beside a job's result
 (issue #18 item 4). Thin routes over ``JobQueue.get_artifact`` / ``list_artifacts``, scoped to the caller's key
 like every job route: another key gets 404, a job not yet SUCCEEDED 409, a job run with ``preview_video`` off
-(or whose preview failed: see the summary's ``preview`` entry) 404.
+(or whose preview failed: see the summary's ``preview`` entry) 404, and so does ``close-up`` for a job run without
+``preview_close_up``.
 
 Names match the worker's preview (``service.links`` maps each to its route; the service does not import the
 worker).
@@ -15,7 +16,7 @@ from fastapi import APIRouter, Depends, Path, Response
 
 from common.job_state import JobState
 from service.deps import KeyDep, QueueDep, reject_unknown_query_parameters
-from service.links import EXPORT, PLOTS_PREFIX, RECORDING, VIDEO
+from service.links import CLOSE_UP, EXPORT, PLOTS_PREFIX, RECORDING, VIDEO
 from service.routes.jobs import COMMON_ERRORS, PROBLEM
 from service.schemas import PlotPublic, PlotsPublic
 
@@ -41,6 +42,13 @@ def _file(queue: Any, key_id: str, job_id: str, name: str, download: str | None)
             responses={200: {"content": {"video/mp4": {}}}})  # fmt: skip
 def get_video(job_id: str, queue: QueueDep, key_id: KeyDep) -> Response:
     return _file(queue, key_id, job_id, VIDEO, None)
+
+
+@router.get("/{job_id}/close-up", summary="Close-up video (MP4, H.264), raw replay and refined: the camera follows "
+            "the object, the fingers at it (jobs run with preview_close_up)",
+            responses={200: {"content": {"video/mp4": {}}}})  # fmt: skip
+def get_close_up(job_id: str, queue: QueueDep, key_id: KeyDep) -> Response:
+    return _file(queue, key_id, job_id, CLOSE_UP, None)
 
 
 @router.get("/{job_id}/recording", summary="Rerun recording (.rrd): open with `rerun FILE.rrd`",

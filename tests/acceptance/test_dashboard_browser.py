@@ -3,9 +3,9 @@
 
 A real API server (uvicorn, SQLite file) and a real worker loop (the refinement and preview code the Ray actor
 runs, in a thread) serve the page. With key A entered, the page lists a job submitted over HTTP as QUEUED, then
-(the worker started) SUCCEEDED; its page shows the metrics of the result and plays the preview video, with
-the plots. With key B entered, the job is neither listed nor readable. ``HOI_REFINE_UPDATE_DOCS=1`` also saves
-the job page as docs/dashboard.png.
+(the worker started) SUCCEEDED; its page shows the metrics of the result and plays the preview video and the
+close-up the job asked for, with the plots. With key B entered, the job is neither listed nor readable.
+``HOI_REFINE_UPDATE_DOCS=1`` also saves the job page as docs/dashboard.png.
 
 Chromium is installed by this test's own setup (``apt-get install -y chromium`` when running as root and it is
 missing); where it cannot be installed the test skips.
@@ -24,8 +24,9 @@ from tests.support.visual import DOCS, update_docs
 
 pytestmark = pytest.mark.slow
 
-#: The default CMA-ES budget without restarts: about 10 s here, and the refined hand lifts the box.
-OPTIONS = JobOptions(restarts=0)
+#: The default CMA-ES budget without restarts: about 10 s here, and the refined hand lifts the box; the preview
+#: holds the close-up too.
+OPTIONS = JobOptions(restarts=0, preview_close_up=True)
 
 
 @pytest.mark.usefixtures("offscreen_gl")  # the worker renders the preview video
@@ -81,6 +82,18 @@ def test_dashboard_shows_a_job_to_its_key_only(chromium: str, deployment: Deploy
             assert played["error"] is None and played["time"] > 0, played
             # Two 4:3 panels side by side (the preview's panel size is the worker's to choose).
             assert played["width"] * 3 == played["height"] * 8 and played["height"] >= 240, played
+            # The close-up the job asked for, below the video (the job body links it).
+            expect(page.locator("#close-up")).to_have_attribute("src", _starts_with_blob(), timeout=60_000)
+            expect(page.locator("#close-up-view")).to_be_visible()
+            size = page.evaluate(
+                """async () => {
+                    const v = document.getElementById('close-up');
+                    const ready = new Promise((ok) => v.addEventListener('loadedmetadata', ok, {once: true}));
+                    if (v.readyState < 1) await ready;
+                    return {width: v.videoWidth, height: v.videoHeight, error: v.error && v.error.code};
+                }"""
+            )
+            assert size == {"width": played["width"], "height": played["height"], "error": None}, size
             expect(page.locator("#plots img")).to_have_count(3, timeout=30_000)
             assert page.evaluate("[...document.querySelectorAll('#plots img')].every(i => i.naturalWidth > 100)")
             if update_docs():

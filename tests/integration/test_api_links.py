@@ -16,6 +16,7 @@ pytestmark = pytest.mark.parametrize("empty_db_url", BACKENDS, indirect=True)
 
 FILES = (
     Artifact("video.mp4", "video/mp4", b"\x00\x00\x00\x18ftypmp42"),
+    Artifact("close_up.mp4", "video/mp4", b"\x00\x00\x00\x18ftypmp42close"),
     Artifact("recording.rrd", "application/octet-stream", b"RRF2"),
     Artifact("export.zip", "application/zip", b"PK\x05\x06" + b"\x00" * 18),
     Artifact("plots/errors.png", "image/png", b"\x89PNG\r\n"),
@@ -54,9 +55,12 @@ def test_a_finished_job_links_everything_and_every_link_resolves(api: ApiHarness
     job_id = run_to_end(api, batch_id, True, FILES)
     job = api.client.get(f"/v1/jobs/{job_id}", headers=api.headers).json()
     assert set(job["links"]) == {"self", "events", "input", "dashboard", "batch", "result", "result_npz",
-                                 "contacts", "metrics", "video", "recording", "export", "plots"}  # fmt: skip
+                                 "contacts", "metrics", "video", "close_up", "recording", "export",
+                                 "plots"}  # fmt: skip
     assert job["links"]["video"] == {"href": f"/v1/jobs/{job_id}/video", "type": "video/mp4",
                                      "title": "preview video: raw replay and refined side by side"}  # fmt: skip
+    assert job["links"]["close_up"]["href"] == f"/v1/jobs/{job_id}/close-up"
+    assert job["links"]["close_up"]["type"] == "video/mp4"
     follow(api, job["links"])
     stored = sorted(FILES, key=lambda f: f.name)
     assert [(f["name"], f["type"]) for f in job["files"]] == [(f.name, f.content_type) for f in stored]
@@ -65,7 +69,7 @@ def test_a_finished_job_links_everything_and_every_link_resolves(api: ApiHarness
         assert got.status_code == 200 and got.headers["content-type"].split(";")[0] == f["type"]
         assert len(got.content) == f["size_bytes"]
     assert job["summary"]["preview"] == {"files": [f"/v1/jobs/{job_id}/{n}" for n in
-                                                   ("video", "recording", "export", "plots/errors.png",
+                                                   ("video", "close-up", "recording", "export", "plots/errors.png",
                                                     "plots/loss_history.png")], "seconds": 2.5}  # fmt: skip
     assert job["outcome"] == {"status": "executable", "protocol": "paper", "reasons": [], "reasons_total": 0,
                               "E_t": 0.5, "E_r": None, "metrics_protocol": "all_frames"}  # fmt: skip

@@ -56,8 +56,9 @@ def test_progress_goes_forward_over_restarts_and_a_rescue_and_ends_done(db_url: 
     fractions = [d["fraction"] for d in sent]
     assert fractions == sorted(fractions) and fractions[0] == 0.0 and fractions[-1] < 1.0
     stages = list(dict.fromkeys(d["stage"] for d in sent))
-    assert stages == ["preparing", "attempt 1 of 2", "attempt 2 of 2", "rescue on finer parts: attempt 1 of 2",
-                      "rescue on finer parts: attempt 2 of 2", "deriving the result", "verifying", "preview"]
+    assert stages == ["preparing", "attempt 1 of 2", "attempt 2 of 2", "compiling finer parts for a rescue",
+                      "rescue on finer parts: attempt 1 of 2", "rescue on finer parts: attempt 2 of 2",
+                      "deriving the result", "verifying", "preview"]  # fmt: skip
     assert list(dict.fromkeys(d["step"] for d in sent)) == [s for s in STEPS if s not in ("polish", "done")]
     assert [d["refine_attempt"] for d in sent if "refine_attempt" in d][-1] == 2
     assert all(d["refine_attempts"] == 2 for d in sent if "refine_attempt" in d)

@@ -37,7 +37,7 @@ def test_progress_record_is_json_ready_and_keeps_window_loss_evaluations_eta() -
     out = _progress_dict(p)
     assert out == {"window": 3, "windows": 9, "best_loss": 1.5, "evaluations": 240, "elapsed_s": 12.0,
                    "eta_s": 24.0, "skipped": 0, "fraction": 0.0, "attempt": 1, "attempts": 1, "polish_sweep": 0,
-                   "rescue": False, "deriving": False}  # fmt: skip
+                   "rescue": False, "deriving": False, "compiling_rescue": False}  # fmt: skip
     assert _progress_dict({"window": np.int64(2), "junk": object()}) == {"window": 2}
 
 

@@ -80,10 +80,10 @@ def test_the_stored_preview_has_every_part_and_its_video_shows_the_lift(
     import io
     import zipfile
 
-    from worker.visual.preview import EXPORT, PLOTS_PREFIX, RECORDING, VIDEO, preview_artifacts
+    from worker.visual.preview import CLOSE_UP, EXPORT, PLOTS_PREFIX, RECORDING, VIDEO, preview_artifacts
 
     parts = {a.name: a for a in preview_artifacts(short_refine_result)}
-    assert {VIDEO, RECORDING, EXPORT} <= set(parts)
+    assert {VIDEO, RECORDING, EXPORT} <= set(parts) and CLOSE_UP not in parts  # the close-up only when asked
     assert sum(name.startswith(PLOTS_PREFIX) for name in parts) == 3
     (tmp_path / VIDEO).write_bytes(parts[VIDEO].data)
     frames, _ = read_mp4(tmp_path / VIDEO)

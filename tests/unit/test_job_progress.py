@@ -5,9 +5,10 @@ apart from the refinement's."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from common.progress import STEPS, finished_progress
-from worker.refine.job_progress import RESERVE_PER_PASS, TAIL_PASSES, JobProgress
+from worker.refine.job_progress import CLOSE_UP_PASSES, RESERVE_PER_PASS, TAIL_PASSES, JobProgress
 from worker.refine.windowed import RefineProgress
 from worker.runtime.heartbeat import Heartbeat
 
@@ -29,6 +30,11 @@ def _pass(windows: int, attempt: int = 1, sweep: int = 0, rescue: bool = False,
                            polish_sweep=sweep, rescue=rescue) for w in range(1, windows + 1)]  # fmt: skip
 
 
+def _compiling() -> list[RefineProgress]:
+    """The report ``refine_sequence`` sends before the rescue's finer parts compile."""
+    return [RefineProgress(0, 0, float("nan"), 0, 0.0, 0.0, rescue=True, compiling_rescue=True)]
+
+
 def _run(tracker: JobProgress, clock: Clock, passes: list[list[RefineProgress]]) -> list[dict]:
     docs = [tracker.preparing()]
     clock.now += 5.0
@@ -47,7 +53,7 @@ def _run(tracker: JobProgress, clock: Clock, passes: list[list[RefineProgress]])
 def test_the_fraction_only_goes_forward_as_attempts_sweeps_and_a_rescue_join_the_plan() -> None:
     clock = Clock()
     tracker = JobProgress(2, verify=True, preview=True, clock=clock)
-    passes = [_pass(5, 1), _pass(5, 2), _pass(5, 3), _pass(5, 3, sweep=1), _pass(5, 1, rescue=True),
+    passes = [_pass(5, 1), _pass(5, 2), _pass(5, 3), _pass(5, 3, sweep=1), _compiling(), _pass(5, 1, rescue=True),
               _pass(5, 1, sweep=1, rescue=True)]  # fmt: skip
     docs = _run(tracker, clock, passes)
     fractions = [d["fraction"] for d in docs]
@@ -55,10 +61,11 @@ def test_the_fraction_only_goes_forward_as_attempts_sweeps_and_a_rescue_join_the
     assert fractions[0] == 0.0 and 0.8 < fractions[-1] < 1.0  # the preview is still to draw
     stages = list(dict.fromkeys(d["stage"] for d in docs))
     assert stages == ["preparing", "attempt 1 of 3", "attempt 2 of 3", "attempt 3 of 3", "polish sweep 1",
-                      "rescue on finer parts: attempt 1 of 3", "rescue on finer parts: polish sweep 1",
+                      "compiling finer parts for a rescue", "rescue on finer parts: attempt 1 of 3",
+                      "rescue on finer parts: polish sweep 1",
                       "deriving the result", "verifying", "preview"]  # fmt: skip
     steps = list(dict.fromkeys(d["step"] for d in docs))
-    assert steps == ["prepare", "attempt", "polish", "rescue", "derive", "verify", "preview"]
+    assert steps == ["prepare", "attempt", "polish", "rescue_compile", "rescue", "derive", "verify", "preview"]
     assert all(s in STEPS for s in steps)
     # The evaluations add up over the job's passes (each pass reports its own from 0).
     assert docs[-4]["evaluations"] == 6 * 50
@@ -67,6 +74,48 @@ def test_the_fraction_only_goes_forward_as_attempts_sweeps_and_a_rescue_join_the
     assert docs[2]["refine_attempt"] == 1 and docs[2]["refine_attempts"] == 3 and "polish_sweep" not in docs[2]
     sweep = next(d for d in docs if d["stage"] == "polish sweep 1")
     assert sweep["polish_sweep"] == 1 and sweep["refine_attempt"] == 3
+
+
+def test_the_rescues_compilation_has_a_stage_holds_the_bar_and_stays_out_of_the_pace() -> None:
+    clock = Clock()
+    tracker = JobProgress(1, polish=False, verify=True, preview=True, clock=clock)
+    tracker.preparing()
+    for reports in (_pass(4, 1, attempts=2), _pass(4, 2, attempts=2)):
+        for p in reports:
+            clock.now += 5.0  # 20 s a pass
+            last = tracker.window(p)
+    compiling = tracker.window(_compiling()[0])
+    assert (compiling["stage"], compiling["step"]) == ("compiling finer parts for a rescue", "rescue_compile")
+    assert not {"window", "windows", "refine_attempt", "polish_sweep"} & set(compiling)
+    assert compiling["fraction"] >= last["fraction"] and compiling["evaluations"] == 2 * 40
+    # CoACD runs for minutes: the bar holds still and the ETA (the rescue's passes at 20 s, then the tail) stays.
+    clock.now += 300.0
+    later = tracker.window(_compiling()[0])
+    assert later["fraction"] == compiling["fraction"]
+    assert later["eta_s"] == compiling["eta_s"] and compiling["eta_s"] is not None and compiling["eta_s"] > 20.0
+    # The rescue's first pass moves the bar on, at the passes' own pace (the 300 s of CoACD left out of it).
+    rescue = _pass(4, 1, rescue=True, attempts=2)
+    first = tracker.window(rescue[0])
+    assert first["stage"] == "rescue on finer parts: attempt 1 of 2" and first["fraction"] > compiling["fraction"]
+    for p in rescue[1:]:
+        clock.now += 5.0
+        doc = tracker.window(p)
+    assert doc["eta_s"] < 60.0, doc
+    clock.now += 2.0
+    tracker.window(RefineProgress(0, 0, float("nan"), 0, 0.0, 0.0, deriving=True))
+    clock.now += 2.0
+    # The verification as long as the derivation, then the preview at under 20 s a pass (CoACD's 300 s left out).
+    assert tracker.stage("verify")["eta_s"] < 2.0 + TAIL_PASSES["preview"] * 20.0
+
+
+def test_the_close_up_weighs_on_the_previews_eta() -> None:
+    etas = []
+    for close_up in (False, True):
+        clock = Clock()
+        tracker = JobProgress(0, polish=False, verify=True, preview=True, close_up=close_up, clock=clock)
+        etas.append(_run(tracker, clock, [_pass(4, attempts=1)])[-1]["eta_s"])  # the preview starts
+    # Six seconds a pass (from its first report to the derivation): the close-up adds its share of a pass.
+    assert etas[1] - etas[0] == pytest.approx(CLOSE_UP_PASSES * 6.0, abs=0.11)
 
 
 def test_a_plan_that_does_not_grow_fills_the_bar_in_proportion() -> None:

@@ -5,11 +5,14 @@ refinement's attempt, polish sweep and whether it is the rescue, and reports the
 turns those reports into one fraction over the whole job's plan: the passes of the window loop started so far, a
 reserve for the passes that may still follow (as many as started, at most as many as the options still allow:
 a job that needed several passes often needs more), then the derivation, the verification and the preview,
-each weighted in passes (``TAIL_PASSES``). The fraction only goes forward: when the plan changes (a pass starts,
-the derivation ends the passes), the bar keeps its place and spreads its rest over what the plan has left, so it
-fills more slowly after a further attempt and faster once the passes are over. The ETA is that plan's remaining
-passes at this job's own pace (seconds per pass so far), plus the steps after them: the verification repeats the
-derivation, so once the derivation ran, its time stands for the verification's.
+each weighted in passes (``TAIL_PASSES``). Between the passes the rescue compiles its finer convex parts (CoACD:
+seconds with a cache, minutes without): that step has a stage of its own and no share of the bar, which holds
+still until the rescue's first pass, and its seconds are left out of the job's pace. The fraction only goes
+forward: when the plan changes (a pass starts, the derivation ends the passes), the bar keeps its place and spreads
+its rest over what the plan has left, so it fills more slowly after a further attempt and faster once the passes
+are over. The ETA is that plan's remaining passes at this job's own pace (seconds per pass so far), plus the steps
+after them: the verification repeats the derivation, so once the derivation ran, its time stands for the
+verification's.
 """
 
 from __future__ import annotations
@@ -27,6 +30,9 @@ from worker.refine.windowed import RefineProgress
 #: measured its own, of the ETA. Measured on DexYCB jobs (bench/results/speed_experiments.md): a pass takes tens
 #: of seconds, the derivation and the worker's verification well under one each, the preview 2-3 s.
 TAIL_PASSES: dict[str, float] = {"derive": 0.05, "verify": 0.05, "preview": 0.15}
+#: What the close-up video (``JobOptions.preview_close_up``) adds to the preview's weight: two thirds of the preview
+#: again (bench/results/video_framing.md: 8.3 -> 13.8 s at 640x480).
+CLOSE_UP_PASSES = 0.1
 #: No ETA until this much of a pass and this many seconds have run: the first generations' pace says little, and
 #: the first windows are often skipped in milliseconds (no hand near the object yet).
 MIN_PACE_PASSES = 0.02
@@ -41,16 +47,17 @@ RESERVE_PER_PASS = 1.0
 class JobProgress:
     """The progress of one job refined with ``restarts`` and ``polish`` (``JobOptions``); ``verify`` / ``preview``:
     whether the job verifies its result and draws a preview after the refinement (the worker's job does both;
-    ``hoi-refine refine`` neither)."""
+    ``hoi-refine refine`` neither); ``close_up``: the preview draws the close-up video too."""
 
     def __init__(self, restarts: int, polish: bool = True, *, verify: bool = False, preview: bool = False,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 close_up: bool = False, clock: Callable[[], float] = time.monotonic) -> None:
         self._clock = clock
         self._t0 = clock()
         self._attempts = restarts + 1
         self._polish = polish
         self._passes_started = 0
         self._tail = ["derive", *(["verify"] if verify else []), *(["preview"] if preview else [])]
+        self._weights = {**TAIL_PASSES, "preview": TAIL_PASSES["preview"] + (CLOSE_UP_PASSES if close_up else 0.0)}
         self._passes_done = 0.0  # finished passes of the window loop
         self._pass: tuple[bool, int, int] | None = None  # (rescue, attempt, polish sweep) of the running pass
         self._pass_fraction = 0.0
@@ -58,6 +65,7 @@ class JobProgress:
         self._earlier_evaluations = 0  # of the finished ones
         self._passes_started_at: float | None = None
         self._passes_ended_at: float | None = None
+        self._compile_s = 0.0  # seconds the rescue's compilation took (not part of the passes' pace)
         self._step = "prepare"
         self._tail_done = 0.0  # passes' worth of the tail's finished steps
         self._step_started_at = self._t0
@@ -77,13 +85,16 @@ class JobProgress:
         """The document after a report of the refinement (``refine_sequence``'s ``progress``)."""
         if p.deriving:
             return self.stage("derive")
+        if p.compiling_rescue:
+            return self._compiling_rescue()
         key = (p.rescue, p.attempt, p.polish_sweep)
         if key != self._pass:
             if self._pass is not None:  # the previous pass ended: it counts whole
-                self._passes_done += 1.0
-                self._earlier_evaluations += self._pass_evaluations
+                self._end_pass()
             elif self._passes_started_at is None:
                 self._passes_started_at = self._clock()
+            if self._step == "rescue_compile":
+                self._compile_s += self._clock() - self._step_started_at
             self._pass, self._pass_fraction, self._pass_evaluations = key, 0.0, 0
             self._passes_started += 1
             self._step = "rescue" if p.rescue else "polish" if p.polish_sweep else "attempt"
@@ -105,16 +116,29 @@ class JobProgress:
         if self._passes_ended_at is None:
             self._passes_ended_at = now
         if self._pass is not None:  # the window passes are over
-            self._passes_done += 1.0
-            self._earlier_evaluations += self._pass_evaluations
-            self._pass, self._pass_fraction, self._pass_evaluations = None, 0.0, 0
+            self._end_pass()
             self._replan(self._passes_done)  # no further pass: the reserve is dropped
         if self._step == "derive":
             self._derive_s = now - self._step_started_at
         order = self._tail.index(step)
-        self._tail_done = sum(TAIL_PASSES[s] for s in self._tail[:order])
+        self._tail_done = sum(self._weights[s] for s in self._tail[:order])
         self._step, self._step_started_at = step, now
         return self._document({})
+
+    def _compiling_rescue(self) -> dict[str, Any]:
+        """The document while the rescue's finer parts compile: the pass before it ended; the plan keeps its reserve
+        (it counted the rescue's passes) until the rescue's first pass replans it."""
+        if self._pass is not None:
+            self._end_pass()
+        if self._step != "rescue_compile":  # a repeated report does not restart its clock
+            self._step, self._step_started_at = "rescue_compile", self._clock()
+        return self._document({})
+
+    def _end_pass(self) -> None:
+        """The running pass ended: it counts whole."""
+        self._passes_done += 1.0
+        self._earlier_evaluations += self._pass_evaluations
+        self._pass, self._pass_fraction, self._pass_evaluations = None, 0.0, 0
 
     def finished(self) -> dict[str, Any]:
         """The document of the finished job (``common.progress.finished_progress``)."""
@@ -123,7 +147,7 @@ class JobProgress:
     # ------------------------------------------------------------------ the plan and the document
 
     def _tail_units(self) -> float:
-        return sum(TAIL_PASSES[s] for s in self._tail)
+        return sum(self._weights[s] for s in self._tail)
 
     def _done(self) -> float:
         """Work done, in passes: the finished passes, the running one's share and the tail's finished steps."""
@@ -155,10 +179,13 @@ class JobProgress:
         if self._passes_started_at is None:
             return None
         in_passes = self._passes_done + self._pass_fraction
-        if self._step in ("attempt", "polish", "rescue"):
-            if in_passes < MIN_PACE_PASSES or now - self._passes_started_at < MIN_PACE_SECONDS:
+        if self._step in ("attempt", "polish", "rescue_compile", "rescue"):
+            # While the rescue compiles, the passes still to come and the tail (the compilation's own rest is
+            # unknown: CoACD reports nothing until it ends).
+            passes_s = now - self._passes_started_at - self._compiling_s(now)
+            if in_passes < MIN_PACE_PASSES or passes_s < MIN_PACE_SECONDS:
                 return None
-            pace = (now - self._passes_started_at) / in_passes
+            pace = passes_s / in_passes
             remaining_passes = max(self._planned - self._tail_units() - in_passes, 0.0)
             return remaining_passes * pace + sum(self._tail_seconds(s, pace) for s in self._tail)
         pace = self._pace_of_passes()
@@ -170,12 +197,17 @@ class JobProgress:
         """Seconds per pass over the job's passes (they ended when the derivation started)."""
         start = self._passes_started_at if self._passes_started_at is not None else self._t0
         end = self._passes_ended_at if self._passes_ended_at is not None else self._clock()
-        return max(end - start, 0.0) / max(self._passes_done, 1.0)
+        return max(end - start - self._compile_s, 0.0) / max(self._passes_done, 1.0)
+
+    def _compiling_s(self, now: float) -> float:
+        """Seconds the rescue's compilation took so far (also while it runs)."""
+        running = now - self._step_started_at if self._step == "rescue_compile" else 0.0
+        return self._compile_s + running
 
     def _tail_seconds(self, step: str, pace: float) -> float:
         if step in ("derive", "verify") and self._derive_s is not None:
             return self._derive_s  # the verification repeats the derivation
-        return TAIL_PASSES[step] * pace
+        return self._weights[step] * pace
 
     def _document(self, fields: dict[str, Any]) -> dict[str, Any]:
         now = self._clock()

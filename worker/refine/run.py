@@ -276,6 +276,9 @@ def refine_sequence(
         stats = ev.stats
         if rescue_due(best.metrics, prep, options) and not cut_short():
             # The same plan on finer convex parts, from zero offsets: kept only if it ranks higher (``RESCUE``).
+            if progress is not None:  # CoACD on finer parts can take minutes on a mesh it has not cached
+                progress(RefineProgress(0, 0, float("nan"), 0, time.perf_counter() - t0, 0.0, rescue=True,
+                                        compiling_rescue=True))
             fine = prepare(sequence_from_npz_bytes(seq_bytes), options, replace(prep.scene.config, **RESCUE),
                            cache_dir=cache_dir, mano_dir=mano_dir, references=prep.references)
             ev.ensure_model(fine.scene.model)

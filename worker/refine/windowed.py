@@ -118,6 +118,8 @@ class RefineProgress:
     polish_sweep: int = 0  # the polish sweep over the best attempt (1-based); 0 in an attempt
     rescue: bool = False  # the plan's run on finer convex parts (run.RESCUE)
     deriving: bool = False  # the passes are over and the result is being derived (no window fields)
+    #: The rescue's finer convex parts are being made and its scene compiled, before its first pass (no window fields).
+    compiling_rescue: bool = False
 
 
 def optimise_windows(

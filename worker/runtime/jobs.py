@@ -76,7 +76,8 @@ class RefineJob:
 
         # One document over the whole job (``common.progress``): the refinement's passes, then the derivation,
         # the verification below and the preview the worker loop draws after this function.
-        tracker = JobProgress(options.restarts, options.polish, verify=True, preview=options.preview_video)
+        tracker = JobProgress(options.restarts, options.polish, verify=True, preview=options.preview_video,
+                              close_up=options.preview_video and options.preview_close_up)
         progress(tracker.preparing())
         seq = sequence_from_npz_bytes(payload)
         if self._evaluator is None:
@@ -152,14 +153,16 @@ class SelfTestJob:
 
 
 def refine_preview(result: bytes, options: JobOptions) -> list[Artifact]:
-    """The preview stored with a refinement's result (``worker.visual.preview``), unless ``preview_video`` is off."""
+    """The preview stored with a refinement's result (``worker.visual.preview``), unless ``preview_video`` is off;
+    with ``preview_close_up`` also the close-up video."""
     if not options.preview_video:
         return []
     from common.settings import get_settings
     from worker.visual.preview import preview_artifacts
 
     settings = get_settings()
-    made = preview_artifacts(result, cache_dir=settings.resolved_cache_dir(), mano_dir=settings.mano_dir)
+    made = preview_artifacts(result, close_up=options.preview_close_up, cache_dir=settings.resolved_cache_dir(),
+                             mano_dir=settings.mano_dir)
     return [Artifact(a.name, a.content_type, a.data, len(a.data)) for a in made]
 
 

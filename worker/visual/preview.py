@@ -1,9 +1,10 @@
 """What the service keeps beside a finished job's result (issue #18 item 4): a cheap preview.
 
 One re-simulation (raw replay and refined, with the refined controls recorded) feeds the video (640x480 per
-panel, every frame, the camera framing the hands and object: ``render.auto_camera``), the Rerun recording and the
-plain-MuJoCo export (zipped); the plots come from the file alone. The worker stores them with the result
-(``worker.runtime``); the API serves them by name.
+panel, every frame, the camera framing the hands and object: ``render.auto_camera``), optionally a close-up video
+(the same panels, the camera following the recorded object with the fingers at it: ``auto_camera(close_up=True)``),
+the Rerun recording and the plain-MuJoCo export (zipped); the plots come from the file alone. The worker stores
+them with the result (``worker.runtime``); the API serves them by name.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 VIDEO = "video.mp4"
+CLOSE_UP = "close_up.mp4"
 RECORDING = "recording.rrd"
 EXPORT = "export.zip"
 PLOTS_PREFIX = "plots/"
@@ -27,7 +29,7 @@ PREVIEW_SAMPLES = 0
 
 @dataclass(frozen=True)
 class PreviewArtifact:
-    name: str  # VIDEO, RECORDING, EXPORT or PLOTS_PREFIX + file name
+    name: str  # VIDEO, CLOSE_UP, RECORDING, EXPORT or PLOTS_PREFIX + file name
     content_type: str
     data: bytes
 
@@ -38,18 +40,19 @@ def preview_artifacts(
     recording: bool = True,
     export: bool = True,
     *,
+    close_up: bool = False,
     cache_dir: Path | None = None,
     mano_dir: Path | None = None,
 ) -> list[PreviewArtifact]:
-    """The preview of a refinement result: video, plots and (optionally) recording and export. ``cache_dir``,
-    ``mano_dir``: as for ``resimulate``."""
+    """The preview of a refinement result: video, plots and (optionally) the close-up video, recording and export.
+    ``cache_dir``, ``mano_dir``: as for ``resimulate``."""
     from worker.visual.gl import prefer_offscreen_backend
 
     prefer_offscreen_backend()
     from worker.visual.export import export_playback
     from worker.visual.playback import resimulate
     from worker.visual.plots import write_plots
-    from worker.visual.render import render_video
+    from worker.visual.render import auto_camera, render_video
     from worker.visual.rerun_log import write_recording
 
     out: list[PreviewArtifact] = []
@@ -60,12 +63,19 @@ def preview_artifacts(
         # the plots, the recording and the export: the preview runs after every job, on one core otherwise.
         video = pool.submit(render_video, pb, str(root / VIDEO), ("raw", "refined"), size[0], size[1],
                             samples=PREVIEW_SAMPLES)
+        # The close-up after it on the same thread: one GL context at a time.
+        near = None if not close_up else pool.submit(
+            render_video, pb, str(root / CLOSE_UP), ("raw", "refined"), size[0], size[1],
+            auto_camera(pb, size=size, close_up=True), samples=PREVIEW_SAMPLES)  # fmt: skip
         plots = write_plots(blob, root / "plots")
         if recording:
             write_recording(pb, root / RECORDING)
         folder = export_playback(pb, root / "export") if export else None
         video.result()
         out.append(PreviewArtifact(VIDEO, "video/mp4", (root / VIDEO).read_bytes()))
+        if near is not None:
+            near.result()
+            out.append(PreviewArtifact(CLOSE_UP, "video/mp4", (root / CLOSE_UP).read_bytes()))
         for path in plots:
             out.append(PreviewArtifact(PLOTS_PREFIX + path.name, "image/png", path.read_bytes()))
         if recording:
