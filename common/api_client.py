@@ -38,6 +38,12 @@ def options_json(options: JobOptions) -> str:
     return json.dumps(options.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
 
 
+def options_key_json(options: JobOptions) -> str:
+    """Canonical JSON of the options that differ from their defaults: what identifies a job's options. A release
+    that adds an option (with a default) leaves it unchanged, so a resumed batch keeps its jobs."""
+    return json.dumps(options.model_dump(mode="json", exclude_defaults=True), sort_keys=True, separators=(",", ":"))
+
+
 class Stopped(HoiRefineError):
     """The run was asked to stop (Ctrl-C) while this request was waiting to be retried."""
 

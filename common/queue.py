@@ -68,8 +68,18 @@ _VERSION_SQL = sa.text("SELECT owner_key_id, updated_at FROM jobs WHERE id = :jo
 
 
 def payload_hash(payload: bytes, options: JobOptions) -> str:
-    """SHA-256 over the sequence bytes and the canonical options JSON (what an Idempotency-Key must match)."""
-    options_json = json.dumps(options.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
+    """SHA-256 over the sequence bytes and the options set apart from their defaults (what an Idempotency-Key
+    must match): an option added by a later release, at its default, leaves it unchanged."""
+    return _hash(payload, options.model_dump(mode="json", exclude_defaults=True))
+
+
+def legacy_payload_hash(payload: bytes, options: JobOptions) -> str:
+    """The hash jobs stored before it left defaults out (every option spelled out)."""
+    return _hash(payload, options.model_dump(mode="json"))
+
+
+def _hash(payload: bytes, options: dict[str, Any]) -> str:
+    options_json = json.dumps(options, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(payload + b"\x00" + options_json.encode()).hexdigest()
 
 
@@ -117,7 +127,7 @@ class JobQueue:
                 if idempotency_key is not None:
                     existing = self._by_idempotency_key(conn, owner_key_id, idempotency_key)
                     if existing is not None:
-                        match = self._idempotent_match(existing, digest)
+                        match = self._idempotent_match(existing, digest, payload, options)
                         return self._into_batch(conn, match, batch_id), False
                 active = self._count_active(conn, owner_key_id)
                 if active >= self.settings.max_active_jobs_per_key:
@@ -151,7 +161,7 @@ class JobQueue:
                 raise
             if existing.batch_id != batch_id:
                 raise
-            return self._idempotent_match(existing, digest), False
+            return self._idempotent_match(existing, digest, payload, options), False
 
     def _into_batch(self, conn: Connection, job: JobRecord, batch_id: str | None) -> JobRecord:
         """A job found by its Idempotency-Key, re-sent with ``batch_id``: adopt it when it has no batch yet
@@ -172,8 +182,8 @@ class JobQueue:
         return None if row is None else self._record(row)
 
     @staticmethod
-    def _idempotent_match(existing: JobRecord, digest: str) -> JobRecord:
-        if existing.payload_hash != digest:
+    def _idempotent_match(existing: JobRecord, digest: str, payload: bytes, options: JobOptions) -> JobRecord:
+        if existing.payload_hash != digest and existing.payload_hash != legacy_payload_hash(payload, options):
             raise IdempotencyMismatchError(
                 f"Idempotency-Key was already used for job {existing.id} with a different sequence or options"
             )

@@ -14,13 +14,13 @@ import io
 
 import numpy as np
 
-from common.api_client import options_json
+from common.api_client import options_key_json
 from common.job_options import JobOptions
 from common.sequence import Sequence
 from common.sequence_io import sequence_from_npz_bytes, sequence_to_npz_bytes
 
 #: Bumped if the key derivation changes (old manifests then resubmit instead of colliding).
-KEY_SCHEME = b"hoi-refine-submit/1"
+KEY_SCHEME = b"hoi-refine-submit/2"
 #: Meta entries that describe where a file lay on this machine, not what it holds: left out of the upload
 #: so that moving or re-mounting a dataset does not change the key.
 _LOCAL_META = ("source_path",)
@@ -57,8 +57,9 @@ def sequence_payload(seq: Sequence, max_frames: int | None = None) -> bytes:
 
 
 def idempotency_key(payload: bytes, options: JobOptions) -> str:
-    """sha256 of (canonical sequence content + canonical options JSON), hex: same input => same job."""
+    """sha256 of (canonical sequence content + the options set apart from their defaults), hex: same input =>
+    same job."""
     h = hashlib.sha256(KEY_SCHEME + b"\0")
     h.update(content_digest(payload).encode() + b"\0")
-    h.update(options_json(options).encode())
+    h.update(options_key_json(options).encode())
     return h.hexdigest()

@@ -31,7 +31,7 @@ from typing import Any
 
 from rich.console import Console
 
-from common.api_client import ApiClient, Stopped, options_json
+from common.api_client import ApiClient, Stopped, options_key_json
 from common.errors import ApiError, HoiRefineError
 from common.job_options import JobOptions
 from common.job_state import FINISHED, JobState
@@ -107,7 +107,7 @@ class SubmitOutcome:
 def _fingerprint(src: Source, options: JobOptions) -> str:
     """Cheap change detector (sizes + mtimes + options) so a re-run need not re-read unchanged inputs."""
     files = [src.path] if src.path.is_file() else sorted(p for p in src.path.iterdir() if p.is_file())
-    h = hashlib.sha256(options_json(options).encode())
+    h = hashlib.sha256(options_key_json(options).encode())
     for f in files:
         st = f.stat()
         h.update(f"{f.name}:{st.st_size}:{st.st_mtime_ns};".encode())
@@ -259,7 +259,7 @@ def run_submit(
     stop = stop or threading.Event()
     cfg.out_dir.mkdir(parents=True, exist_ok=True)
     manifest = Manifest.load_or_create(cfg.out_dir)
-    opts = json.loads(options_json(cfg.options))
+    opts = json.loads(options_key_json(cfg.options))
     if manifest.meta.get("options") not in (None, opts):
         console.print("[yellow]options differ from the manifest's: changed inputs get new jobs[/yellow]")
     if manifest.meta.get("api") not in (None, cfg.api_url):

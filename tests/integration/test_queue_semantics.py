@@ -5,6 +5,7 @@ from __future__ import annotations
 from datetime import timedelta
 
 import pytest
+import sqlalchemy as sa
 
 from common.api_key_store import ApiKeyStore
 from common.db_models import utcnow
@@ -18,7 +19,7 @@ from common.errors import (
     NotFoundError,
 )
 from common.job_options import JobOptions
-from common.queue import JobQueue
+from common.queue import JobQueue, jobs, legacy_payload_hash, payload_hash
 from tests.support.queue_fixtures import BACKENDS, fake_result, submit_tiny, tiny_payload
 
 pytestmark = pytest.mark.parametrize("empty_db_url", BACKENDS, indirect=True)
@@ -204,6 +205,21 @@ def test_idempotency_and_active_job_limit(queue: JobQueue, owner: str) -> None:
         submit_tiny(queue, owner, seed=3)
     assert info.value.retry_after == queue.settings.active_jobs_retry_after_seconds
     assert queue.count_active(owner) == 2
+
+
+def test_a_job_stored_before_defaults_left_the_hash_still_matches_its_key(queue: JobQueue, owner: str) -> None:
+    """Jobs queued by an older release hold the hash over every option; re-sending their key must still find them."""
+    payload, options = tiny_payload(1), JobOptions(seed=1)
+    first, _ = queue.submit(owner, payload, options, "key-old", "a", 5)
+    assert first.payload_hash == payload_hash(payload, options) != legacy_payload_hash(payload, options)
+    with queue.tx.write() as conn:
+        conn.execute(
+            sa.update(jobs).where(jobs.c.id == first.id).values(payload_hash=legacy_payload_hash(payload, options))
+        )
+    again, created = queue.submit(owner, payload, options, "key-old", "a", 5)
+    assert not created and again.id == first.id
+    with pytest.raises(IdempotencyMismatchError):
+        queue.submit(owner, payload, JobOptions(seed=2), "key-old", "a", 5)
 
 
 def test_keyset_pagination_and_state_filter(queue: JobQueue, owner: str) -> None:

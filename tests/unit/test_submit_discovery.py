@@ -125,6 +125,18 @@ def test_payload_is_reproducible_and_key_follows_content_and_options() -> None:
     assert len(key) == 64 and int(key, 16) >= 0
 
 
+def test_an_option_added_later_at_its_default_keeps_the_key() -> None:
+    """A release that adds an option must not turn a resumed batch's finished jobs into new ones."""
+
+    class LaterOptions(JobOptions):
+        added_in_a_later_release: int = 7
+
+    blob = sequence_payload(_sequence())
+    key = idempotency_key(blob, JobOptions(seed=3))
+    assert idempotency_key(blob, LaterOptions(seed=3)) == key
+    assert idempotency_key(blob, LaterOptions(seed=3, added_in_a_later_release=8)) != key
+
+
 def test_content_digest_ignores_the_zip_container(tmp_path: Path) -> None:
     seq = _sequence()
     arrays = dict(np.load(io.BytesIO(sequence_payload(seq))))
