@@ -33,6 +33,7 @@ from worker.robot.reference import RobotReference
 from worker.simulation.config import SimConfig
 from worker.simulation.metrics import compute_metrics, scalar_metrics
 from worker.simulation.replay import articulation_frames
+from worker.simulation.table_fit import TableChoice
 
 #: The result arrays holding each replay's integration state per frame (``worker.refine.replay.INTEGRATION_STATE``).
 STATE_KEYS = dict(zip(("refined", "raw"), INTEGRATION_STATE_KEYS, strict=True))
@@ -66,6 +67,7 @@ def derive_result(
     references: list[HandReference] | None = None,
     threads: int = 1,
     attempt_details: list[str] | None = None,
+    table: TableChoice | None = None,
 ) -> Derived:
     """See the module docstring. ``attempt_keyframes`` the keyframes of every attempt (restarts) in order, stored
     so ``verify`` can check the first attempt's success too; ``attempt_details`` the convex parts each ran on
@@ -75,10 +77,12 @@ def derive_result(
     left hand's control convention, ``config.left_hand_controls``) as for ``prepare``. ``references``: the
     retargeting of these very bytes, when the caller made it already (``refine_sequence``; ``verify`` never passes
     it, so a retargeting that did not reproduce would fail there). ``threads``: replays run side by side
-    (``replay_all``; the same records whatever the number)."""
+    (``replay_all``; the same records whatever the number). ``table``: the result's stored table choice
+    (``verify``: the scene stands on it; ``Prepared.scene.table_fit.choice_problems`` say whether the fit makes it
+    here); attempts on other convex parts are prepared on the fit's own choice, as the refinement did."""
     seq = sequence_from_npz_bytes(sequence_bytes)
     prep = prepare(seq, options, config, rotation_pivot=rotation_pivot, cache_dir=cache_dir, mano_dir=mano_dir,
-                   mirror_left=mirror_left, references=references)
+                   mirror_left=mirror_left, references=references, table=table)
     for side, space in prep.spaces.items():
         k = keyframes.get(side)
         if k is None or k.shape != (space.n_keyframes, space.dim):
