@@ -3,8 +3,10 @@ forgeries fail there naming field and frame, and what storing the states costs.
 
     .venv/bin/python bench/verify_portable.py --results DIR [--make 8] [--forge NAME.npz]
 
-``--make N`` first refines every k-th sequence of the dev120 sample (N of them) with a cheap budget into DIR
-(``--max-generations 2 --restarts 0``; results that exist are kept). Then every result in DIR is verified in a
+``--make N`` first refines every k-th sequence of the dev120 sample (N of them; ``--names FILE``: these instead)
+into DIR with a cheap budget (``--max-generations 2 --restarts 0``) or, ``--budget full``, the product's default
+budget (restarts, polish, rescue), one thread each, plus the built-in hinged box (``HINGED_BOX``; results that
+exist are kept). Then every result in DIR is verified in a
 subprocess under each kernel set of ``KERNELS`` (this build's own, NumPy without AVX-512 + OpenBLAS Haswell: what
 an AVX2 host runs, and NumPy's baseline + OpenBLAS Nehalem: an SSE-only host's kernels), recording the largest
 stepwise deviation per state field, the whole-rollout drift, and the time of the stepwise check against the full
@@ -38,18 +40,28 @@ KERNELS: dict[str, dict[str, str]] = {
             "OPENBLAS_CORETYPE": "Nehalem"},
 }
 FIELDS = ("qpos", "qvel", "qacc_warmstart", "ctrl", "mocap_pos", "mocap_quat")
+#: ``--make``'s refinement options per budget (``hoi-refine refine`` arguments; the hinged box's as job options).
+BUDGETS: dict[str, list[str]] = {"cheap": ["--max-generations", "2", "--restarts", "0"], "full": []}
+HINGED_BOX_OPTIONS: dict[str, dict[str, Any]] = {"cheap": {"popsize": 4, "max_generations": 1}, "full": {}}
+HINGED_BOX = "zz_hinged_box_example.npz"
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--results", type=Path, required=True, help="folder of refinement results (made by --make)")
     p.add_argument("--make", type=int, default=0, help="refine this many dev120 sequences into --results first")
+    p.add_argument("--budget", choices=tuple(BUDGETS), default="cheap",
+                   help="--make's refinement budget: cheap (2 generations, no restarts) or full (the product's "
+                        "defaults)")
+    p.add_argument("--names", type=Path, default=None,
+                   help="--make: refine these dev120 sequences (one file name a line) instead of every k-th")
     p.add_argument("--forge", type=Path, default=None, help="the result the forgeries start from (default: first)")
     p.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "verify_portable.md")
     p.add_argument("--note", action="append", default=[], help="a paragraph for the report (how the sample was made)")
     p.add_argument("--one", type=Path, default=None, help=argparse.SUPPRESS)  # subprocess: verify one, print JSON
     p.add_argument("--old-way", action="store_true", help=argparse.SUPPRESS)  # --one without the stored states
     p.add_argument("--substeps", type=Path, nargs=2, default=None, help=argparse.SUPPRESS)  # subprocess: RESULT STATES
+    p.add_argument("--hinged-box", type=Path, default=None, help=argparse.SUPPRESS)  # subprocess: make it there
     return p.parse_args(argv)
 
 
@@ -217,21 +229,42 @@ def steps_table(files: list[Path]) -> list[str]:
 # ------------------------------------------------------------------------------------------------- results
 
 
-def make_results(folder: Path, count: int) -> None:
+def make_results(folder: Path, count: int, budget: str = "cheap", names_file: Path | None = None) -> None:
+    """Refine the sample into ``folder`` (see the module docstring), each sequence in its own process."""
     folder.mkdir(parents=True, exist_ok=True)
-    names = [n for n in (ROOT / "bench" / "samples" / "dev120.txt").read_text().split() if n.endswith(".npz")]
-    step = max(1, len(names) // count)
+    if names_file is not None:
+        names = [n for n in names_file.read_text().split() if n.endswith(".npz")][:count]
+    else:
+        every = [n for n in (ROOT / "bench" / "samples" / "dev120.txt").read_text().split() if n.endswith(".npz")]
+        names = every[:: max(1, len(every) // count)][:count]
     data = ROOT.parent / "shared" / "data" / "dexycb" / "dev"
-    for name in names[::step][:count]:
+    for name in [HINGED_BOX, *names]:  # the articulated one first: the sample may be cut short
         out = folder / name
         if out.exists():
             continue
         tmp = folder / f"{name}.tmp"
-        subprocess.run([sys.executable, "-m", "common.cli", "refine", str(data / name), "--out", str(tmp),
-                        "--max-generations", "2", "--restarts", "0", "--no-wall-clock", "--quiet", "--threads", "1"],
-                       cwd=ROOT, check=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True)
+        t0 = time.perf_counter()
+        if name == HINGED_BOX:
+            subprocess.run([sys.executable, str(Path(__file__).resolve()), "--results", str(folder), "--budget",
+                            budget, "--hinged-box", str(tmp)], cwd=ROOT, check=True,
+                           env={**os.environ, "PYTHONPATH": str(ROOT)})
+        else:
+            subprocess.run([sys.executable, "-m", "common.cli", "refine", str(data / name), "--out", str(tmp),
+                            *BUDGETS[budget], "--no-wall-clock", "--quiet", "--threads", "1"],
+                           cwd=ROOT, check=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True)
         tmp.rename(out)
-        print(f"refined {name}", flush=True)
+        print(f"refined {name} ({budget} budget) in {time.perf_counter() - t0:.0f} s", flush=True)
+
+
+def make_hinged_box(out: Path, budget: str) -> None:
+    """The built-in hinged box (``worker.example.hinged_box``: two hands, a lid on a hinge) refined into ``out``."""
+    from common.job_options import JobOptions
+    from worker.example.hinged_box import hinged_box_sequence, short_hinged_box_sequence
+    from worker.refine.run import refine_sequence
+
+    seq = hinged_box_sequence() if budget == "full" else short_hinged_box_sequence()
+    outcome = refine_sequence(seq, JobOptions(**HINGED_BOX_OPTIONS[budget]), threads=1)
+    out.write_bytes(outcome.to_npz_bytes(wall_clock=False))
 
 
 def state_sizes(path: Path) -> dict[str, Any]:
@@ -400,8 +433,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.substeps is not None:
         print(json.dumps(steps_against_frames(*args.substeps)))
         return 0
+    if args.hinged_box is not None:
+        make_hinged_box(args.hinged_box, args.budget)
+        return 0
     if args.make:
-        make_results(args.results, args.make)
+        make_results(args.results, args.make, args.budget, args.names)
     files = sorted(p for p in args.results.glob("*.npz"))
     lines = ["# Stepwise verification off-host (issue #54)", "",
              f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores (shared with other "
