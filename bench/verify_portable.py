@@ -53,6 +53,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--budget", choices=tuple(BUDGETS), default="cheap",
                    help="--make's refinement budget: cheap (2 generations, no restarts) or full (the product's "
                         "defaults)")
+    p.add_argument("--make-only", action="store_true", help="--make, then stop (no verification)")
     p.add_argument("--names", type=Path, default=None,
                    help="--make: refine these dev120 sequences (one file name a line) instead of every k-th")
     p.add_argument("--forge", type=Path, default=None, help="the result the forgeries start from (default: first)")
@@ -438,6 +439,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.make:
         make_results(args.results, args.make, args.budget, args.names)
+        if args.make_only:
+            return 0
     files = sorted(p for p in args.results.glob("*.npz"))
     lines = ["# Stepwise verification off-host (issue #54)", "",
              f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores (shared with other "
