@@ -129,20 +129,24 @@ def verify_one(path: Path, old_way: bool = False) -> dict[str, Any]:
     }
 
 
-def code_digest() -> str:
-    """SHA-256 over the files of the ``worker`` and ``common`` packages this process imports (relative path and
-    bytes, compiled files left out): the code that verifies."""
+def code_files() -> dict[str, str]:
+    """SHA-256 of each file of the ``worker`` and ``common`` packages this process imports (compiled files left
+    out), by its path in the package: the code that verifies."""
     import common
     import worker
 
-    h = hashlib.sha256()
+    out = {}
     for package in (common, worker):
         base = Path(str(package.__file__)).resolve().parent
         for f in sorted(base.rglob("*")):
             if f.is_file() and "__pycache__" not in f.parts and f.suffix != ".pyc":
-                h.update(f"{package.__name__}/{f.relative_to(base).as_posix()}:".encode())
-                h.update(f.read_bytes())
-    return h.hexdigest()
+                out[f"{package.__name__}/{f.relative_to(base).as_posix()}"] = hashlib.sha256(f.read_bytes()).hexdigest()
+    return out
+
+
+def code_digest(files: dict[str, str] | None = None) -> str:
+    """One SHA-256 over ``code_files``."""
+    return hashlib.sha256(json.dumps(files or code_files(), sort_keys=True).encode()).hexdigest()
 
 
 #: The image of the "container" kernel set (``--container``), and its code's digest as checked.
@@ -160,13 +164,13 @@ def docker_command(image: str, args: list[str], mounts: dict[Path, str]) -> list
             "-w", CONTAINER_ROOT, image, "python", f"{CONTAINER_ROOT}/bench/verify_portable.py", *args]
 
 
-def container_code(image: str) -> str:
-    """``code_digest`` of the image's own ``worker`` and ``common``."""
+def container_code(image: str) -> dict[str, str]:
+    """``code_files`` of the image's own ``worker`` and ``common`` (the installed copy its verifier imports)."""
     run = subprocess.run(docker_command(image, ["--results", "/tmp", "--code-digest"], {}), capture_output=True,
                          text=True, timeout=600)
     if run.returncode != 0:
         raise RuntimeError(f"{image}: {(run.stdout + run.stderr)[-1000:]}")
-    return run.stdout.strip().splitlines()[-1]
+    return dict(json.loads(run.stdout.strip().splitlines()[-1]))
 
 
 def run_one(path: Path, kernel: str, old_way: bool = False, cache: Path | None = None) -> dict[str, Any]:
@@ -548,7 +552,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(steps_against_frames(*args.substeps)))
         return 0
     if args.code_digest:
-        print(code_digest())
+        print(json.dumps(code_files()))
         return 0
     if args.hinged_box is not None:
         make_hinged_box(args.hinged_box, args.budget)
@@ -562,13 +566,15 @@ def main(argv: list[str] | None = None) -> int:
     kernels = list(KERNELS)
     header = ""
     if args.container:
-        CONTAINER.update(image=args.container, code=container_code(args.container))
+        theirs, mine = container_code(args.container), code_files()
+        CONTAINER.update(image=args.container, code=code_digest(theirs))
         kernels.append("container")
-        same = CONTAINER["code"] == HOST_CODE
+        differ = sorted(k for k in set(theirs) | set(mine) if theirs.get(k) != mine.get(k))
         header = (f"Container: **container** `{args.container}`, each verification a `docker run --network host` "
-                  "with the results mounted read-only (`--one` inside the image, its own code and libraries, no "
-                  "kernels forced); its `worker` + `common` digest "
-                  f"{CONTAINER['code'][:16]} {'equals' if same else 'DIFFERS FROM'} this tree's {HOST_CODE[:16]}.")
+                  "with the results mounted read-only (`--one` inside the image: its own installed code and "
+                  "libraries, no kernels forced). Its `worker` + `common` against this tree's, file by file "
+                  f"({len(mine)} files): " + ("identical" if not differ else f"{len(differ)} differ: "
+                                               + ", ".join(differ[:12])) + ".")
         print(header, flush=True)
     files = sorted(p for p in args.results.glob("*.npz"))
     lines = ["# Stepwise verification off-host (issue #54)", "",
