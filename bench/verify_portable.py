@@ -637,6 +637,9 @@ def summary_lines(rows: list[dict[str, Any]], kernels: list[str]) -> list[str]:
                     default=0.0)
         out.append(f"| {f} | {step:.3g} | {start:.3g} | {STATE_TOLERANCES.of(f):g} | "
                    f"{STATE_TOLERANCES.of(f, 0):g} |")
+    ties = [f"{r['name']} ({r['kernel']}): {n}" for r in rows for n in r.get("notes", []) if "near tie" in n]
+    out += ["", "Table choices re-derived as a near tie (the stored candidate accepted within the margin, "
+            "`worker.simulation.table_fit.SCORE_MARGIN`): " + ("; ".join(ties) or "none") + "."]
     drift = max((r["drift_m"] for r in good), default=0.0)
     olds = [r for r in rows if "old_way" in r]
     out += ["", f"Largest whole-rollout drift (the figure the old check compared within 5 mm + 10 %): "
