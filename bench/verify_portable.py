@@ -606,7 +606,7 @@ def main(argv: list[str] | None = None) -> int:
         with tempfile.TemporaryDirectory() as tmp:
             os.chmod(tmp, 0o755)  # the container's user reads the forgeries
             forged = forgeries(args.forge or files[0], Path(tmp))
-            lines += forgery_table(forged, args.forge or files[0], kernels)
+            lines += forgery_table(forged, args.forge or files[0], kernels, args.cache)
     args.out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
@@ -715,7 +715,8 @@ def size_table(files: list[Path]) -> list[str]:
     return out
 
 
-def forgery_table(forged: list[tuple[str, str, Path]], source: Path, kernels: list[str]) -> list[str]:
+def forgery_table(forged: list[tuple[str, str, Path]], source: Path, kernels: list[str],
+                  cache: Path | None = None) -> list[str]:
     """Each forgery verified with the avx2 kernels forced (and in the container): verdict and first failure."""
     where = [k for k in ("avx2", "container") if k in kernels]
     out = [f"## Forgeries of `{source.stem}`, verified with the {' and '.join(where)} kernel sets", "",
@@ -724,7 +725,7 @@ def forgery_table(forged: list[tuple[str, str, Path]], source: Path, kernels: li
     for name, what, path in forged:
         os.chmod(path, 0o644)
         for kernel in where:
-            r = run_one(path, kernel)
+            r = run_one(path, kernel, cache=cache)
             if "error" in r:
                 verdict, text = "error", r["error"][-300:].replace("\n", " ")
             else:
