@@ -3,19 +3,30 @@ forgeries fail there naming field and frame, and what storing the states costs.
 
     .venv/bin/python bench/verify_portable.py --results DIR [--make 8] [--forge NAME.npz]
 
-``--make N`` first refines every k-th sequence of the dev120 sample (N of them) with a cheap budget into DIR
-(``--max-generations 2 --restarts 0``; results that exist are kept). Then every result in DIR is verified in a
+``--make N`` first refines every k-th sequence of the dev120 sample (N of them; ``--names FILE``: these instead)
+into DIR with a cheap budget (``--max-generations 2 --restarts 0``) or, ``--budget full``, the product's default
+budget (restarts, polish, rescue), one thread each, plus the built-in hinged box (``HINGED_BOX``; results that
+exist are kept). Then every result in DIR is verified in a
 subprocess under each kernel set of ``KERNELS`` (this build's own, NumPy without AVX-512 + OpenBLAS Haswell: what
 an AVX2 host runs, and NumPy's baseline + OpenBLAS Nehalem: an SSE-only host's kernels), recording the largest
 stepwise deviation per state field, the whole-rollout drift, and the time of the stepwise check against the full
 re-simulation. ``--forge`` (default: the first result) builds the forgeries of ``tests/integration`` and the new
-ones and verifies each under the AVX2 kernels. Prints the tables and writes ``bench/results/verify_portable.md``.
+ones and verifies each under the AVX2 kernels (and in the container). Prints the tables and writes
+``bench/results/verify_portable.md``.
+
+``--container IMAGE`` adds the kernel set "container": each ``--one`` subprocess runs inside the project's image
+(``docker run --network host``, the results folder mounted read-only at /data, this bench folder over the image's
+/app/bench, so the harness is this one and the code under test the image's own). The image's ``worker`` and
+``common`` must be this tree's: their digests (``code_digest``) are compared first and named in the report.
+``--cache DIR`` keeps each verification's figures (keyed by the result file, the kernel set and the code's digest),
+so a later run redoes only what changed; ``--rows-only`` fills it and stops.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import io
 import json
 import os
@@ -38,18 +49,35 @@ KERNELS: dict[str, dict[str, str]] = {
             "OPENBLAS_CORETYPE": "Nehalem"},
 }
 FIELDS = ("qpos", "qvel", "qacc_warmstart", "ctrl", "mocap_pos", "mocap_quat")
+#: ``--make``'s refinement options per budget (``hoi-refine refine`` arguments; the hinged box's as job options).
+BUDGETS: dict[str, list[str]] = {"cheap": ["--max-generations", "2", "--restarts", "0"], "full": []}
+HINGED_BOX_OPTIONS: dict[str, dict[str, Any]] = {"cheap": {"popsize": 4, "max_generations": 1}, "full": {}}
+HINGED_BOX = "zz_hinged_box_example.npz"
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--results", type=Path, required=True, help="folder of refinement results (made by --make)")
     p.add_argument("--make", type=int, default=0, help="refine this many dev120 sequences into --results first")
+    p.add_argument("--budget", choices=tuple(BUDGETS), default="cheap",
+                   help="--make's refinement budget: cheap (2 generations, no restarts) or full (the product's "
+                        "defaults)")
+    p.add_argument("--make-only", action="store_true", help="--make, then stop (no verification)")
+    p.add_argument("--names", type=Path, default=None,
+                   help="--make: refine these dev120 sequences (one file name a line) instead of every k-th")
     p.add_argument("--forge", type=Path, default=None, help="the result the forgeries start from (default: first)")
     p.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "verify_portable.md")
     p.add_argument("--note", action="append", default=[], help="a paragraph for the report (how the sample was made)")
     p.add_argument("--one", type=Path, default=None, help=argparse.SUPPRESS)  # subprocess: verify one, print JSON
     p.add_argument("--old-way", action="store_true", help=argparse.SUPPRESS)  # --one without the stored states
     p.add_argument("--substeps", type=Path, nargs=2, default=None, help=argparse.SUPPRESS)  # subprocess: RESULT STATES
+    p.add_argument("--hinged-box", type=Path, default=None, help=argparse.SUPPRESS)  # subprocess: make it there
+    p.add_argument("--code-digest", action="store_true", help=argparse.SUPPRESS)  # print code_digest() and stop
+    p.add_argument("--container", default=None, metavar="IMAGE",
+                   help="also verify every result and forgery inside this image (the 'container' kernel set)")
+    p.add_argument("--cache", type=Path, default=None, help="keep each verification's figures here and reuse them")
+    p.add_argument("--rows-only", action="store_true", help="verify the results (into --cache), no report")
+    p.add_argument("--skip-old-way", action="store_true", help="leave out the old-way verification of each file")
     return p.parse_args(argv)
 
 
@@ -97,18 +125,79 @@ def verify_one(path: Path, old_way: bool = False) -> dict[str, Any]:
         "drift_m": report.max_pos_diff_m, "drift_deg": report.max_rot_diff_deg, "exact_rollout": report.exact,
         "stepwise": {k: r.to_dict() for k, r in report.stepwise.items()}, "total_s": total,
         "derive_s": timed.get("derive_s", float("nan")), "prepare_s": timed.get("prepare_s", float("nan")),
-        "simd": numpy_simd(), "frames": report.frames,
+        "simd": numpy_simd(), "frames": report.frames, "code": code_digest(), "notes": report.config_notes[-8:],
     }
 
 
-def run_one(path: Path, kernels: dict[str, str], old_way: bool = False) -> dict[str, Any]:
-    env = {**os.environ, **kernels, "PYTHONPATH": str(ROOT)}
-    run = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--results", str(path.parent), "--one",
-                          str(path), *(["--old-way"] if old_way else [])], env=env, cwd=ROOT, capture_output=True,
-                         text=True, timeout=1800)
+def code_files() -> dict[str, str]:
+    """SHA-256 of each file of the ``worker`` and ``common`` packages this process imports (compiled files left
+    out), by its path in the package: the code that verifies."""
+    import common
+    import worker
+
+    out = {}
+    for package in (common, worker):
+        base = Path(str(package.__file__)).resolve().parent
+        for f in sorted(base.rglob("*")):
+            if f.is_file() and "__pycache__" not in f.parts and f.suffix != ".pyc":
+                out[f"{package.__name__}/{f.relative_to(base).as_posix()}"] = hashlib.sha256(f.read_bytes()).hexdigest()
+    return out
+
+
+def code_digest(files: dict[str, str] | None = None) -> str:
+    """One SHA-256 over ``code_files``."""
+    return hashlib.sha256(json.dumps(files or code_files(), sort_keys=True).encode()).hexdigest()
+
+
+#: The image of the "container" kernel set (``--container``), and its code's digest as checked.
+CONTAINER: dict[str, str] = {}
+#: ``code_digest`` of this tree (``main``).
+HOST_CODE = ""
+CONTAINER_ROOT = "/app"
+
+
+def docker_command(image: str, args: list[str], mounts: dict[Path, str]) -> list[str]:
+    """``docker run`` of this script inside ``image`` with ``args``: host networking, ``mounts`` (host folder ->
+    container path) read-only, this bench folder over the image's, as the image's user."""
+    volumes = [f"{ROOT / 'bench'}:{CONTAINER_ROOT}/bench:ro", *(f"{h.resolve()}:{c}:ro" for h, c in mounts.items())]
+    return ["docker", "run", "--rm", "--network", "host", *(x for v in volumes for x in ("-v", v)),
+            "-w", CONTAINER_ROOT, image, "python", f"{CONTAINER_ROOT}/bench/verify_portable.py", *args]
+
+
+def container_code(image: str) -> dict[str, str]:
+    """``code_files`` of the image's own ``worker`` and ``common`` (the installed copy its verifier imports)."""
+    run = subprocess.run(docker_command(image, ["--results", "/tmp", "--code-digest"], {}), capture_output=True,
+                         text=True, timeout=600)
+    if run.returncode != 0:
+        raise RuntimeError(f"{image}: {(run.stdout + run.stderr)[-1000:]}")
+    return dict(json.loads(run.stdout.strip().splitlines()[-1]))
+
+
+def run_one(path: Path, kernel: str, old_way: bool = False, cache: Path | None = None) -> dict[str, Any]:
+    """``verify_one`` of ``path`` in a subprocess with kernel set ``kernel`` (``KERNELS`` or "container");
+    ``cache``: a folder of earlier figures, reused when the file, the kernel set and the code are the same."""
+    code = CONTAINER["code"] if kernel == "container" else HOST_CODE
+    key = hashlib.sha256(path.read_bytes()).hexdigest()[:24] + f"-{kernel}-{int(old_way)}-{code[:16]}"
+    hit = None if cache is None else cache / f"{path.stem}-{key}.json"
+    if hit is not None and hit.exists():
+        return dict(json.loads(hit.read_text()))
+    flags = ["--one", *(["--old-way"] if old_way else [])]
+    if kernel == "container":
+        cmd = docker_command(CONTAINER["image"], ["--results", "/data", *flags[:1], f"/data/{path.name}", *flags[1:]],
+                             {path.parent: "/data"})
+        env = dict(os.environ)
+    else:
+        cmd = [sys.executable, str(Path(__file__).resolve()), "--results", str(path.parent), flags[0], str(path),
+               *flags[1:]]
+        env = {**os.environ, **KERNELS[kernel], "PYTHONPATH": str(ROOT)}
+    run = subprocess.run(cmd, env=env, cwd=ROOT, capture_output=True, text=True, timeout=1800)
     if run.returncode != 0:
         return {"verified": False, "error": (run.stdout + run.stderr)[-2000:]}
-    return dict(json.loads(run.stdout.strip().splitlines()[-1]))
+    out = dict(json.loads(run.stdout.strip().splitlines()[-1]))
+    if hit is not None:
+        hit.parent.mkdir(parents=True, exist_ok=True)
+        hit.write_text(json.dumps(out))
+    return out
 
 
 # ------------------------------------------------------------------------------------- frames or control steps
@@ -217,21 +306,42 @@ def steps_table(files: list[Path]) -> list[str]:
 # ------------------------------------------------------------------------------------------------- results
 
 
-def make_results(folder: Path, count: int) -> None:
+def make_results(folder: Path, count: int, budget: str = "cheap", names_file: Path | None = None) -> None:
+    """Refine the sample into ``folder`` (see the module docstring), each sequence in its own process."""
     folder.mkdir(parents=True, exist_ok=True)
-    names = [n for n in (ROOT / "bench" / "samples" / "dev120.txt").read_text().split() if n.endswith(".npz")]
-    step = max(1, len(names) // count)
+    if names_file is not None:
+        names = [n for n in names_file.read_text().split() if n.endswith(".npz")][:count]
+    else:
+        every = [n for n in (ROOT / "bench" / "samples" / "dev120.txt").read_text().split() if n.endswith(".npz")]
+        names = every[:: max(1, len(every) // count)][:count]
     data = ROOT.parent / "shared" / "data" / "dexycb" / "dev"
-    for name in names[::step][:count]:
+    for name in [HINGED_BOX, *names]:  # the articulated one first: the sample may be cut short
         out = folder / name
         if out.exists():
             continue
         tmp = folder / f"{name}.tmp"
-        subprocess.run([sys.executable, "-m", "common.cli", "refine", str(data / name), "--out", str(tmp),
-                        "--max-generations", "2", "--restarts", "0", "--no-wall-clock", "--quiet", "--threads", "1"],
-                       cwd=ROOT, check=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True)
+        t0 = time.perf_counter()
+        if name == HINGED_BOX:
+            subprocess.run([sys.executable, str(Path(__file__).resolve()), "--results", str(folder), "--budget",
+                            budget, "--hinged-box", str(tmp)], cwd=ROOT, check=True,
+                           env={**os.environ, "PYTHONPATH": str(ROOT)})
+        else:
+            subprocess.run([sys.executable, "-m", "common.cli", "refine", str(data / name), "--out", str(tmp),
+                            *BUDGETS[budget], "--no-wall-clock", "--quiet", "--threads", "1"],
+                           cwd=ROOT, check=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True)
         tmp.rename(out)
-        print(f"refined {name}", flush=True)
+        print(f"refined {name} ({budget} budget) in {time.perf_counter() - t0:.0f} s", flush=True)
+
+
+def make_hinged_box(out: Path, budget: str) -> None:
+    """The built-in hinged box (``worker.example.hinged_box``: two hands, a lid on a hinge) refined into ``out``."""
+    from common.job_options import JobOptions
+    from worker.example.hinged_box import hinged_box_sequence, short_hinged_box_sequence
+    from worker.refine.run import refine_sequence
+
+    seq = hinged_box_sequence() if budget == "full" else short_hinged_box_sequence()
+    outcome = refine_sequence(seq, JobOptions(**HINGED_BOX_OPTIONS[budget]), threads=1)
+    out.write_bytes(outcome.to_npz_bytes(wall_clock=False))
 
 
 def state_sizes(path: Path) -> dict[str, Any]:
@@ -312,6 +422,8 @@ def forgeries(path: Path, folder: Path) -> list[tuple[str, str, Path]]:
                                        "attempts": summary["attempts"][:1],
                                        "num_contacts": len(derived.final.contacts["contact_frame"])})
 
+    add_table_forgery(add, arrays, summary, prep, keyframes)
+
     # New: forged states.
     states = arrays["state_sim"].copy()
     pose = arrays["object_pose_sim"].copy()
@@ -343,6 +455,45 @@ def forgeries(path: Path, folder: Path) -> list[tuple[str, str, Path]]:
         summary)
     add_shift(add, arrays, summary, prep, keyframes, layout)
     return out
+
+
+def add_table_forgery(add: Any, arrays: dict[str, np.ndarray], summary: dict[str, Any], prep: Any,
+                      keyframes: dict[str, np.ndarray]) -> None:
+    """The result re-derived whole (every attempt, figure and the outcome) on a table candidate that scores more
+    than ``SCORE_MARGIN`` worse than the best: consistent in itself, on a table the fit would not choose."""
+    from common.job_options import JobOptions
+    from worker.refine.derive import add_attempt_metrics, attempt_figures, derive_result
+    from worker.refine.outcome import classify_outcome, was_rescued
+    from worker.simulation.config import SimConfig
+    from worker.simulation.metrics import scalar_metrics
+    from worker.simulation.table_fit import SCORE_MARGIN, TableChoice
+    from worker.verification.check import _attempt_details, _attempt_keyframes
+
+    fit = prep.scene.table_fit
+    best = min(fit.scores)
+    far = [i for i, score in enumerate(fit.scores) if score > best + SCORE_MARGIN]
+    if not far:
+        return
+    i = min(far, key=lambda k: fit.scores[k])
+    sim: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in summary["config"]["sim"].items()}
+    attempt_kf = _attempt_keyframes(arrays, list(prep.spaces))
+    details = _attempt_details(summary, attempt_kf, sim["convex_detail"])
+    derived = derive_result(arrays["sequence_npz"].tobytes(), JobOptions.model_validate(summary["options"]),
+                            SimConfig(**sim), summary["config"]["rotation_pivot"], keyframes, attempt_kf,
+                            attempt_details=details, table=TableChoice(i, *fit.candidates[i]))
+    metrics = {k: scalar_metrics(v) for k, v in derived.metrics.items()}
+    attempts = [{**a, **attempt_figures(m)} for a, m in zip(summary["attempts"], derived.attempt_metrics,
+                                                            strict=True)]
+    add_attempt_metrics(metrics["refined"], attempts)
+    contact = derived.final.contact_frames
+    outcome = classify_outcome(derived.prep, derived.metrics["refined"], derived.final.object_pose,
+                               hand_contact=None if contact is None else contact.hand,
+                               rescued=was_rescued(derived.prep))
+    forged = {**summary, "metrics": metrics, "attempts": attempts, "table": derived.prep.scene.table_summary(),
+              "object_hold": derived.prep.scene.hold_summary(),
+              "num_contacts": len(derived.final.contacts["contact_frame"]), "outcome": outcome.model_dump(mode="json")}
+    add("table_far", f"the table replaced by fit candidate {i} (drift {fit.scores[i]:.3g} against the best's "
+        f"{best:.3g}) and the whole result re-derived on it", {**arrays, **derived.arrays}, forged)
 
 
 def add_shift(add: Any, arrays: dict[str, np.ndarray], summary: dict[str, Any], prep: Any,
@@ -400,41 +551,68 @@ def main(argv: list[str] | None = None) -> int:
     if args.substeps is not None:
         print(json.dumps(steps_against_frames(*args.substeps)))
         return 0
+    if args.code_digest:
+        print(json.dumps(code_files()))
+        return 0
+    if args.hinged_box is not None:
+        make_hinged_box(args.hinged_box, args.budget)
+        return 0
     if args.make:
-        make_results(args.results, args.make)
+        make_results(args.results, args.make, args.budget, args.names)
+        if args.make_only:
+            return 0
+    global HOST_CODE
+    HOST_CODE = code_digest()
+    kernels = list(KERNELS)
+    header = ""
+    if args.container:
+        theirs, mine = container_code(args.container), code_files()
+        CONTAINER.update(image=args.container, code=code_digest(theirs))
+        kernels.append("container")
+        differ = sorted(k for k in set(theirs) | set(mine) if theirs.get(k) != mine.get(k))
+        header = (f"Container: **container** `{args.container}`, each verification a `docker run --network host` "
+                  "with the results mounted read-only (`--one` inside the image: its own installed code and "
+                  "libraries, no kernels forced). Its `worker` + `common` against this tree's, file by file "
+                  f"({len(mine)} files): " + ("identical" if not differ else f"{len(differ)} differ: "
+                                               + ", ".join(differ[:12])) + ".")
+        print(header, flush=True)
     files = sorted(p for p in args.results.glob("*.npz"))
     lines = ["# Stepwise verification off-host (issue #54)", "",
              f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores (shared with other "
              f"sessions); {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}. Sample: {len(files)} results in "
              f"`{args.results}`. Kernels forced in a subprocess: " + "; ".join(
                  f"**{k}** {' '.join(f'{a}={b!r}' for a, b in v.items()) or '(none)'}" for k, v in KERNELS.items()),
-             ""]
+             "", *([header, ""] if header else [])]
     for note in args.note:
         lines += [note, ""]
     rows: list[dict[str, Any]] = []
     for path in files:
-        for kernel, env in KERNELS.items():
-            r = run_one(path, env)
+        for kernel in kernels:
+            r = run_one(path, kernel, cache=args.cache)
             r.update(name=path.stem, kernel=kernel)
-            if kernel != "original":  # the same file as an older result, without states
-                old = run_one(path, env, old_way=True)
+            if kernel != "original" and not args.skip_old_way:  # the same file as an older result, without states
+                old = run_one(path, kernel, old_way=True, cache=args.cache)
                 r["old_way"] = "error" if "error" in old else (
                     "passes" if old["verified"] else "FAILS: " + "; ".join(old["failures"])[:160])
             rows.append(r)
             print(json.dumps({k: r.get(k) for k in ("name", "kernel", "verified", "drift_m", "total_s",
                                                     "derive_s")}), flush=True)
-    lines += [*summary_lines(rows), "", *deviation_table(rows), "", *timing_table(rows), "", *size_table(files), ""]
+    if args.rows_only:
+        return 0
+    lines += [*summary_lines(rows, kernels), "", *deviation_table(rows), "", *timing_table(rows, kernels), "",
+              *size_table(files), ""]
     lines += [*steps_table(files[:2]), ""]
     if files:
         with tempfile.TemporaryDirectory() as tmp:
+            os.chmod(tmp, 0o755)  # the container's user reads the forgeries
             forged = forgeries(args.forge or files[0], Path(tmp))
-            lines += forgery_table(forged, args.forge or files[0])
+            lines += forgery_table(forged, args.forge or files[0], kernels, args.cache)
     args.out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
 
 
-def summary_lines(rows: list[dict[str, Any]]) -> list[str]:
+def summary_lines(rows: list[dict[str, Any]], kernels: list[str]) -> list[str]:
     """The largest honest deviations over every result and kernel set against the tolerances."""
     from worker.verification.stepwise import STATE_TOLERANCES
 
@@ -442,7 +620,7 @@ def summary_lines(rows: list[dict[str, Any]]) -> list[str]:
     failed = [f"{r['name']} ({r['kernel']})" for r in rows if not r.get("verified")]
     out = ["## Summary", "",
            f"{len(passed)} of {len(rows)} verifications passed ({len({r['name'] for r in rows})} results x "
-           f"{len(KERNELS)} kernel sets); failed: {', '.join(failed) or 'none'}. The deviations below are those of "
+           f"{len(kernels)} kernel sets); failed: {', '.join(failed) or 'none'}. The deviations below are those of "
            "the verified ones.", "",
            "| state field | largest honest deviation, frames 1.. | at frame 0 (re-settled start) | tolerance | "
            "tolerance at frame 0 |", "|---|---|---|---|---|"]
@@ -459,6 +637,9 @@ def summary_lines(rows: list[dict[str, Any]]) -> list[str]:
                     default=0.0)
         out.append(f"| {f} | {step:.3g} | {start:.3g} | {STATE_TOLERANCES.of(f):g} | "
                    f"{STATE_TOLERANCES.of(f, 0):g} |")
+    ties = [f"{r['name']} ({r['kernel']}): {n}" for r in rows for n in r.get("notes", []) if "near tie" in n]
+    out += ["", "Table choices re-derived as a near tie (the stored candidate accepted within the margin, "
+            "`worker.simulation.table_fit.SCORE_MARGIN`): " + ("; ".join(ties) or "none") + "."]
     drift = max((r["drift_m"] for r in good), default=0.0)
     olds = [r for r in rows if "old_way" in r]
     out += ["", f"Largest whole-rollout drift (the figure the old check compared within 5 mm + 10 %): "
@@ -492,7 +673,7 @@ def deviation_table(rows: list[dict[str, Any]]) -> list[str]:
     return out
 
 
-def timing_table(rows: list[dict[str, Any]]) -> list[str]:
+def timing_table(rows: list[dict[str, Any]], kernels: list[str]) -> list[str]:
     good = [r for r in rows if "error" not in r]
     out = ["## Time: stepwise check against the full re-simulation", "",
            "Stepwise: both replays, each frame from its stored state (Python-stepped, contacts recorded). Full: "
@@ -501,7 +682,7 @@ def timing_table(rows: list[dict[str, Any]]) -> list[str]:
            "the full figure. Seconds on this shared 2-core machine (other sessions running).", "",
            "| kernels | results | frames (mean) | stepwise s (mean) | full re-simulation s (mean) | of which "
            "preparation s | verify total s |", "|---|---|---|---|---|---|---|"]
-    for kernel in KERNELS:
+    for kernel in kernels:
         mine = [r for r in good if r["kernel"] == kernel]
         if not mine:
             continue
@@ -534,18 +715,24 @@ def size_table(files: list[Path]) -> list[str]:
     return out
 
 
-def forgery_table(forged: list[tuple[str, str, Path]], source: Path) -> list[str]:
-    out = [f"## Forgeries of `{source.stem}`, verified with the avx2 kernels forced", "",
-           "| forgery | what it changes | verdict | first failure (field and frame) |", "|---|---|---|---|"]
+def forgery_table(forged: list[tuple[str, str, Path]], source: Path, kernels: list[str],
+                  cache: Path | None = None) -> list[str]:
+    """Each forgery verified with the avx2 kernels forced (and in the container): verdict and first failure."""
+    where = [k for k in ("avx2", "container") if k in kernels]
+    out = [f"## Forgeries of `{source.stem}`, verified with the {' and '.join(where)} kernel sets", "",
+           "| forgery | what it changes | kernels | verdict | first failure (field and frame) |",
+           "|---|---|---|---|---|"]
     for name, what, path in forged:
-        r = run_one(path, KERNELS["avx2"])
-        if "error" in r:
-            verdict, text = "error", r["error"][-300:].replace("\n", " ")
-        else:
-            verdict = "accepted" if r["verified"] else "FAILS"
-            text = (r["failures"] or [""])[0]
-        out.append(f"| {name} | {what} | {verdict} | {text.replace('|', '/')[:400]} |")
-        print(out[-1], flush=True)
+        os.chmod(path, 0o644)
+        for kernel in where:
+            r = run_one(path, kernel, cache=cache)
+            if "error" in r:
+                verdict, text = "error", r["error"][-300:].replace("\n", " ")
+            else:
+                verdict = "accepted" if r["verified"] else "FAILS"
+                text = (r["failures"] or [""])[0]
+            out.append(f"| {name} | {what} | {kernel} | {verdict} | {text.replace('|', '/')[:400]} |")
+            print(out[-1], flush=True)
     return out
 
 

@@ -72,3 +72,21 @@ def test_bad_input_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -
     assert "apply to a folder" in capsys.readouterr().err
     assert main(["verify", str(tmp_path), "--threads", "2"]) == 2  # a file's options, on a folder
     assert "apply to one result file" in capsys.readouterr().err
+
+
+def test_a_handful_of_small_results_are_checked_without_a_pool(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Unless --jobs says otherwise, one process per ``BYTES_PER_PROCESS`` of results, up to the cores: starting a
+    checker costs seconds, more than a few small results take in this process."""
+    from worker.verification import folder
+
+    monkeypatch.setattr(folder.os, "sched_getaffinity", lambda _: {0, 1, 2, 3}, raising=False)
+    small = [tmp_path / f"s{i}.result.npz" for i in range(3)]
+    for p in small:
+        p.write_bytes(b"x" * 80_000)
+    assert folder.default_jobs(small) == 1
+    big = [tmp_path / f"b{i}.result.npz" for i in range(12)]
+    for p in big:
+        p.write_bytes(b"x" * 500_000)
+    assert folder.default_jobs(big) == 12 * 500_000 // folder.BYTES_PER_PROCESS == 2
+    assert folder.default_jobs(big * 10) == 4  # the cores
+    assert folder.default_jobs() == 4

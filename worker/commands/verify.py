@@ -41,7 +41,9 @@ def register(subparsers: Any) -> None:
     v.add_argument("--threads", type=int, default=1,
                    help="replays run side by side on this many threads (default 1; the figures do not depend on it)")
     v.add_argument("--jobs", type=int, default=None,
-                   help="a folder: files checked side by side on this many processes (default: the core count)")
+                   help="a folder: files checked side by side on this many processes (default: one per 2 MB of "
+                        "result files, up to the core count; a handful of small results are checked in this "
+                        "process, since starting a checker process costs seconds)")
     v.add_argument("--report", type=Path, default=None,
                    help="a folder: write the JSON report (every file's status, failures, figures) here")
     v.set_defaults(func=_verify)

@@ -37,7 +37,7 @@ def verify_folder(root: Path, *, jobs: int | None, report_path: Path | None, all
     settings = get_settings()
     options = VerifyOptions(allow_config=allow_config, cache_dir=settings.resolved_cache_dir(),
                             mano_dir=settings.mano_dir)
-    workers = max(1, jobs if jobs is not None else default_jobs())
+    workers = max(1, jobs if jobs is not None else default_jobs(paths))
     console = Console(stderr=True)
     start = time.perf_counter()
     columns = (TextColumn("verify"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[tally]}"),

@@ -33,6 +33,7 @@ from worker.robot.reference import RobotReference
 from worker.simulation.config import SimConfig
 from worker.simulation.metrics import compute_metrics, scalar_metrics
 from worker.simulation.replay import articulation_frames
+from worker.simulation.table_fit import TableChoice
 
 #: The result arrays holding each replay's integration state per frame (``worker.refine.replay.INTEGRATION_STATE``).
 STATE_KEYS = dict(zip(("refined", "raw"), INTEGRATION_STATE_KEYS, strict=True))
@@ -67,6 +68,7 @@ def derive_result(
     threads: int = 1,
     attempt_details: list[str] | None = None,
     robot_speed_limits: bool = True,
+    table: TableChoice | None = None,
 ) -> Derived:
     """See the module docstring. ``attempt_keyframes`` the keyframes of every attempt (restarts) in order, stored
     so ``verify`` can check the first attempt's success too; ``attempt_details`` the convex parts each ran on
@@ -77,10 +79,13 @@ def derive_result(
     retargeting of these very bytes, when the caller made it already (``refine_sequence``; ``verify`` never passes
     it, so a retargeting that did not reproduce would fail there). ``threads``: replays run side by side
     (``replay_all``; the same records whatever the number). ``robot_speed_limits`` as for ``prepare``
-    (``config.robot_joint_speed``)."""
+    (``config.robot_joint_speed``). ``table``: the result's stored table choice
+    (``verify``: the scene stands on it; ``Prepared.scene.table_fit.choice_problems`` say whether the fit makes it
+    here); attempts on other convex parts are prepared on the fit's own choice, as the refinement did."""
     seq = sequence_from_npz_bytes(sequence_bytes)
     prep = prepare(seq, options, config, rotation_pivot=rotation_pivot, cache_dir=cache_dir, mano_dir=mano_dir,
-                   mirror_left=mirror_left, references=references, robot_speed_limits=robot_speed_limits)
+                   mirror_left=mirror_left, references=references, robot_speed_limits=robot_speed_limits,
+                   table=table)
     for side, space in prep.spaces.items():
         k = keyframes.get(side)
         if k is None or k.shape != (space.n_keyframes, space.dim):

@@ -44,6 +44,7 @@ from worker.simulation.config import SimConfig
 from worker.simulation.rest_pose import moved_frame
 from worker.simulation.scene import Scene, build_scene
 from worker.simulation.stepping import HandTargets, initial_state, lead_track, lead_values
+from worker.simulation.table_fit import TableChoice
 
 #: Defaults chosen for the speed budget (2 shared cores, <= 60 s for 72 frames at 30 fps); see bench/refine.py.
 #: 10 generations rather than 6: on dev40 E_t 0.58 -> 0.50 cm and E_r 2.78 -> 2.63 deg for a median of 30 s
@@ -163,6 +164,7 @@ def prepare(
     mirror_left: bool | None = None,
     references: list[HandReference] | list[Any] | None = None,
     robot_speed_limits: bool = True,
+    table: TableChoice | None = None,
 ) -> Prepared:
     """``rotation_pivot``: ``ROTATION_PIVOT`` when None (``verify`` passes the one a result was made with).
     ``cache_dir``: where convex parts are cached (None: memory only); ``mano_dir``: the MANO model folder
@@ -173,7 +175,8 @@ def prepare(
     when the caller has it already (``derive`` from the refinement, which read the same bytes); retargeting is
     a third of a preparation. ``robot_speed_limits``: a robot hand's retargeted motion is brought within its joint
     speed limits (``worker.robot.speed``); False reproduces robot results made before that
-    (``config.robot_joint_speed`` absent)."""
+    (``config.robot_joint_speed`` absent). ``table``: a result's stored table choice, stood on instead of the
+    fit's own (``build_scene``; ``verify`` and the tools that rebuild a result pass it)."""
     if mirror_left is None:
         mirror_left = MIRROR_LEFT_HAND
     config = config or SimConfig()
@@ -181,7 +184,7 @@ def prepare(
         references = retarget_sequence(seq, mano_dir=mano_dir)
         if options.hand is not None:  # a robot hand: the recorded hand retargeted to it (issue #55)
             references = robot_references(references, options.hand, float(seq.fps) if robot_speed_limits else None)
-    scene = build_scene(seq, references, config, cache_dir=cache_dir)
+    scene = build_scene(seq, references, config, cache_dir=cache_dir, table=table)
     layout = SimLayout.from_scene(scene)
     interval = options.keyframe_interval or default_keyframe_interval(seq.fps)
     robots = [r for r in references if isinstance(r, RobotReference)]

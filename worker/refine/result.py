@@ -40,6 +40,7 @@ from worker.refine.environment import versions
 from worker.refine.prepare import Prepared, prepare
 from worker.refine.windowed import CmaSettings, WindowLog
 from worker.simulation.config import OLDER_SIM_DEFAULTS, SimConfig
+from worker.simulation.table_fit import TableChoice
 
 RESULT_KIND = "refine"
 #: The visual tools' tolerance on a re-simulated object trajectory (m): on the same build it reproduces bit for
@@ -112,7 +113,7 @@ def build_summary(
                 for w in logs
             ],
         },
-        "table": prep.scene.table.to_dict(),
+        "table": prep.scene.table_summary(),
         "object_hold": prep.scene.hold_summary(),
         "attempts": attempts or [],
         "num_contacts": int(num_contacts),
@@ -146,7 +147,7 @@ def prepare_from_result(
                    rotation_pivot=summary["config"].get("rotation_pivot", "wrist"), cache_dir=cache_dir,
                    mano_dir=mano_dir, mirror_left=summary["config"].get("left_hand_controls") == "mirrored",
                    robot_speed_limits=summary["config"].get("robot_joint_speed") == ROBOT_JOINT_SPEED[True],
-                   )  # fmt: skip
+                   table=TableChoice.from_summary(summary.get("table") or {}))  # fmt: skip
     keyframes = {}
     for side, space in prep.spaces.items():
         key = f"{side}_keyframes"

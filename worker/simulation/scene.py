@@ -55,7 +55,7 @@ from worker.simulation.object_model import (
 )
 from worker.simulation.rest_pose import moved_frame, rest_pose, resting_frames
 from worker.simulation.support_plane import SupportPlane
-from worker.simulation.table_fit import fit_table, option_xml, table_geom_xml
+from worker.simulation.table_fit import TableChoice, TableFit, fit_table, option_xml, table_geom_xml
 
 __all__ = ["HandHandles", "Scene", "SimConfig", "build_scene"]
 
@@ -109,6 +109,8 @@ class Scene:
     object_release_frame: int = 0
     #: How far the object drifts on its table when simulated alone (``table_fit.TableFit.drift``).
     table_drift: float = 0.0
+    #: The table fit whole: its candidates and their scores, and which one the scene stands on.
+    table_fit: TableFit | None = None
     object_part_body_ids: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     object_part_names: tuple[str, ...] = ()
     object_joint_qpos_adr: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
@@ -129,6 +131,11 @@ class Scene:
 
     def make_data(self) -> mujoco.MjData:
         return mujoco.MjData(self.model)
+
+    def table_summary(self) -> dict[str, Any]:
+        """The result's ``table``: the plane, and the fit's candidate with the start pose and its drift
+        (``TableFit.to_summary``; ``verify`` builds its scene on them, ``TableChoice.from_summary``)."""
+        return self.table.to_dict() if self.table_fit is None else self.table_fit.to_summary()
 
     def hold_summary(self) -> dict[str, Any]:
         """The result's ``object_hold``: the frame the hold ends (0: none) and whether it lasts until the recording
@@ -285,10 +292,11 @@ def _scene_document(config: SimConfig, table: SupportPlane, fragments: list[Hand
 
 def build_scene(
     seq: Sequence, references: list[HandReference] | list[Any], config: SimConfig | None = None, *,
-    cache_dir: Path | None = None,
+    cache_dir: Path | None = None, table: TableChoice | None = None,
 ) -> Scene:
     """Compile the scene for a sequence and its retargeted hands (one ``HandReference`` per hand). ``cache_dir``:
-    where a mesh object's convex parts are cached on disk (None: memory only)."""
+    where a mesh object's convex parts are cached on disk (None: memory only); ``table``: a result's stored table
+    choice, stood on instead of the fit's own (``fit_table``'s ``choice``)."""
     config = config or SimConfig()
     if not references:
         raise ValueError("references must hold at least one HandReference")
@@ -298,13 +306,14 @@ def build_scene(
     surface = posed_surface_points(seq.object, arti0, config.primitive_surface_spacing_m)
     start = rest_pose(poses, surface, keypoints, config.rest_approach_m)
     release = resting_frames(poses, surface, keypoints, config.hold_until_m)  # 0 when there is no hold
-    pose0, table, drift = fit_table(seq, config, start, cache_dir=cache_dir, articulation=arti0)
+    fit = fit_table(seq, config, start, cache_dir=cache_dir, articulation=arti0, choice=table)
+    pose0, plane, drift = fit.pose, fit.plane, fit.drift
     if release > 0 and config.unsupported(drift):
         # No table holds the object as recorded (it leaned on something not simulated): released when the hand
         # comes near, it falls before the grasp forms, so it is held until the recording moves it, less the lead.
         lead = round(config.unsupported_lead_s * seq.fps)
         release = max(release, moved_frame(poses) - lead)
-    xml, collision, ngeom = scene_xml(seq, references, config, (pose0, table), cache_dir=cache_dir, hold=release > 0)
+    xml, collision, ngeom = scene_xml(seq, references, config, (pose0, plane), cache_dir=cache_dir, hold=release > 0)
     model = mujoco.MjModel.from_xml_string(xml)
     hold_eq = int(mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_EQUALITY, OBJECT_HOLD)) if release > 0 else -1
     hands: dict[str, HandHandles] = {}
@@ -339,13 +348,14 @@ def build_scene(
         object_sensor_adr=int(model.sensor_adr[obj_sensor]),
         table_geom_id=int(_ids(model, mujoco.mjtObj.mjOBJ_GEOM, ["table"])[0]),
         object_init_pose=pose0,
-        table=table,
+        table=plane,
         object_collision=collision,
         xml=xml,
         body_side=body_side,
         object_hold_eq=hold_eq,
         object_release_frame=release,
         table_drift=drift,
+        table_fit=fit,
         object_part_body_ids=part_bodies,
         object_part_names=tuple(obj.part_names),
         object_joint_qpos_adr=model.jnt_qposadr[joints].astype(np.int64),

@@ -9,12 +9,19 @@ mean over the approach (``rest_pose``). Each is tried in a model of the object a
 millimetres), so a lying cylinder balanced on one narrow strip of its side, which rolls away, loses to the level
 table, and a box recorded 4 degrees tilted rests exactly as recorded on a table tilted under it. The fit is
 deterministic and costs a few hundred physics steps of one free body per candidate.
+
+Deterministic on one build, not across CPUs: a candidate's score is a 1.5 s simulation whose last bits follow
+NumPy's and OpenBLAS's kernels, and two candidates close in score can swap (20200813-subject-02__20200813_153152:
+0.26 against 0.53 on an AVX-512 host, 0.36 against 0.14 with SSE kernels). So a result records its choice
+(``TableFit.to_summary``: the candidate's index, the start pose and the plane), and ``verify`` re-derives the
+candidates and accepts the stored one when it is among them and scores within ``SCORE_MARGIN`` of the best
+(``TableFit.choice_problems``), then builds the scene on the stored plane (``fit_table(choice=...)``).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import mujoco
 import numpy as np
@@ -60,19 +67,79 @@ def level_start_pose(recorded: FloatArray, vertices_world: FloatArray, config: S
     return pose
 
 
+#: How much worse (degrees + millimetres of drift) than the best candidate a stored choice may score when
+#: ``verify`` re-derives the candidates on another host. Measured over 30 dev120 sequences between AVX-512 and SSE
+#: kernels: a candidate's score moves by 0.39 at most (the sequence above; 0.014 or less on all others), so a stored
+#: choice trails the best re-derived one by up to two such moves; 1.0 leaves a margin over that. Any candidate
+#: within it leaves the object within a degree + millimetre of its rest pose: a table as good as the best.
+SCORE_MARGIN = 1.0
+#: A stored plane and start pose against the candidate they claim to be (m, unit normal, quaternion): the candidates
+#: come from the recorded pose through a convex hull, so other kernels move them by last bits only.
+CANDIDATE_TOLERANCE = 1e-9
+
+
+class TableChoice(NamedTuple):
+    """A result's stored table (``TableFit.to_summary``): the fit's ``candidate`` (its index), the object's frame-0
+    ``pose`` on it and the ``plane``."""
+
+    candidate: int
+    pose: FloatArray
+    plane: SupportPlane
+
+    @classmethod
+    def from_summary(cls, table: dict[str, Any]) -> TableChoice | None:
+        """The choice a result's ``table`` records; None for results made before it did (checked the old way:
+        the fit's own choice must come out the same)."""
+        if "candidate" not in table:
+            return None
+        try:
+            point, normal, pose = (np.asarray(table[k], dtype=np.float64) for k in ("point", "normal", "pose"))
+            if point.shape != (3,) or normal.shape != (3,) or pose.shape != (7,) or type(table["candidate"]) is not int:
+                raise ValueError("point and normal must hold 3 numbers, pose 7, candidate an integer")
+            return cls(table["candidate"], pose, SupportPlane(point, normal, float(table["tilt_deg"])))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"table: the stored choice is not readable ({exc})") from exc
+
+
 class TableFit(NamedTuple):
     """The fit's choice: the object's frame-0 world pose, the table under it, and how far the object drifts from
     its rest pose on that table when simulated alone for ``SimConfig.table_fit_s`` (degrees + millimetres). A large
-    drift means no table holds the object as recorded: it leaned on something the scene does not have."""
+    drift means no table holds the object as recorded: it leaned on something the scene does not have.
+    ``candidate``: the chosen one's index in ``candidates`` (each a start pose and plane), ``scores`` their drifts."""
 
     pose: FloatArray
     plane: SupportPlane
     drift: float
+    candidate: int = 0
+    candidates: tuple[tuple[FloatArray, SupportPlane], ...] = ()
+    scores: tuple[float, ...] = ()
+
+    def to_summary(self) -> dict[str, Any]:
+        """The result's ``table``: the plane, the candidate's index, the start pose and the drift on this host."""
+        return {**self.plane.to_dict(), "candidate": self.candidate, "pose": self.pose.tolist(), "drift": self.drift}
+
+    def choice_problems(self, margin: float = SCORE_MARGIN, tol: float = CANDIDATE_TOLERANCE) -> list[str]:
+        """Why this fit's (stored) choice is not one the fit makes here: not among the re-derived candidates, or
+        scoring more than ``margin`` worse than the best of them. Empty when it is."""
+        i, n = self.candidate, len(self.candidates)
+        if not 0 <= i < n:
+            return [f"table.candidate: {i} is not one of the {n} candidates the fit re-derives"]
+        pose, plane = self.candidates[i]
+        out = [f"table.{name}: stored {_fmt(stored)}, candidate {i} re-derived {_fmt(fresh)} (difference "
+               f"{float(np.abs(stored - fresh).max()):.3g}, tolerance {tol:g})"
+               for name, stored, fresh in (("point", self.plane.point, plane.point),
+                                           ("normal", self.plane.normal, plane.normal), ("pose", self.pose, pose))
+               if stored.shape != fresh.shape or not np.all(np.abs(stored - fresh) <= tol)]
+        best = int(np.argmin(self.scores))
+        if self.scores[i] > self.scores[best] + margin:
+            out.append(f"table.candidate: {i} scores {self.scores[i]:.4g} (degrees + mm of drift) here, candidate "
+                       f"{best} {self.scores[best]:.4g}: more than {margin:g} worse than the best")
+        return out
 
 
 def fit_table(
     seq: Sequence, config: SimConfig, rest_pose: FloatArray | None = None, *, cache_dir: Path | None = None,
-    articulation: FloatArray | None = None,
+    articulation: FloatArray | None = None, choice: TableChoice | None = None,
 ) -> TableFit:
     """Frame-0 world pose of the object and the table plane under it (see the module docstring).
 
@@ -81,6 +148,8 @@ def fit_table(
     leaves it closest to that estimate: a mean over noisy frames is not always a pose the object can rest in
     exactly (a banana averaged over a 3 degree drift rocks 2.5 degrees off it), frame 0 may be. None: frame 0,
     scored against itself. ``articulation`` (J,): an articulated object's joint values at the start.
+    ``choice``: a result's stored choice, taken as it is instead of the best candidate (``verify``; its
+    ``choice_problems`` say whether the fit would make it here).
     """
     frame0 = seq.object_pose_world()[0].copy()
     target = frame0 if rest_pose is None else np.asarray(rest_pose, dtype=np.float64).copy()
@@ -89,8 +158,15 @@ def fit_table(
     candidates = [c for start in starts for c in _start_candidates(seq, config, surface, start)]
     # Simulated even when there is one candidate: its drift says whether the scene can hold the object at all.
     scores = _drift_scores(seq, config, target, candidates, cache_dir, articulation)
-    best = int(np.argmin(scores))
-    return TableFit(*candidates[best], scores[best])
+    if choice is None:
+        best = int(np.argmin(scores))
+        return TableFit(*candidates[best], scores[best], best, tuple(candidates), tuple(scores))
+    drift = scores[choice.candidate] if 0 <= choice.candidate < len(scores) else float("nan")
+    return TableFit(choice.pose, choice.plane, drift, choice.candidate, tuple(candidates), tuple(scores))
+
+
+def _fmt(values: FloatArray) -> str:
+    return "[" + ", ".join(f"{float(v):.9g}" for v in np.ravel(values)) + "]"
 
 
 def _start_candidates(

@@ -25,6 +25,11 @@ restart), contacts, every derived array and both protocols' metrics. Then:
    ``STEPWISE`` (micrometres and below); the whole re-simulation's drift is then a reported figure, not the test.
    A result without states (older) is checked as in 3, with a note saying so.
 
+The table under the object: a result that records the fit's choice (``summary["table"]["candidate"]``, since
+issue #54) is re-derived on that very plane and start pose, and passes where the fit re-derives it as a candidate
+scoring within ``worker.simulation.table_fit.SCORE_MARGIN`` of the best here (near ties swap under other kernels);
+an older result must come out on the same plane as the fit's own choice here.
+
 Any difference fails naming the field and its largest difference. The report carries a SHA-256 over everything
 that was checked (stored arrays and summary parts), so two parties can tell they checked the same content.
 """
@@ -48,6 +53,7 @@ from worker.refine.environment import versions
 from worker.refine.prepare import MIRROR_LEFT_HAND, ROTATION_PIVOT
 from worker.refine.result import ROBOT_JOINT_SPEED
 from worker.simulation.config import CONVEX_DETAILS, OLDER_SIM_DEFAULTS, SimConfig
+from worker.simulation.table_fit import TableChoice
 from worker.verification.arrays import ArrayChecker, check_stored_metrics
 from worker.verification.report import CROSS_HOST, STEPWISE, Tolerances, VerifyReport
 from worker.verification.stepwise import stepwise_derivation
@@ -111,10 +117,16 @@ def check_result(
     keyframes = {s: arrays.get(f"{s}_keyframes") for s in sides}
     attempt_kf = _attempt_keyframes(arrays, sides)
     details = _attempt_details(summary, attempt_kf, sim["convex_detail"])
+    # The stored table choice (recorded since issue #54): the scene stands on it, ``check_table`` checks it.
+    try:
+        table = TableChoice.from_summary(summary["table"]) if isinstance(summary.get("table"), dict) else None
+    except ValueError as exc:
+        raise ResultMismatchError(str(exc)) from exc
     try:
         derived = derive_result(seq_bytes, options, SimConfig(**sim), pivot, keyframes,  # type: ignore[arg-type]
                                 attempt_kf, cache_dir=cache_dir, mano_dir=mano_dir, mirror_left=mirror_left,
-                                threads=threads, attempt_details=details, robot_speed_limits=robot_speed)
+                                threads=threads, attempt_details=details, robot_speed_limits=robot_speed,
+                                table=table)
     except ValueError as exc:
         raise ResultMismatchError(f"the stored controls do not fit the sequence: {exc}") from exc
     _check_rescue(report, sim["convex_detail"], details, derived.attempt_metrics, allow_config)

@@ -12,6 +12,7 @@ from common.outcome import ReasonCode
 from worker.refine.derive import add_attempt_metrics, attempt_figures
 from worker.refine.outcome import classify_outcome, was_rescued
 from worker.simulation.metrics import scalar_metrics
+from worker.simulation.table_fit import SCORE_MARGIN, TableFit
 from worker.verification.report import CROSS_HOST, Tolerances, VerifyReport
 
 
@@ -24,7 +25,9 @@ def check_summary(
     the tolerance of the restarts' figures (each attempt's, the first attempt's success) where it is not ``tol``;
     ``attempts_decide`` False: their differences beyond it are notes, not failures (a stepwise check off the
     original build: no restart's states are stored, so they are whole re-simulations, which drift off-host)."""
-    a_tol = tol if isinstance(attempt_tol, str) else attempt_tol
+    kinds = tuple(j.kind for j in derived.prep.seq.object.joints)
+    tol = None if tol is None else tol.for_joints(kinds)
+    a_tol = tol if isinstance(attempt_tol, str) else None if attempt_tol is None else attempt_tol.for_joints(kinds)
     sink = report if attempts_decide else VerifyReport()
     stored = summary.get("metrics", {})
     attempts = summary.get("attempts") or []
@@ -66,14 +69,42 @@ def check_summary(
     # What the preparation decided (the table under the object) and the simple facts about the sequence.
     prep = derived.prep
     facts = {"sequence": prep.seq.name, "fps": float(prep.seq.fps), "frames": int(prep.num_frames),
-             "table": prep.scene.table.to_dict(), "object_hold": prep.scene.hold_summary()}
+             "table": prep.scene.table_summary(), "object_hold": prep.scene.hold_summary()}
     if tol is None:
         facts["num_contacts"] = len(derived.final.contacts["contact_frame"])
+    stored_facts = {**summary}
+    if isinstance(summary.get("table"), dict):  # the drift: a simulated score, checked with the choice
+        stored_facts["table"] = {k: v for k, v in summary["table"].items() if k != "drift"}
     for key, value in facts.items():
-        if key in summary:
-            _compare_dict(report, key, summary[key], value, tol)
+        if key in stored_facts:
+            _compare_dict(report, key, stored_facts[key], value, tol)
+    check_table(report, summary, prep.scene.table_fit)
     report.checked.extend(["summary.metrics", "summary.attempts", "summary.config", "summary.table"]
                           + (["summary.object_hold"] if "object_hold" in summary else []))
+
+
+def check_table(report: VerifyReport, summary: dict[str, Any], fit: TableFit | None) -> None:
+    """A result that records its table choice (``TableChoice``) stands on it in the re-derivation; here: the fit
+    re-derives it as a candidate, scoring within ``table_fit.SCORE_MARGIN`` of the best here (two candidates near a
+    tie swap under other CPU kernels), and the stored drift is within that margin of its score here. A result
+    without the choice was checked the old way: the fit's own choice must be the stored plane (``check_summary``)."""
+    table = summary.get("table")
+    if not isinstance(table, dict) or "candidate" not in table:
+        return
+    if fit is None:
+        report.failures.append("table: the scene records no table fit to check the stored choice against")
+        return
+    problems = fit.choice_problems()
+    report.failures.extend(problems)
+    stored = table.get("drift")
+    if not isinstance(stored, int | float) or not abs(float(stored) - fit.drift) <= SCORE_MARGIN:
+        report.failures.append(f"table.drift: stored {stored!r}, re-computed {fit.drift:.4g} (tolerance "
+                               f"{SCORE_MARGIN:g} degrees + mm)")
+    best = int(np.argmin(fit.scores)) if fit.scores else fit.candidate
+    if best != fit.candidate and not problems:
+        report.config_notes.append(
+            f"table: the stored candidate {fit.candidate} scores {fit.scores[fit.candidate]:.4g} here, candidate "
+            f"{best} {fit.scores[best]:.4g} (within the margin {SCORE_MARGIN:g}: a near tie the kernels decide)")
 
 
 def check_outcome(report: VerifyReport, summary: dict[str, Any], derived: Any, tol: Tolerances | None,
