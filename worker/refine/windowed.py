@@ -85,6 +85,17 @@ class CmaSettings:
     stall_below: float | None = float("inf")
 
 
+@dataclass(frozen=True)
+class Band:
+    """Windows ``start`` .. ``stop`` - 1 of a polish pass, run from ``state`` (the state at window ``start``'s first
+    frame), drawing from random stream ``stream`` (and ``stream`` + 1 where a window escalates)."""
+
+    start: int
+    stop: int
+    state: Any
+    stream: int
+
+
 @dataclass
 class WindowLog:
     index: int
@@ -127,18 +138,21 @@ def optimise_windows(
     progress: Callable[[RefineProgress], None] | None = None,
     should_stop: Callable[[], bool] | None = None,
     polish: bool = False,
+    band: Band | None = None,
 ) -> tuple[dict[str, FloatArray], list[WindowLog]]:
     """Run every window in order; returns the final keyframes per hand and one log per window. ``polish``: a
-    pass over ``keyframes`` (required then) that changes one keyframe per window, see the module docstring."""
-    if polish and keyframes is None:
+    pass over ``keyframes`` (required then) that changes one keyframe per window, see the module docstring.
+    ``band``: a polish pass over its windows only, from its state (``worker.refine.repair``)."""
+    if (polish or band is not None) and keyframes is None:
         raise ValueError("a polish pass needs the keyframes of a finished pass")
     kf = {s: np.zeros((problem.n_keyframes, problem.dim(s))) for s in problem.sides}
     if keyframes is not None:
         kf = {s: keyframes[s].copy() for s in problem.sides}
     logs: list[WindowLog] = []
-    state = problem.start_state()
-    n_win = problem.n_keyframes
-    n_todo = n_win - problem.first_window
+    state = problem.start_state() if band is None else band.state
+    first, n_win = (problem.first_window, problem.n_keyframes) if band is None else (band.start, band.stop)
+    polish = polish or band is not None
+    n_todo = n_win - first
     t_start = time.perf_counter()
     evaluations = 0
 
@@ -146,13 +160,13 @@ def optimise_windows(
         if progress is None:
             return
         elapsed = time.perf_counter() - t_start
-        done = j - problem.first_window + (1.0 if finished else 0.5)
+        done = j - first + (1.0 if finished else 0.5)
         eta = elapsed / done * (n_todo - done)
         skipped = sum(w.skipped for w in logs)
-        index = j - problem.first_window + 1
+        index = j - first + 1
         progress(RefineProgress(index, n_todo, best, evaluations, elapsed, eta, skipped, done / n_todo))
 
-    for j in range(problem.first_window, n_win):
+    for j in range(first, n_win):
         _check_stop(should_stop)
         if not polish:
             for side in problem.sides:  # hold the last optimised offset over the keyframes not optimised yet
@@ -164,8 +178,9 @@ def optimise_windows(
         if not touched and base_total < settings.skip_loss:
             log.skipped = True
         else:
-            # The polish draws from random streams of its own (2), apart from the first pass's (0, 1).
-            stream = 2 if polish else 0
+            # The polish draws from random streams of its own (2), apart from the first pass's (0, 1), and a
+            # band from the ones its round names.
+            stream = (2 if polish else 0) if band is None else band.stream
             best = _optimise_one(problem, settings, j, state, kf, base, log, should_stop, report, stream, polish)
             evaluations += log.evaluations - 1
             if log.best_loss > settings.escalate_loss:
