@@ -21,7 +21,7 @@ class SlipProblem:
     """A window problem without physics for two hands: keyframe j of each hand should be 0; window j is scored on
     keyframes j and j + 1 (a lookahead). It records the windows it evaluates."""
 
-    sides = ("right", "left")
+    sides: tuple[str, ...] = ("right", "left")
     n_keyframes = N_KEYFRAMES
     first_window = 1
 
