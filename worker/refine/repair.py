@@ -7,9 +7,13 @@ where the grasp that lost the object was committed, to ``REPAIR_AHEAD`` after it
 starts from the attempt's keyframe and sees the later keyframes as they are, ``windowed.Band``) with a wider search
 than the first pass (``repair_settings``). The whole-sequence replay decides: a round is kept when it ranks higher
 (``repair_rank``: success, then fewer frames past the limit, then the object error), and the next round starts at
-the first failure left. A round not kept is tried once more from twice as far back with a wider step before the
-repair gives up; it also stops after ``REPAIR_ROUNDS`` rounds or once it spent ``REPAIR_BUDGET`` x the attempt's
-candidate evaluations. ``worker.refine.run`` runs it after an attempt that failed (``repair_due``).
+the first failure left. A band that holds the object past the failing frame often loses it a little later, where
+the attempt's later keyframes, chosen for the state the attempt had there, meet another one: the next round then
+chases that failure from the band's keyframes (kept only once the whole replay ranks higher than the best so far).
+A round that neither ranks higher nor moves the failure on is tried once more from the best so far, twice as far
+back with a wider step, before the repair gives up; it also stops after ``REPAIR_ROUNDS`` rounds or once it spent
+``REPAIR_BUDGET`` x the attempt's candidate evaluations. ``worker.refine.run`` runs it after an attempt that
+failed (``repair_due``).
 """
 
 from __future__ import annotations
@@ -29,8 +33,8 @@ from worker.refine.windowed import Band, CmaSettings, RefineProgress, WindowLog,
 REPAIR_BACKTRACK = 2
 #: Keyframes after the failing frame's that the band still re-optimises (its lookahead reaches further).
 REPAIR_AHEAD = 2
-#: Rounds at most (each one band and one whole-sequence replay).
-REPAIR_ROUNDS = 8
+#: Rounds at most (each one band and one whole-sequence replay); the budget usually ends it first.
+REPAIR_ROUNDS = 12
 #: The repair stops once its candidate evaluations reach this share of the attempt's.
 REPAIR_BUDGET = 0.5
 #: The band's search: the first pass's step (not the polish's half step, the band must leave where the attempt
@@ -100,27 +104,33 @@ def repair(
     its window ``logs``, made with ``settings``); ``score`` replays keyframes from the start and returns their
     metrics. See the module docstring."""
     best = Repaired({s: k.copy() for s, k in keyframes.items()}, metrics, list(logs), 0, 0, 0)
+    work_kf, work_m, work_logs = best.keyframes, best.metrics, best.logs
     widened = False
     budget = REPAIR_BUDGET * attempt_evaluations
     while best.rounds < REPAIR_ROUNDS and best.evaluations < budget and not best.metrics["success"]:
-        fail = first_past_limit(best.metrics["per_frame"])
+        fail = first_past_limit(work_m["per_frame"])
         if fail is None:
             break
         backtrack = REPAIR_BACKTRACK * (2 if widened else 1)
         start, stop = band_of(fail, interval, problem.n_keyframes, problem.first_window, backtrack)
-        band = Band(start, stop, state_at(problem, best.keyframes, start), FIRST_STREAM + 2 * best.rounds)
-        kf, band_logs = optimise_windows(problem, repair_settings(settings, widened), best.keyframes, progress,
+        band = Band(start, stop, state_at(problem, work_kf, start), FIRST_STREAM + 2 * best.rounds)
+        kf, band_logs = optimise_windows(problem, repair_settings(settings, widened), work_kf, progress,
                                          should_stop, band=band)
         best.rounds += 1
         best.evaluations += int(sum(w.evaluations for w in band_logs))
         m = score(kf)
+        by_index = {w.index: w for w in band_logs}
+        logs_now = [by_index.get(w.index, w) for w in work_logs]
+        after = first_past_limit(m["per_frame"])
         if repair_rank(m) > repair_rank(best.metrics):
-            by_index = {w.index: w for w in band_logs}
-            best.keyframes, best.metrics, best.kept = kf, m, best.kept + 1
-            best.logs = [by_index.get(w.index, w) for w in best.logs]
-            widened = False
+            best.keyframes, best.metrics, best.logs, best.kept = kf, m, logs_now, best.kept + 1
+            work_kf, work_m, work_logs, widened = kf, m, logs_now, False
+        elif after is not None and after > fail:
+            # The band held the object past where it failed, and the later keyframes, chosen for the attempt's
+            # state there, lose it further on: the next band chases that failure from this one's keyframes.
+            work_kf, work_m, work_logs, widened = kf, m, logs_now, False
         elif widened:
             break
         else:
-            widened = True
+            work_kf, work_m, work_logs, widened = best.keyframes, best.metrics, best.logs, True
     return best
