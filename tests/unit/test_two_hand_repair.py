@@ -94,6 +94,26 @@ def test_the_repair_searches_only_the_windows_around_the_first_failure_and_fixes
     assert replaced and replaced <= set(range(start, N_KEYFRAMES))
 
 
+def test_a_failure_the_band_pushes_further_on_is_chased_by_the_next_round() -> None:
+    """Fixing keyframe 14 loses the object at keyframe 20 while that keyframe is still the attempt's (chosen for
+    the state the attempt had there): the first round ranks lower, the next one chases the new failure."""
+    problem, kf = SlipProblem(), slipped()
+    kf["right"][20] = [0.01, 0.0]
+
+    def rippling(k: dict[str, np.ndarray]) -> dict[str, Any]:
+        m = score(k)
+        if np.abs(k["left"][14]).max() < 0.3 and k["right"][20].tolist() == [0.01, 0.0]:
+            e_t = m["per_frame"]["e_t_cm"].copy()
+            e_t[20 * INTERVAL:] = 5.0  # dropped for good
+            m = {**m, "success": False, "paper": {"success": False}, "E_t": float(e_t.mean()),
+                 "per_frame": {**m["per_frame"], "e_t_cm": e_t}}
+        return m
+
+    fixed = R.repair(problem, SETTINGS, kf, rippling(kf), [], INTERVAL, rippling, attempt_evaluations=10_000)
+    assert fixed.metrics["success"] and fixed.rounds >= 2 and fixed.kept >= 1
+    assert {19, 20} <= problem.evaluated
+
+
 def test_a_round_that_ranks_lower_is_not_kept_and_the_repair_gives_up_after_a_wider_one() -> None:
     problem, kf = SlipProblem(), slipped()
     before = score(kf)
