@@ -11,9 +11,8 @@ raw replay vs refined, on both protocols — success, E_t, E_r, E_a, E_j and E_f
 per-frame maximum and sequence maximum) —, wall time and physics steps per second on this machine. Per-sequence
 summaries are cached in ``var/bench/arctic/<mode>/`` (keyed by a hash of the ``common``/``worker`` sources) so an
 interrupted run resumes; ``--compare`` renders the per-hand vs joint comparison from both modes' caches.
-``--restarts 0 --no-polish`` is one attempt alone; ``--restarts 0`` is one attempt and its polish, which on these
-two-handed articulated sequences is the local repair of a failed attempt (``worker.refine.repair``), not the
-whole-sequence sweeps.
+``--restarts 0 --no-polish`` is one attempt alone; ``--restarts 0`` is one attempt and its polish sweeps (each a
+whole run here). The local repair (``worker.refine.repair``) is off (``worker.refine.run.LOCAL_REPAIR``).
 """
 
 from __future__ import annotations
@@ -49,8 +48,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="one CMA-ES per hand (the published method) or one over both hands' keyframes")
     p.add_argument("--threads", type=int, default=2, help="simulation threads per sequence (default 2)")
     p.add_argument("--restarts", type=int, default=None, help="further attempts (default: the product's)")
-    p.add_argument("--no-polish", dest="polish", action="store_false",
-                   help="no polish (here: no local repair of a failed attempt, worker.refine.repair)")
+    p.add_argument("--no-polish", dest="polish", action="store_false", help="no polish sweeps")
     p.add_argument("--only", nargs="*", default=None, help="only these sequences (file stems)")
     p.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "refine_arctic.md")
     p.add_argument("--results", type=Path, default=ROOT / "var" / "arctic",

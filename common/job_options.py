@@ -54,9 +54,7 @@ class JobOptions(BaseModel):
         default=True,
         description="After the attempts, when the best one's object error is above half the published method's "
         "mean, another sweep over its windows in which each keyframe sees the later ones; kept only if better, "
-        "and repeated from it while kept and still above that level (at most 10 sweeps). With two hands or an "
-        "articulated object, instead: when the best attempt fails, the windows around its first failing frame are "
-        "optimised again (a local repair), kept only if the whole replay ranks better",
+        "and repeated from it while kept and still above that level (at most 10 sweeps)",
     )
     tail: Literal["full", "bounded"] = Field(
         default="full",

@@ -59,8 +59,7 @@ def add_job_option_arguments(parser: argparse.ArgumentParser, queue: bool = Fals
         "--no-polish", dest="polish", action="store_false",
         help="skip the polish sweeps over the best attempt's windows (run when its object error is above half the "
         "published method's mean; each keyframe optimised again with the later ones in view, kept only if better, "
-        "repeated while kept, at most 10; with two hands or an articulated object, the local repair of a failed "
-        "best attempt instead)",
+        "repeated while kept, at most 10)",
     )  # fmt: skip
     g.add_argument(
         "--bounded-tail", dest="tail", action="store_const", const="bounded", default="full",

@@ -148,16 +148,24 @@ def object_error(m: dict[str, Any]) -> float:
     return float(m["E_t"] + m["E_r"] / np.degrees(ROT_SCALE))
 
 
+#: Whether the polish of a two-handed or articulated sequence is the local repair (``worker.refine.repair``)
+#: instead of the sweeps: off. On s01/mixer_use_01 (5 frames past the limit) every band made it worse, whatever
+#: its width, step or pairing: the attempt's later keyframes, chosen for the state it had there, drop the object
+#: once a band changes that state (``bench/results/refine_arctic.md``, 2026-12-07). Benchmarks switch it on.
+LOCAL_REPAIR = False
+
+
 def repair_due(best: dict[str, Any], prep: Prepared, options: JobOptions) -> bool:
-    """Whether the kept attempt's polish is the local repair (``worker.refine.repair``) instead of the sweeps: on
-    a two-handed or articulated sequence (ARCTIC's run 600 frames, where a sweep costs a whole run), with
-    ``options.polish``, when it failed (``best``: its metrics). One hand on a rigid object keeps the sweeps."""
+    """Whether the kept attempt's polish is the local repair (``worker.refine.repair``) instead of the sweeps: with
+    ``LOCAL_REPAIR``, on a two-handed or articulated sequence (ARCTIC's run 600 frames, where a sweep costs a whole
+    run), with ``options.polish``, when it failed (``best``: its metrics). One hand on a rigid object keeps the
+    sweeps."""
     return options.polish and not best["success"] and local_polish(prep)
 
 
 def local_polish(prep: Prepared) -> bool:
     """Whether a sequence's polish is the local repair rather than the sweeps (``repair_due``)."""
-    return len(prep.references) > 1 or prep.layout.n_joints > 0
+    return LOCAL_REPAIR and (len(prep.references) > 1 or prep.layout.n_joints > 0)
 
 
 def rescue_due(best: dict[str, Any], prep: Prepared, options: JobOptions) -> bool:
