@@ -12,7 +12,8 @@ per-frame maximum and sequence maximum) —, wall time and physics steps per sec
 summaries are cached in ``var/bench/arctic/<mode>/`` (keyed by a hash of the ``common``/``worker`` sources) so an
 interrupted run resumes; ``--compare`` renders the per-hand vs joint comparison from both modes' caches.
 ``--restarts 0 --no-polish`` is one attempt alone; ``--restarts 0`` is one attempt and its polish sweeps (each a
-whole run here). The local repair (``worker.refine.repair``) is off (``worker.refine.run.LOCAL_REPAIR``).
+whole run here). The local repair (``worker.refine.repair``) runs in their place only with
+``worker.refine.run.LOCAL_REPAIR`` switched on (off by default).
 """
 
 from __future__ import annotations

@@ -149,9 +149,8 @@ def object_error(m: dict[str, Any]) -> float:
 
 
 #: Whether the polish of a two-handed or articulated sequence is the local repair (``worker.refine.repair``)
-#: instead of the sweeps: off. On s01/mixer_use_01 (5 frames past the limit) every band made it worse, whatever
-#: its width, step or pairing: the attempt's later keyframes, chosen for the state it had there, drop the object
-#: once a band changes that state (``bench/results/refine_arctic.md``, 2026-12-07). Benchmarks switch it on.
+#: instead of the sweeps: off until measured on more than s01/mixer_use_01, which it took from 5 frames past the
+#: limit to success for about a third of a run more (``bench/results/refine_arctic.md``, 2026-12-07).
 LOCAL_REPAIR = False
 
 
