@@ -1,6 +1,7 @@
 """Two hands and articulated objects on real ARCTIC recordings: raw replay vs refined (issue #52, "must show").
 
     .venv/bin/python bench/arctic.py --arctic DIR [--two-hands per_hand|joint] [--threads 2] [--only NAME ...]
+        [--restarts N] [--no-polish]
 
 ``DIR`` is the ``assets/arctic`` folder of the dexmachina repository (its ``processed/<subject>/*.npy`` and one
 folder per object with the URDF and meshes); the ARCTIC licence forbids redistribution, so nothing of it is ever
@@ -10,6 +11,9 @@ raw replay vs refined, on both protocols — success, E_t, E_r, E_a, E_j and E_f
 per-frame maximum and sequence maximum) —, wall time and physics steps per second on this machine. Per-sequence
 summaries are cached in ``var/bench/arctic/<mode>/`` (keyed by a hash of the ``common``/``worker`` sources) so an
 interrupted run resumes; ``--compare`` renders the per-hand vs joint comparison from both modes' caches.
+``--restarts 0 --no-polish`` is one attempt alone; ``--restarts 0`` is one attempt and its polish sweeps (each a
+whole run here). The local repair (``worker.refine.repair``) runs in their place only with
+``worker.refine.run.LOCAL_REPAIR`` switched on (off by default).
 """
 
 from __future__ import annotations

@@ -32,6 +32,7 @@ from worker.refine.losses import ROT_SCALE, resolve_weights
 from worker.refine.outcome import PlanCut, classify_outcome, tail_cut_reason, was_rescued
 from worker.refine.prepare import DEFAULT_MAX_GENERATIONS, DEFAULT_POPSIZE, Prepared, prepare, settled_start
 from worker.refine.problem import COMBINED
+from worker.refine.repair import repair
 from worker.refine.replay import LOOKAHEAD_ROTATION_WEIGHT, ReplayRecord, replay, window_problem
 from worker.refine.result import build_summary
 from worker.refine.windowed import CmaSettings, RefineProgress, WindowLog, optimise_windows
@@ -147,6 +148,25 @@ def object_error(m: dict[str, Any]) -> float:
     return float(m["E_t"] + m["E_r"] / np.degrees(ROT_SCALE))
 
 
+#: Whether the polish of a two-handed or articulated sequence is the local repair (``worker.refine.repair``)
+#: instead of the sweeps: off until measured on more than s01/mixer_use_01, which it took from 5 frames past the
+#: limit to success for about a third of a run more (``bench/results/refine_arctic.md``, 2026-12-07).
+LOCAL_REPAIR = False
+
+
+def repair_due(best: dict[str, Any], prep: Prepared, options: JobOptions) -> bool:
+    """Whether the kept attempt's polish is the local repair (``worker.refine.repair``) instead of the sweeps: with
+    ``LOCAL_REPAIR``, on a two-handed or articulated sequence (ARCTIC's run 600 frames, where a sweep costs a whole
+    run), with ``options.polish``, when it failed (``best``: its metrics). One hand on a rigid object keeps the
+    sweeps."""
+    return options.polish and not best["success"] and local_polish(prep)
+
+
+def local_polish(prep: Prepared) -> bool:
+    """Whether a sequence's polish is the local repair rather than the sweeps (``repair_due``)."""
+    return LOCAL_REPAIR and (len(prep.references) > 1 or prep.layout.n_joints > 0)
+
+
 def rescue_due(best: dict[str, Any], prep: Prepared, options: JobOptions) -> bool:
     """Whether the plan runs again on the finer convex parts (``RESCUE``): every attempt and sweep failed
     (``best``: the metrics of the best), the object is split into convex parts (a hull or a primitive has nothing
@@ -243,6 +263,36 @@ def refine_sequence(
                          "convex_detail": on.prep.scene.config.convex_detail})
         return this
 
+    def mend(on: _Geometry, this: _Attempt) -> _Attempt:
+        """The local repair of a failed attempt (``repair``), listed among the attempts: the repaired attempt
+        when a round was kept, else ``this``. The rotation error is charged in full, as in a polish sweep."""
+        problem = window_problem(on.prep, ev, on.start, weights, 1.0)
+        joint = JointHandsProblem(problem) if options.two_hands == "joint" and len(problem.sides) == 2 else None
+
+        def sides(k: dict[str, FloatArray]) -> dict[str, FloatArray]:
+            return k if joint is None else joint.split(k[COMBINED])
+
+        def score(k: dict[str, FloatArray]) -> dict[str, Any]:
+            return replay_metrics(on.prep, replay(on.prep, ev, on.start, sides(k), record_contacts=False))
+
+        spent_before = attempts[-1]["evaluations"] if attempts else 0
+        report = None if progress is None else _tagged(progress, attempts, on, on.prep is not prep, True,
+                                                       options.restarts + 1)
+        fixed = repair(joint or problem, this.settings, this.keyframes if joint is None else
+                       joint.stack(this.keyframes), this.metrics, this.logs, on.prep.interval, score,
+                       spent_before, report, should_stop)  # fmt: skip
+        if fixed.rounds == 0:
+            return this
+        keyframes = sides(fixed.keyframes)
+        tried.append(keyframes)
+        attempts.append({**attempt_figures(fixed.metrics), "seed": this.settings.seed,
+                         "lookahead_rotation_weight": 1.0, "repair": {"rounds": fixed.rounds, "kept": fixed.kept},
+                         "evaluations": fixed.evaluations, "convex_detail": on.prep.scene.config.convex_detail})
+        if fixed.kept == 0:
+            return this
+        final = replay(on.prep, ev, on.start, keyframes, record_contacts=False)
+        return _Attempt(keyframes, fixed.logs, final, this.settings, 1.0, on, fixed.metrics)
+
     def plan(on: _Geometry) -> _Attempt:
         """The attempts of ``attempt_plan`` until one is good enough, then the polish sweeps of the best."""
         best: _Attempt | None = None
@@ -259,7 +309,9 @@ def refine_sequence(
             if len(attempts) == 1 and options.tail == "bounded" and tail_cut_reason(on.prep, this.metrics):
                 hopeless.append(True)
         assert best is not None
-        for _sweep in range(POLISH_SWEEPS if options.polish else 0):
+        if repair_due(best.metrics, on.prep, options) and not cut_short():
+            best = mend(on, best)
+        for _sweep in range(POLISH_SWEEPS if options.polish and not local_polish(on.prep) else 0):
             if object_error(best.metrics) <= POLISH_OBJECT_ERROR or cut_short():
                 break
             # The rotation error is charged in full: the lookahead's wrist turn is the later keyframes' own now.
@@ -378,7 +430,7 @@ def _tagged(progress: Callable[[RefineProgress], None], attempts: list[dict[str,
     sweep) and sweep, counted from ``attempts`` (every earlier pass, with the convex parts it ran on)."""
     detail = on.prep.scene.config.convex_detail
     same = [a for a in attempts if a["convex_detail"] == detail]
-    sweeps = sum(1 for a in same if a.get("polish"))
+    sweeps = sum(1 for a in same if a.get("polish") or a.get("repair"))
     attempt, sweep = len(same) - sweeps + (0 if polish else 1), sweeps + 1 if polish else 0
 
     def report(p: RefineProgress) -> None:

@@ -85,6 +85,17 @@ class CmaSettings:
     stall_below: float | None = float("inf")
 
 
+@dataclass(frozen=True)
+class Band:
+    """Windows ``start`` .. ``stop`` - 1 of a polish pass, run from ``state`` (the state at window ``start``'s first
+    frame), drawing from random stream ``stream`` (and ``stream`` + 1 where a window escalates)."""
+
+    start: int
+    stop: int
+    state: Any
+    stream: int
+
+
 @dataclass
 class WindowLog:
     index: int
@@ -129,18 +140,21 @@ def optimise_windows(
     progress: Callable[[RefineProgress], None] | None = None,
     should_stop: Callable[[], bool] | None = None,
     polish: bool = False,
+    band: Band | None = None,
 ) -> tuple[dict[str, FloatArray], list[WindowLog]]:
     """Run every window in order; returns the final keyframes per hand and one log per window. ``polish``: a
-    pass over ``keyframes`` (required then) that changes one keyframe per window, see the module docstring."""
-    if polish and keyframes is None:
+    pass over ``keyframes`` (required then) that changes one keyframe per window, see the module docstring.
+    ``band``: a polish pass over its windows only, from its state (``worker.refine.repair``)."""
+    if (polish or band is not None) and keyframes is None:
         raise ValueError("a polish pass needs the keyframes of a finished pass")
     kf = {s: np.zeros((problem.n_keyframes, problem.dim(s))) for s in problem.sides}
     if keyframes is not None:
         kf = {s: keyframes[s].copy() for s in problem.sides}
     logs: list[WindowLog] = []
-    state = problem.start_state()
-    n_win = problem.n_keyframes
-    n_todo = n_win - problem.first_window
+    state = problem.start_state() if band is None else band.state
+    first, n_win = (problem.first_window, problem.n_keyframes) if band is None else (band.start, band.stop)
+    polish = polish or band is not None
+    n_todo = n_win - first
     t_start = time.perf_counter()
     evaluations = 0
 
@@ -148,13 +162,13 @@ def optimise_windows(
         if progress is None:
             return
         elapsed = time.perf_counter() - t_start
-        done = j - problem.first_window + (1.0 if finished else 0.5)
+        done = j - first + (1.0 if finished else 0.5)
         eta = elapsed / done * (n_todo - done)
         skipped = sum(w.skipped for w in logs)
-        index = j - problem.first_window + 1
+        index = j - first + 1
         progress(RefineProgress(index, n_todo, best, evaluations, elapsed, eta, skipped, done / n_todo))
 
-    for j in range(problem.first_window, n_win):
+    for j in range(first, n_win):
         _check_stop(should_stop)
         if not polish:
             for side in problem.sides:  # hold the last optimised offset over the keyframes not optimised yet
@@ -166,15 +180,17 @@ def optimise_windows(
         if not touched and base_total < settings.skip_loss:
             log.skipped = True
         else:
-            # The polish draws from random streams of its own (2), apart from the first pass's (0, 1).
-            stream = 2 if polish else 0
-            best = _optimise_one(problem, settings, j, state, kf, base, log, should_stop, report, stream, polish)
+            # The polish draws from random streams of its own (2), apart from the first pass's (0, 1), and a
+            # band from the ones its round names.
+            stream = (2 if polish else 0) if band is None else band.stream
+            best = _optimise_one(problem, settings, j, state, kf, base, log, should_stop, report, stream, polish,
+                                 confirm=band is not None)
             evaluations += log.evaluations - 1
             if log.best_loss > settings.escalate_loss:
                 log.escalated = True
                 before = log.evaluations
                 _optimise_one(problem, _escalated(settings), j, state, kf, best, log, should_stop, report, stream + 1,
-                              polish)
+                              polish, confirm=band is not None)
                 evaluations += log.evaluations - before
         logs.append(log)
         report(j, log.best_loss, finished=True)
@@ -194,10 +210,11 @@ def _optimise_one(
     report: Callable[..., None],
     attempt: int = 0,
     polish: bool = False,
+    confirm: bool = False,
 ) -> dict[str, float]:
     """CMA-ES on keyframe j of every hand, started from ``kf`` (whose losses are ``base``); writes the best
     keyframe into ``kf`` (and, unless ``polish``, every later one) and adds to ``log``; returns each hand's best
-    loss."""
+    loss. ``confirm`` (a polish pass, several hands): see ``_confirmed``."""
     strategies: dict[str, Any] = {}
     for i, side in enumerate(problem.sides):
         opts = {
@@ -215,12 +232,20 @@ def _optimise_one(
         }
         strategies[side] = cma.CMAEvolutionStrategy(kf[side][j].copy(), settings.sigma0, opts)
     best = {s: (base[s], kf[s][j].copy()) for s in problem.sides}
+    start = {s: kf[s][j].copy() for s in problem.sides}
+    pair: tuple[float, dict[str, FloatArray], dict[str, float]] = (float(sum(base.values())), start, base)
     evals = 0
     for _gen in range(settings.max_generations):
         _check_stop(should_stop)
         asked = {s: np.asarray(es.ask(), dtype=np.float64) for s, es in strategies.items()}
         losses = problem.evaluate(j, state, kf, asked, hold=not polish)
         evals += settings.popsize
+        if confirm:
+            totals = np.sum([np.where(np.isfinite(v), v, 1e12) for v in losses.values()], axis=0)
+            k = int(np.argmin(totals))
+            if totals[k] < pair[0]:
+                pair = (float(totals[k]), {s: asked[s][k].copy() for s in problem.sides},
+                        {s: float(v[k]) for s, v in losses.items()})
         for side, es in strategies.items():
             values = losses[side]
             values = np.where(np.isfinite(values), values, 1e12)
@@ -235,11 +260,34 @@ def _optimise_one(
             log.stopped_early = True
             break
     # Hands were scored on paired rollouts; take each hand's best and confirm the pair jointly via commit.
+    if confirm and len(problem.sides) > 1:
+        chosen, losses_now, probes = _confirmed(problem, j, state, kf, best, pair, start, base)
+        best = {s: (losses_now[s], chosen[s]) for s in problem.sides}
+        evals += probes
     for side in problem.sides:
         kf[side][j if polish else slice(j, None)] = best[side][1]
     log.best_loss = float(sum(b[0] for b in best.values()))
     log.evaluations += evals
     return {s: b[0] for s, b in best.items()}
+
+
+def _confirmed(
+    problem: WindowProblem, j: int, state: Any, kf: dict[str, FloatArray], best: dict[str, tuple[float, FloatArray]],
+    pair: tuple[float, dict[str, FloatArray], dict[str, float]], start: dict[str, FloatArray],
+    base: dict[str, float],
+) -> tuple[dict[str, FloatArray], dict[str, float], int]:
+    """Keyframe j of every hand for a polish pass's window, of three: each hand's best (scored beside random
+    candidates of the other hand, never together, so the pair may lose the object where each alone held it), the
+    best pair scored in one rollout, and the pass's own keyframe. Each hand's best is probed together; the lowest
+    total loss wins. Returns the keyframes, their per-hand losses and the probes made (one)."""
+    combined = {s: b[1] for s, b in best.items()}
+    trial = {s: kf[s].copy() for s in problem.sides}
+    for s in problem.sides:
+        trial[s][j] = combined[s]
+    together, _ = problem.probe(j, state, trial)
+    options = [(float(sum(together.values())), combined, together), (float(sum(base.values())), start, base), pair]
+    _, chosen, losses = min(options, key=lambda o: o[0])
+    return chosen, losses, 1
 
 
 def _stalled(history: list[float], settings: CmaSettings) -> bool:
