@@ -13,7 +13,7 @@ summaries are cached in ``var/bench/arctic/<mode>/`` (keyed by a hash of the ``c
 interrupted run resumes; ``--compare`` renders the per-hand vs joint comparison from both modes' caches.
 ``--restarts 0 --no-polish`` is one attempt alone; ``--restarts 0`` is one attempt and its polish sweeps (each a
 whole run here). The local repair (``worker.refine.repair``) runs in their place only with
-``worker.refine.run.LOCAL_REPAIR`` switched on (off by default).
+the job option ``local_repair`` on (``--local-repair``; off by default).
 """
 
 from __future__ import annotations
@@ -41,6 +41,12 @@ from bench.refine import code_digest  # noqa: E402
 GOALS = {"E_t": 1.0, "E_r": 5.0, "E_a": 5.0, "pen_max": 2.0, "wall_s": 900.0}
 
 
+def plan_key(args: argparse.Namespace) -> str:
+    """The part of the cache key that says which plan ran (restarts, polish, repair), so runs of other plans do
+    not answer for each other."""
+    return f"_r{args.restarts}_p{int(args.polish)}_l{int(args.local_repair)}"
+
+
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--arctic", type=Path, required=True,
@@ -50,6 +56,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--threads", type=int, default=2, help="simulation threads per sequence (default 2)")
     p.add_argument("--restarts", type=int, default=None, help="further attempts (default: the product's)")
     p.add_argument("--no-polish", dest="polish", action="store_false", help="no polish sweeps")
+    p.add_argument("--local-repair", action="store_true",
+                   help="polish a failed attempt by the local repair instead of the sweeps (job option local_repair)")
     p.add_argument("--only", nargs="*", default=None, help="only these sequences (file stems)")
     p.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "refine_arctic.md")
     p.add_argument("--results", type=Path, default=ROOT / "var" / "arctic",
@@ -92,7 +100,7 @@ def run_one(path: Path, args: argparse.Namespace, cache: Path) -> dict[str, Any]
     if key.is_file() and not args.fresh:
         return dict(json.loads(key.read_text()))
     seq = load_sequence(path)
-    options = JobOptions(two_hands=args.two_hands, polish=args.polish,
+    options = JobOptions(two_hands=args.two_hands, polish=args.polish, local_repair=args.local_repair,
                          **({} if args.restarts is None else {"restarts": args.restarts}))
     t0 = time.perf_counter()
     last = [t0]
@@ -283,7 +291,7 @@ def main(argv: list[str] | None = None) -> int:
         rows = []
         for i, path in enumerate(paths, 1):
             print(f"[{i}/{len(paths)}] {path.parent.name}/{path.stem}", flush=True)
-            rows.append(run_one(path, args, cache_root / args.two_hands / digest))
+            rows.append(run_one(path, args, cache_root / args.two_hands / f"{digest}{plan_key(args)}"))
             r = rows[-1]["refined"]["paper"]
             print(f"  success {r['success']}  E_t {_f(r['E_t'])}  E_r {_f(r['E_r'])}  E_a {_f(r['E_a'])}  "
                   f"wall {rows[-1]['wall_s']:.0f} s", flush=True)

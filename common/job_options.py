@@ -83,6 +83,14 @@ class JobOptions(BaseModel):
         "object's terms plus its own hand's (the published method); 'joint' one CMA-ES over both hands' keyframes "
         "minimising the object's terms once plus both hands'",
     )
+    # Off by default until measured beyond ARCTIC's mixer, which it took to success for about a third of a run
+    # more (bench/results/refine_arctic.md).
+    local_repair: bool = Field(
+        default=False,
+        description="With two hands or an articulated object: the polish of a failed attempt re-optimises only the "
+        "keyframes around its first frame past the success limit (a few rounds, at most half the first pass's "
+        "evaluations) instead of sweeping the whole sequence; one hand on a rigid object keeps the sweeps",
+    )
     priority: JsonInt = Field(default=0, ge=-100, le=100, description="Higher runs first (queue only)")
     preview_video: bool = Field(
         default=True,

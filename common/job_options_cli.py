@@ -62,6 +62,11 @@ def add_job_option_arguments(parser: argparse.ArgumentParser, queue: bool = Fals
         "repeated while kept, at most 10)",
     )  # fmt: skip
     g.add_argument(
+        "--local-repair", action="store_true",
+        help="with two hands or an articulated object: polish a failed attempt by re-optimising only the keyframes "
+        "around its first frame past the success limit, instead of sweeping the whole sequence (default off)",
+    )  # fmt: skip
+    g.add_argument(
         "--bounded-tail", dest="tail", action="store_const", const="bounded", default="full",
         help="skip the rest of the plan (attempts, polish, rescue) when the first attempt fails at a recorded step "
         "no grasp can follow; the outcome then says plan_cut_short (default: the whole plan runs)",
@@ -111,6 +116,7 @@ def job_options_from_args(args: argparse.Namespace) -> JobOptions:
             restarts=args.restarts,
             polish=getattr(args, "polish", True),
             tail=getattr(args, "tail", "full"),
+            local_repair=getattr(args, "local_repair", False),
             evaluation_budget=getattr(args, "evaluation_budget", None),
             priority=getattr(args, "priority", 0),
             preview_video=getattr(args, "preview_video", True),

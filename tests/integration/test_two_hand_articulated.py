@@ -105,19 +105,17 @@ def test_one_cma_es_over_both_hands_also_refines_the_example() -> None:
 
 
 def test_a_failed_attempt_is_repaired_locally_and_the_result_verifies(monkeypatch: pytest.MonkeyPatch) -> None:
-    """With ``LOCAL_REPAIR`` the polish of a two-handed articulated sequence is the local repair: with the
+    """With ``local_repair`` the polish of a two-handed articulated sequence is the local repair: with the
     position limit tightened to 0.8 cm the example's cheap single attempt fails; the repair re-optimises the
     windows around its first failing frame, is listed among the attempts, ranks higher, and verifies exactly."""
     import worker.refine.outcome as outcome
-    import worker.refine.run as run
     import worker.simulation.metrics as metrics
 
-    monkeypatch.setattr(run, "LOCAL_REPAIR", True)  # off by default: it did not help on ARCTIC
     monkeypatch.setattr(metrics, "SUCCESS_POSITION_CM", 0.8)
     monkeypatch.setattr(outcome, "SUCCESS_POSITION_CM", 0.8)
 
-    out = refine_sequence(short_hinged_box_sequence(), JobOptions(restarts=0, max_generations=1, popsize=2),
-                          threads=1)
+    out = refine_sequence(short_hinged_box_sequence(), JobOptions(restarts=0, max_generations=1, popsize=2,
+                                                                     local_repair=True), threads=1)
     first, *rest = out.summary["attempts"]
     assert not first["success"] and len(rest) == 1 and rest[0]["repair"]["kept"] >= 1, out.summary["attempts"]
     refined = out.summary["metrics"]["refined"]

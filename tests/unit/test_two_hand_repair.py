@@ -7,7 +7,6 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-import pytest
 
 from common.job_options import JobOptions
 from worker.refine import repair as R
@@ -137,18 +136,15 @@ def test_the_repair_stops_at_its_evaluation_budget() -> None:
     assert fixed.rounds == 1  # one round always runs; its cost ends the repair
 
 
-def test_only_two_handed_or_articulated_sequences_get_the_local_repair(monkeypatch: pytest.MonkeyPatch) -> None:
-    import worker.refine.run as run
-
+def test_only_two_handed_or_articulated_sequences_get_the_local_repair() -> None:
     class Prep:
         def __init__(self, hands: int, joints: int) -> None:
             self.references = [object()] * hands
             self.layout = type("L", (), {"n_joints": joints})()
 
-    failed, options = {"success": False}, JobOptions()
-    assert not repair_due(failed, Prep(2, 1), options)  # type: ignore[arg-type]  # off by default
-    monkeypatch.setattr(run, "LOCAL_REPAIR", True)
-    assert not local_polish(Prep(1, 0)) and not repair_due(failed, Prep(1, 0), options)  # type: ignore[arg-type]
+    failed, options = {"success": False}, JobOptions(local_repair=True)
+    assert not repair_due(failed, Prep(2, 1), JobOptions())  # type: ignore[arg-type]  # off by default
+    assert not local_polish(Prep(1, 0), options) and not repair_due(failed, Prep(1, 0), options)  # type: ignore[arg-type]
     assert repair_due(failed, Prep(2, 0), options) and repair_due(failed, Prep(1, 1), options)  # type: ignore[arg-type]
     assert not repair_due({"success": True}, Prep(2, 1), options)  # type: ignore[arg-type]
-    assert not repair_due(failed, Prep(2, 1), JobOptions(polish=False))  # type: ignore[arg-type]
+    assert not repair_due(failed, Prep(2, 1), JobOptions(polish=False, local_repair=True))  # type: ignore[arg-type]

@@ -148,23 +148,17 @@ def object_error(m: dict[str, Any]) -> float:
     return float(m["E_t"] + m["E_r"] / np.degrees(ROT_SCALE))
 
 
-#: Whether the polish of a two-handed or articulated sequence is the local repair (``worker.refine.repair``)
-#: instead of the sweeps: off until measured on more than s01/mixer_use_01, which it took from 5 frames past the
-#: limit to success for about a third of a run more (``bench/results/refine_arctic.md``, 2026-12-07).
-LOCAL_REPAIR = False
-
-
 def repair_due(best: dict[str, Any], prep: Prepared, options: JobOptions) -> bool:
     """Whether the kept attempt's polish is the local repair (``worker.refine.repair``) instead of the sweeps: with
-    ``LOCAL_REPAIR``, on a two-handed or articulated sequence (ARCTIC's run 600 frames, where a sweep costs a whole
-    run), with ``options.polish``, when it failed (``best``: its metrics). One hand on a rigid object keeps the
-    sweeps."""
-    return options.polish and not best["success"] and local_polish(prep)
+    ``options.local_repair``, on a two-handed or articulated sequence (ARCTIC's run 600 frames, where a sweep costs
+    a whole run), with ``options.polish``, when it failed (``best``: its metrics). One hand on a rigid object keeps
+    the sweeps."""
+    return options.polish and not best["success"] and local_polish(prep, options)
 
 
-def local_polish(prep: Prepared) -> bool:
+def local_polish(prep: Prepared, options: JobOptions) -> bool:
     """Whether a sequence's polish is the local repair rather than the sweeps (``repair_due``)."""
-    return LOCAL_REPAIR and (len(prep.references) > 1 or prep.layout.n_joints > 0)
+    return options.local_repair and (len(prep.references) > 1 or prep.layout.n_joints > 0)
 
 
 def rescue_due(best: dict[str, Any], prep: Prepared, options: JobOptions) -> bool:
@@ -311,7 +305,7 @@ def refine_sequence(
         assert best is not None
         if repair_due(best.metrics, on.prep, options) and not cut_short():
             best = mend(on, best)
-        for _sweep in range(POLISH_SWEEPS if options.polish and not local_polish(on.prep) else 0):
+        for _sweep in range(POLISH_SWEEPS if options.polish and not local_polish(on.prep, options) else 0):
             if object_error(best.metrics) <= POLISH_OBJECT_ERROR or cut_short():
                 break
             # The rotation error is charged in full: the lookahead's wrist turn is the later keyframes' own now.
