@@ -5,6 +5,7 @@
 # Debian's packages and use it:
 #   docker/build_base_image.sh    # -> hoi-refine-base:bookworm (debootstrap, this machine's CA bundle)
 #   docker build --network host --build-arg BASE_IMAGE=hoi-refine-base:bookworm -t hoi-refine:latest .
+# (`make image` does both; `make verify-image RESULTS=DIR` runs `hoi-refine verify` in the image: README, Containers.)
 # The image is lean on purpose: no torch (the `mano` extra is optional and not installed here).
 ARG BASE_IMAGE=python:3.11-slim
 FROM ${BASE_IMAGE}
