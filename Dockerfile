@@ -28,12 +28,14 @@ RUN useradd --create-home --uid 10001 hoi \
     && chown hoi /var/lib/hoi-refine
 
 WORKDIR /app
-# Dependencies first (cached layer): only pyproject.toml changes invalidate it.
-COPY pyproject.toml README.md ./
+# Dependencies first (cached layer): only pyproject.toml changes invalidate it. The stub package gets an empty
+# README.md (pyproject's `readme`), so editing the real one does not reinstall every dependency.
+COPY pyproject.toml ./
 RUN mkdir -p common worker service migrations \
-    && touch common/__init__.py worker/__init__.py service/__init__.py migrations/__init__.py \
+    && touch README.md common/__init__.py worker/__init__.py service/__init__.py migrations/__init__.py \
     && pip install . \
     && pip uninstall -y hoi-refine
+COPY README.md ./
 COPY common ./common
 COPY worker ./worker
 COPY service ./service
