@@ -5,6 +5,7 @@
 # Debian's packages and use it:
 #   docker/build_base_image.sh    # -> hoi-refine-base:bookworm (debootstrap, this machine's CA bundle)
 #   docker build --network host --build-arg BASE_IMAGE=hoi-refine-base:bookworm -t hoi-refine:latest .
+# (`make image` does both; `make verify-image RESULTS=DIR` runs `hoi-refine verify` in the image: README, Containers.)
 # The image is lean on purpose: no torch (the `mano` extra is optional and not installed here).
 ARG BASE_IMAGE=python:3.11-slim
 FROM ${BASE_IMAGE}
@@ -27,12 +28,14 @@ RUN useradd --create-home --uid 10001 hoi \
     && chown hoi /var/lib/hoi-refine
 
 WORKDIR /app
-# Dependencies first (cached layer): only pyproject.toml changes invalidate it.
-COPY pyproject.toml README.md ./
+# Dependencies first (cached layer): only pyproject.toml changes invalidate it. The stub package gets an empty
+# README.md (pyproject's `readme`), so editing the real one does not reinstall every dependency.
+COPY pyproject.toml ./
 RUN mkdir -p common worker service migrations \
-    && touch common/__init__.py worker/__init__.py service/__init__.py migrations/__init__.py \
+    && touch README.md common/__init__.py worker/__init__.py service/__init__.py migrations/__init__.py \
     && pip install . \
     && pip uninstall -y hoi-refine
+COPY README.md ./
 COPY common ./common
 COPY worker ./worker
 COPY service ./service

@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-fast lint typecheck bench-replay compose-test pose-basis clean
+.PHONY: demo test test-fast lint typecheck bench-replay compose-test image verify-image pose-basis clean
 
 $(STAMP): pyproject.toml
 	test -d $(VENV) || $(PYTHON) -m venv $(VENV)
@@ -41,6 +41,25 @@ bench-replay: $(STAMP)
 # Minutes, so not part of `make test`. Writes bench/results/compose.md.
 compose-test: $(STAMP)
 	$(BIN)/python bench/compose_test.py --out bench/results/compose.md
+
+# The project's container image (needs a running dockerd; the base's first build needs root and debootstrap).
+# Minutes, so not part of `make test`. The base (docker/build_base_image.sh) is built only when absent. BUILD is the
+# build context, e.g. `make image BUILD=/work/wt/x IMAGE=hoi-refine:x` builds another checkout with this base.
+IMAGE ?= hoi-refine:latest
+BASE_IMAGE ?= hoi-refine-base:bookworm
+BUILD ?= .
+
+image:
+	docker/build_base_image.sh $(BASE_IMAGE)
+	docker build --network host --build-arg BASE_IMAGE=$(BASE_IMAGE) -t $(IMAGE) $(BUILD)
+
+# `hoi-refine verify` inside the image: RESULTS is a result file or a folder of them (mounted read-only at /data,
+# so files must be readable by the image's user, uid 10001); VERIFY_ARGS go to verify (e.g. --jobs 2), DOCKER_ARGS to
+# docker run (e.g. -e OPENBLAS_CORETYPE=Haswell to force other kernels inside).
+verify-image:
+	@test -n "$(RESULTS)" || { echo "usage: make verify-image RESULTS=FILE_OR_DIR [IMAGE=...] [VERIFY_ARGS=...]" >&2; exit 2; }
+	@R="$$(realpath "$(RESULTS)")" && if [ -d "$$R" ]; then D="$$R" T=/data; else D="$$(dirname "$$R")" T="/data/$$(basename "$$R")"; fi \
+	  && set -x && docker run --rm --network host -v "$$D:/data:ro" $(DOCKER_ARGS) $(IMAGE) hoi-refine verify "$$T" $(VERIFY_ARGS)
 
 pose-basis: $(STAMP)
 	$(BIN)/python -m worker.hand.pose_basis_build
