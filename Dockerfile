@@ -34,14 +34,17 @@ COPY pyproject.toml ./
 RUN mkdir -p common worker service migrations \
     && touch README.md common/__init__.py worker/__init__.py service/__init__.py migrations/__init__.py \
     && pip install . \
-    && pip uninstall -y hoi-refine
+    && pip uninstall -y hoi-refine \
+    && rm -rf build
 COPY README.md ./
 COPY common ./common
 COPY worker ./worker
 COPY service ./service
 COPY migrations ./migrations
 COPY alembic.ini ./
-RUN pip install --no-deps . && hoi-refine --help >/dev/null
+# No build/ is left from the stub (removed above): setuptools would keep its empty __init__.py files over the real
+# ones, whose copies are older.
+RUN pip install --no-deps . && rm -rf build && hoi-refine --help >/dev/null
 
 USER hoi
 EXPOSE 8000
