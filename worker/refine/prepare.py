@@ -63,6 +63,9 @@ ROTATION_PIVOT = "hand"
 #: left hands at a small budget (7 of 8 refined a little worse, one more failure); kept because it makes the two
 #: sides one method (tests/integration/test_refine_mirror.py). False restores the old treatment of left hands.
 MIRROR_LEFT_HAND = True
+#: ``config.robot_joint_speed`` of a robot hand's result: whether its retargeted motion was brought within the
+#: robot's joint speed limits (``prepare(robot_speed_limits=...)``).
+ROBOT_JOINT_SPEED = {True: "within limits", False: "as retargeted"}
 #: The grip (``grip_frames``) must have formed this long (s) before the recorded object is seen to move.
 GRIP_LEAD_S = 0.1
 

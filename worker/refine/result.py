@@ -37,7 +37,7 @@ from common.result_format import read_arrays, read_summary
 from common.sequence import Sequence
 from common.sequence_io import sequence_from_npz_bytes
 from worker.refine.environment import versions
-from worker.refine.prepare import Prepared, prepare
+from worker.refine.prepare import ROBOT_JOINT_SPEED, Prepared, prepare
 from worker.refine.windowed import CmaSettings, WindowLog
 from worker.simulation.config import OLDER_SIM_DEFAULTS, SimConfig
 from worker.simulation.table_fit import TableChoice
@@ -46,9 +46,6 @@ RESULT_KIND = "refine"
 #: The visual tools' tolerance on a re-simulated object trajectory (m): on the same build it reproduces bit for
 #: bit (``verify`` has its own, cross-host tolerances: ``worker.verification.report``).
 VERIFY_TOLERANCE_M = 1e-6
-#: ``config.robot_joint_speed`` of a robot hand's result: whether its retargeted motion was brought within the
-#: robot's joint speed limits (``prepare.prepare(robot_speed_limits=...)``).
-ROBOT_JOINT_SPEED = {True: "within limits", False: "as retargeted"}
 
 
 def build_summary(

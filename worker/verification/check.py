@@ -50,8 +50,7 @@ from common.sequence import Sequence
 from common.sequence_io import sequence_to_npz_bytes
 from worker.refine.derive import STATE_KEYS, derive_result
 from worker.refine.environment import versions
-from worker.refine.prepare import MIRROR_LEFT_HAND, ROTATION_PIVOT
-from worker.refine.result import ROBOT_JOINT_SPEED
+from worker.refine.prepare import MIRROR_LEFT_HAND, ROBOT_JOINT_SPEED, ROTATION_PIVOT
 from worker.simulation.config import CONVEX_DETAILS, OLDER_SIM_DEFAULTS, SimConfig
 from worker.simulation.table_fit import TableChoice
 from worker.verification.arrays import ArrayChecker, check_stored_metrics
