@@ -48,6 +48,10 @@ class RobotReference:
         """(T,) mean distance of the retargeted sites to the human keypoints they follow (mm)."""
         return np.asarray(1000.0 * np.linalg.norm(self.keypoints - self.human_keypoints, axis=-1).mean(axis=1))
 
+    def mean_residual_mm(self) -> float:
+        """``residual_mm`` over the frames where the hand is annotated (as ``HandReference.mean_residual_mm``)."""
+        return float(np.mean(self.residual_mm()[self.valid])) if self.valid.any() else float("nan")
+
     def fingertip_residual_mm(self) -> FloatArray:
         """(T,) mean over the fingertips of the same (mm)."""
         tips = list(self.embodiment.fingertips)

@@ -28,7 +28,6 @@ from common.hand_description import HandDescription
 from common.result_format import write_result_npz
 from common.sequence import Sequence
 from worker.hand.mano.pose import reference_mano_arrays
-from worker.hand.reference import HandReference
 from worker.hand.retarget import retarget_sequence
 from worker.simulation.metrics import ArticulationFrames, compute_metrics, scalar_metrics
 from worker.simulation.scene import Scene, SimConfig, build_scene
@@ -66,9 +65,7 @@ class ReplayResult:
 
     def ik_residual_mm(self) -> dict[str, float]:
         """Per side, the retargeting's mean keypoint residual (a robot's: its sites to the human keypoints)."""
-        return {r.side: r.mean_residual_mm() if isinstance(r, HandReference)
-                else float(np.mean(r.residual_mm()[r.valid])) if r.valid.any() else float("nan")
-                for r in self.references}
+        return {r.side: r.mean_residual_mm() for r in self.references}
 
 
 def residual_mm(ref: Any) -> np.ndarray:
