@@ -19,6 +19,10 @@ result has (F = frames, N = contacts over all frames):
 * ``state_sim`` / ``raw_state_sim`` (F, S) float64 (refinement results since issue #54): the refined and the raw
   replay's MuJoCo integration state (``mjSTATE_INTEGRATION``) at every frame, read by ``verify``'s stepwise check
   (``worker.verification.stepwise``).
+* ``control_sim`` / ``raw_control_sim`` (T, C) float64 (since the stepwise check steps under them): the inputs
+  each replay set before every physics step (T = (F - 1) * substeps + 1; the columns MuJoCo's ctrl, equality
+  switches, mocap positions and quaternions), so that check steps under the very bits the replay stepped under
+  on any host; ``verify`` checks them against the keyframes' within 1e-9.
 * an articulated object (``common.articulation``) adds ``object_articulation_sim`` / ``_ref`` (F,J) joint values
   (radians / metres) and ``contact_part`` (N,) str: the object part touched, whose frame ``contact_pos_object``
   is then given in.
@@ -67,6 +71,10 @@ CONTACT_KEYS: tuple[str, ...] = (
 #: Each replay's integration state per frame (refinement results since issue #54): for ``verify``'s stepwise check,
 #: in the NPZ only (the JSON form of a result leaves them out: 3 KB a frame as text is no one's reading).
 INTEGRATION_STATE_KEYS: tuple[str, ...] = ("state_sim", "raw_state_sim")
+#: Each replay's inputs per physics step, stored beside its states (the refined replay's, then the raw one's).
+INTEGRATION_CONTROL_KEYS: tuple[str, ...] = ("control_sim", "raw_control_sim")
+#: What the JSON form of a result leaves out: the stepwise check's states and inputs.
+STEPWISE_KEYS: tuple[str, ...] = INTEGRATION_STATE_KEYS + INTEGRATION_CONTROL_KEYS
 
 
 #: Contact columns of an articulated object's result only.

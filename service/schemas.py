@@ -403,7 +403,8 @@ class ResultJson(BaseModel):
     job_id: str
     summary: dict[str, Any]
     arrays: dict[str, Any] = Field(description="Every array of the result file as nested lists, but the per-frame "
-                                   "integration states (state_sim, raw_state_sim: in the NPZ, for verify)")
+                                   "integration states and per-step inputs (state_sim, raw_state_sim, control_sim, "
+                                   "raw_control_sim: in the NPZ, for verify)")
 
 
 class ProblemField(BaseModel):

@@ -12,7 +12,7 @@ from starlette.concurrency import run_in_threadpool
 from common.batch_metrics import outcome_of
 from common.job_state import ACTIVE, JobState
 from common.queue_types import JobEventRecord
-from common.result_format import INTEGRATION_STATE_KEYS, read_arrays, read_contacts
+from common.result_format import STEPWISE_KEYS, read_arrays, read_contacts
 from common.sequence_io import sequence_to_json_dict
 from service import event_stream
 from service.deps import KeyDep, PageToken, QueueDep, SettingsDep, reject_unknown_query_parameters
@@ -140,7 +140,7 @@ def get_result(
             headers={"Content-Disposition": f'attachment; filename="{job_id}.npz"'},
         )
     arrays = {k: _jsonable(v) for k, v in read_arrays(blob).items()
-              if k != "summary_json" and k not in INTEGRATION_STATE_KEYS}
+              if k != "summary_json" and k not in STEPWISE_KEYS}
     return ResultJson(job_id=job_id, summary=summary, arrays=arrays)
 
 

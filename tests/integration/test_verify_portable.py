@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from common.job_options import JobOptions
-from common.result_format import read_arrays, read_summary, write_result_npz
+from common.result_format import STEPWISE_KEYS, read_arrays, read_summary, write_result_npz
 from tests.support.verify_failures import fails_naming
 from worker.refine.result import prepare_from_result
 from worker.refine.run import RefineOutcome, refine_sequence
@@ -156,7 +156,7 @@ def test_the_hinged_box_verifies_the_old_way_with_sse_kernels_forced(tmp_path: P
     from worker.example.hinged_box import short_hinged_box_sequence
 
     blob = refine_sequence(short_hinged_box_sequence(), JobOptions(popsize=4, max_generations=1)).to_npz_bytes()
-    arrays = {k: v for k, v in read_arrays(blob).items() if k not in ("state_sim", "raw_state_sim")}
+    arrays = {k: v for k, v in read_arrays(blob).items() if k not in STEPWISE_KEYS}
     path = tmp_path / "hinged_box_old_way.npz"
     path.write_bytes(write_result_npz(arrays, read_summary(blob)))
     run = subprocess.run([sys.executable, "-m", "common.cli", "verify", str(path)], cwd=ROOT, capture_output=True,

@@ -4,6 +4,7 @@ object, adds a force or moves the hand off its controls fails naming the field a
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -15,7 +16,7 @@ import numpy as np
 import pytest
 
 from common.job_options import JobOptions
-from common.result_format import read_arrays, read_summary, write_result_npz
+from common.result_format import STEPWISE_KEYS, read_arrays, read_summary, write_result_npz
 from tests.support.verify_failures import fails_naming
 from worker.refine.prepare import Prepared
 from worker.refine.result import prepare_from_result
@@ -210,7 +211,7 @@ def test_states_of_another_shape_or_not_numbers_fail(honest: Result, prep: Prepa
 
 def test_an_older_result_without_states_verifies_the_old_way_with_a_note(honest: Result) -> None:
     arrays, summary = honest
-    old = {k: v for k, v in arrays.items() if k not in ("state_sim", "raw_state_sim")}
+    old = {k: v for k, v in arrays.items() if k not in STEPWISE_KEYS}
     report = check_result(_blob(old, summary))
     assert report.failures == [] and report.method == "rollout" and report.exact and not report.stepwise
     assert any(n.startswith("no stored states (older result)") for n in report.config_notes), report.config_notes
@@ -237,3 +238,76 @@ def test_recording_the_states_leaves_the_replay_as_it_was(honest: Result, prep: 
     np.testing.assert_array_equal(plain.keypoints["right"], recorded.keypoints["right"])
     for key, column in plain.contacts.items():
         np.testing.assert_array_equal(column, recorded.contacts[key])
+
+
+def test_a_result_stores_every_steps_inputs_and_steps_under_them(honest: Result, prep: Prepared) -> None:
+    """The inputs of every physics step are stored beside the states; the stepwise check steps under them after
+    checking them against the keyframes', so last-bit differences in the inputs made on another host do not
+    enter the physics."""
+    from worker.refine.evaluator import control_size
+
+    arrays, summary = honest
+    frames, spf = len(arrays["object_pose_sim"]), prep.layout.substeps
+    for key in ("control_sim", "raw_control_sim"):
+        assert arrays[key].shape == ((frames - 1) * spf + 1, control_size(prep.layout.model))
+    # The state of frame f holds the inputs of the step that ended it.
+    layout = StateLayout(prep.layout.model)
+    np.testing.assert_array_equal(layout.part(arrays["state_sim"][1:], "ctrl"),
+                                  arrays["control_sim"][spf - 1 : -1 : spf, : prep.layout.model.nu])
+    report = check_result(_blob(arrays, summary))
+    assert report.failures == [] and report.exact
+    assert {"refined", "raw"} == set(report.stepwise)
+    assert all(r.controls is not None and r.controls.value == 0.0 for r in report.stepwise.values())
+    # Inputs 1e-12 off the keyframes' (another host's last bits): accepted, stepped under as stored.
+    nudged = arrays["control_sim"].copy()
+    nudged[40:, : prep.layout.model.nu] += 1e-12
+    report = check_result(_blob({**arrays, "control_sim": nudged}, summary))
+    assert report.stepwise["refined"].controls is not None and report.stepwise["refined"].controls.value > 0
+    assert not any("control_sim" in f for f in report.failures), report.failures
+
+
+def test_stored_inputs_off_the_keyframes_fail_naming_the_input_and_frame(honest: Result, prep: Prepared) -> None:
+    arrays, summary = honest
+    model, spf = prep.layout.model, prep.layout.substeps
+    hand = prep.scene.hands["right"]
+    actuator = int(hand.actuator_ids[2])
+    controls = arrays["control_sim"].copy()
+    controls[13 * spf + 3 :, actuator] += 0.05  # a servo target the keyframes do not give, from frame 13 on
+    name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, actuator)
+    fails_naming(_blob({**arrays, "control_sim": controls}, summary), "control_sim: 0.05 from the keyframes'",
+                  "at frame 13", f"ctrl {name}")
+    wrist = arrays["raw_control_sim"].copy()
+    wrist[5 * spf :, model.nu + model.neq + 3 * hand.mocap_id + 2] += 0.003  # the raw wrist's target 3 mm up
+    fails_naming(_blob({**arrays, "raw_control_sim": wrist}, summary), "raw_control_sim", "at frame 5",
+                  "mocap_pos")
+    fails_naming(_blob({**arrays, "control_sim": arrays["control_sim"][:-1]}, summary), "control_sim: shape")
+
+
+def test_a_result_with_states_but_no_stored_inputs_steps_under_the_keyframes_with_a_note(honest: Result) -> None:
+    arrays, summary = honest
+    older = {k: v for k, v in arrays.items() if k not in ("control_sim", "raw_control_sim")}
+    report = check_result(_blob(older, summary))
+    assert report.failures == [] and report.method == "stepwise" and report.exact
+    assert all(r.controls is None for r in report.stepwise.values())
+    assert any(n.startswith("no stored inputs") for n in report.config_notes), report.config_notes
+
+
+@pytest.mark.slow
+def test_with_other_kernels_forced_every_frame_is_reached_bit_for_bit(honest: Result, tmp_path: Path) -> None:
+    """Under the stored inputs, the kernels NumPy and OpenBLAS pick do not enter the physics: every frame after
+    the first (the start is settled afresh, a rollout of its own) is reached exactly."""
+    arrays, summary = honest
+    path = tmp_path / "r.npz"
+    path.write_bytes(_blob(arrays, summary))
+    script = ("import json, sys; from pathlib import Path; from worker.verification import check_result; "
+              "r = check_result(Path(sys.argv[1]).read_bytes()); "
+              "print(json.dumps({'failures': r.failures, 'largest': {k: max([d.value for d in s.largest.values()] "
+              "+ [0.0]) for k, s in r.stepwise.items()}}))")
+    for kernels in (OTHER_KERNELS, {"NPY_DISABLE_CPU_FEATURES": "X86_V3 X86_V4 AVX512_ICL AVX512_SPR AVX512_SKX",
+                                    "OPENBLAS_CORETYPE": "Nehalem"}):
+        env = {**os.environ, **kernels, "PYTHONPATH": str(ROOT)}
+        run = subprocess.run([sys.executable, "-c", script, str(path)], env=env, cwd=ROOT, capture_output=True,
+                             text=True, timeout=600)
+        assert run.returncode == 0, run.stderr
+        out = json.loads(run.stdout.strip().splitlines()[-1])
+        assert out["failures"] == [] and out["largest"] == {"refined": 0.0, "raw": 0.0}, (kernels, out)

@@ -21,7 +21,7 @@ import numpy as np
 
 from common.geometry import FloatArray
 from common.job_options import JobOptions
-from common.result_format import INTEGRATION_STATE_KEYS
+from common.result_format import INTEGRATION_CONTROL_KEYS, INTEGRATION_STATE_KEYS
 from common.sequence_io import sequence_from_npz_bytes
 from worker.hand.mano.pose import mano_result_arrays
 from worker.hand.reference import HandReference
@@ -37,6 +37,8 @@ from worker.simulation.table_fit import TableChoice
 
 #: The result arrays holding each replay's integration state per frame (``worker.refine.replay.INTEGRATION_STATE``).
 STATE_KEYS = dict(zip(("refined", "raw"), INTEGRATION_STATE_KEYS, strict=True))
+#: The result arrays holding each replay's inputs per physics step (``ReplayRecord.controls``).
+CONTROL_KEYS = dict(zip(("refined", "raw"), INTEGRATION_CONTROL_KEYS, strict=True))
 
 
 @dataclass
@@ -174,11 +176,13 @@ def build_arrays(
         "raw_object_pose_sim": raw.object_pose,
         "sequence_npz": np.frombuffer(sequence_bytes, dtype=np.uint8).copy(),
     }
-    # Every frame's integration state, so ``verify`` can check each frame against the one before it on any host
-    # (``worker.verification.stepwise``; issue #54).
-    for key, rec in ((STATE_KEYS["refined"], final), (STATE_KEYS["raw"], raw)):
+    # Every frame's integration state and every step's inputs, so ``verify`` can check each frame against the one
+    # before it on any host (``worker.verification.stepwise``; issue #54).
+    for name, rec in (("refined", final), ("raw", raw)):
         if rec.states is not None:
-            arrays[key] = rec.states
+            arrays[STATE_KEYS[name]] = rec.states
+        if rec.controls is not None:
+            arrays[CONTROL_KEYS[name]] = rec.controls
     if final.contact_frames is not None:
         arrays["object_table_contact"] = final.contact_frames.table
     if final.articulation is not None and raw.articulation is not None and prep.seq.articulation is not None:

@@ -61,20 +61,33 @@ class ReplayRecord:
     #: (F, mj_stateSize(INTEGRATION)) the full integration state at every frame (``record_states``): frame f's is
     #: the state right before physics step f * substeps, inputs and solver warmstart included.
     states: FloatArray | None = None
+    #: (steps, ncontrol) the inputs set before every physics step (``record_states``; ``CONTROL_SPEC`` columns):
+    #: stored with the states so a stepwise check steps under the very bits the replay stepped under.
+    controls: FloatArray | None = None
+
+
+def replay_control(prep: Prepared, evaluator: ParallelEvaluator, start: SimState,
+                   keyframes: dict[str, FloatArray]) -> FloatArray:
+    """The (steps, ncontrol) inputs a replay of ``keyframes`` sets before each physics step, frame 0 -> F-1."""
+    problem = window_problem(prep, evaluator, start, {})
+    control, _ = problem.build_control(keyframes, 0, prep.num_frames - 1)
+    return np.asarray(control[0])
 
 
 def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyframes: dict[str, FloatArray],
-           record_contacts: bool = True, on_step: StepHook | None = None, record_states: bool = False
-           ) -> ReplayRecord:
+           record_contacts: bool = True, on_step: StepHook | None = None, record_states: bool = False,
+           control: FloatArray | None = None) -> ReplayRecord:
     """Simulate frame 0 -> F-1 with the given keyframes, recording every frame (and contacts, and with
-    ``record_states`` the integration state of every frame: ``ReplayRecord.states``).
+    ``record_states`` the integration state of every frame and the inputs of every step: ``ReplayRecord.states``,
+    ``.controls``).
 
-    ``on_step(i, data)`` also runs after physics step i, after the frame's records (the visual tools record the
-    full state per frame; ``worker.verification.stepwise`` loads the stored next frame's state there)."""
+    ``control`` steps under given inputs instead of those ``replay_control`` makes of the keyframes (a stepwise
+    check under a result's stored inputs). ``on_step(i, data)`` also runs after physics step i, after the frame's
+    records (the visual tools record the full state per frame; ``worker.verification.stepwise`` loads the stored
+    next frame's state there)."""
     layout = prep.layout
     s = layout.substeps
-    problem = window_problem(prep, evaluator, start, {})
-    control, _ = problem.build_control(keyframes, 0, prep.num_frames - 1)
+    inputs = replay_control(prep, evaluator, start, keyframes) if control is None else np.asarray(control)
     n_frames = prep.num_frames
     sensors = np.empty((n_frames, layout.model.nsensordata))
     recorder = ContactRecorder(prep.scene) if record_contacts else None
@@ -98,7 +111,7 @@ def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyfra
         if on_step is not None:
             on_step(i, d)
 
-    evaluator.step_python(start, control[0], hook)
+    evaluator.step_python(start, inputs, hook)
     pos, quat, vel = layout.object_from_sensors(sensors)
     articulation = layout.parts_from_sensors(sensors, pos, quat)[0] if layout.n_joints else None
     return ReplayRecord(
@@ -106,14 +119,15 @@ def replay(prep: Prepared, evaluator: ParallelEvaluator, start: SimState, keyfra
         object_vel=vel,
         keypoints={side: sensors[:, h.keypoint_sensor_adrs] for side, h in layout.hands.items()},
         contacts=recorder.columns() if recorder is not None else empty_contact_columns(),
-        steps=control.shape[1],
+        steps=inputs.shape[0],
         contact_frames=recorder.frames(n_frames) if recorder is not None else None,
         joints=joints,
         joint_force=force,
-        command={side: control[0][np.maximum(np.arange(n_frames) * s - 1, 0)][:, h.actuator_ids]
+        command={side: inputs[np.maximum(np.arange(n_frames) * s - 1, 0)][:, h.actuator_ids]
                  for side, h in robots.items()},
         articulation=articulation,
         states=states,
+        controls=inputs if record_states else None,
     )
 
 

@@ -7,7 +7,7 @@ Arrays (``common.result_format`` keys plus; all but the loss history made by ``w
 ``S_keypoints_sim``/``S_keypoints_ref``/``S_valid``; ``raw_object_pose_sim`` (F,7) the raw replay;
 ``object_table_contact`` (F,) bool, the refined object touching the table; ``state_sim`` / ``raw_state_sim`` (F, S)
 each replay's integration state per frame (``worker.refine.replay.INTEGRATION_STATE``, for ``verify``'s stepwise
-check);
+check) and ``control_sim`` / ``raw_control_sim`` (T, C) its inputs per physics step, which that check steps under;
 ``metrics_{raw,refined}_*`` per-frame errors, penetration (mm) and hand-only hold (``worker.simulation.metrics``);
 ``window_loss_history`` (W, G) best loss per generation (NaN padded); ``sequence_npz`` (uint8) the input
 sequence in the native NPZ format, so ``verify`` needs nothing else. Summary JSON: kind, sequence, fps, frames,

@@ -2,14 +2,17 @@
 
 A result stores the full integration state (``worker.refine.replay.INTEGRATION_STATE``: time, qpos, qvel, act,
 the solver warmstart, ctrl, applied forces, equality switches, mocap poses, userdata, plugin state) of its refined
-and its raw replay at every frame. ``replay_stepwise`` runs the replay again from the stored frame-0 state under
-the stored controls (the keyframes, through the same ``build_control`` as the refinement), but at the end of every
-frame it compares the state it reached with the stored one and then *loads the stored one* before going on. So
-each comparison covers one frame's physics steps from an exactly known state: MuJoCo is deterministic given the
-full integration state, and a last-bit difference elsewhere (NumPy's kernels in the controls, the model's
-numbers) grows over one frame to far below a micrometre, where a whole rollout through contact grows it to
-millimetres. The records it makes along the way (sensors, contacts, keypoints of each frame, computed at the
-stored states) are what the result's arrays and figures are then checked against, tightly, on any host.
+and its raw replay at every frame, and the inputs it set before every physics step. ``replay_stepwise`` first
+checks the stored inputs against those the keyframes give here (through the same ``build_control`` as the
+refinement: NumPy's kernels make them differ in their last bits, 1e-13, between hosts), then runs the replay again
+from the stored frame-0 state under the *stored* inputs, and at the end of every frame compares the state it
+reached with the stored one and then *loads the stored one* before going on. So each comparison covers one frame's
+physics steps from an exactly known state under exactly known inputs: MuJoCo is deterministic given both, and
+what is left to differ (the model's numbers) grows over one frame to far below a micrometre, where a whole rollout
+through contact grows it to millimetres. Under recomputed inputs (results stored before the inputs were) a
+last-bit difference in them can decide a contact event and move a frame by a fraction of a milliradian. The
+records the replay makes along the way (sensors, contacts, keypoints of each frame, computed at the stored states)
+are what the result's arrays and figures are then checked against, tightly, on any host.
 
 What a state may not do: hold an applied force (``qfrc_applied``, ``xfrc_applied``, userdata must be zero: the
 object moves only through contact), carry inputs other than the controls the keyframes give (ctrl, mocap pose,
@@ -29,10 +32,10 @@ import mujoco
 import numpy as np
 
 from common.geometry import FloatArray
-from worker.refine.derive import STATE_KEYS, Derived, build_arrays, replay_metrics
+from worker.refine.derive import CONTROL_KEYS, STATE_KEYS, Derived, build_arrays, replay_metrics
 from worker.refine.evaluator import ParallelEvaluator, SimState
 from worker.refine.prepare import Prepared, settled_start
-from worker.refine.replay import INTEGRATION_STATE, ReplayRecord, frame_states, replay
+from worker.refine.replay import INTEGRATION_STATE, ReplayRecord, frame_states, replay, replay_control
 
 if TYPE_CHECKING:
     from worker.verification.report import VerifyReport
@@ -118,6 +121,9 @@ class StepwiseReport:
     failures: list[str] = field(default_factory=list)
     seconds: float = 0.0
     steps: int = 0
+    #: The stored inputs' largest deviation from the keyframes' (None: the result stores none, the replay stepped
+    #: under the inputs made here).
+    controls: Deviation | None = None
 
     def worst(self) -> tuple[str, Deviation]:
         """The field whose largest deviation is furthest towards its tolerance (for a one-line summary)."""
@@ -131,6 +137,7 @@ class StepwiseReport:
                 "steps": self.steps, "largest": {k: v.to_dict() for k, v in self.largest.items()},
                 "start": {k: v.to_dict() for k, v in self.start.items()},
                 "running": {k: v.to_dict() for k, v in self.running.items()},
+                "controls": None if self.controls is None else self.controls.to_dict(),
                 "failures": list(self.failures)}
 
 
@@ -197,9 +204,12 @@ class StateLayout:
 def replay_stepwise(
     prep: Prepared, keyframes: dict[str, FloatArray], states: FloatArray, key: str,
     tol: StateTolerances = STATE_TOLERANCES, record_contacts: bool = True,
+    controls: FloatArray | None = None, controls_key: str = "",
 ) -> tuple[StepwiseReport, ReplayRecord]:
     """The replay of ``keyframes`` checked frame by frame against the stored ``states`` (F, state size) of result
-    array ``key``; see the module docstring. Returns the report and the record made at the stored states."""
+    array ``key``, stepping under the stored ``controls`` (steps, ncontrol) of array ``controls_key`` once they
+    match the keyframes' (None: under the keyframes'); see the module docstring. Returns the report and the record
+    made at the stored states."""
     model = prep.layout.model
     layout = StateLayout(model)
     report = StepwiseReport(key, frames=int(prep.num_frames))
@@ -212,6 +222,13 @@ def replay_stepwise(
     _check_forces(report, layout, states, key)
     with ParallelEvaluator(model, 1) as ev:  # the re-settled frame 0 the replay started from
         start, _ = settled_start(prep, ev)
+        expected_inputs = replay_control(prep, ev, start, keyframes)
+    inputs = None
+    if controls is not None:
+        inputs = _checked_controls(report, layout, np.asarray(controls), expected_inputs, controls_key, tol,
+                                   prep.layout.substeps)
+        if inputs is None:
+            return report, _empty_record()
     expected0 = frame_states(prep, start, 1)[0]
     loaded = mujoco.MjData(model)
     mujoco.mj_setState(model, loaded, states[0], INTEGRATION_STATE)
@@ -223,7 +240,7 @@ def replay_stepwise(
     t0 = time.perf_counter()
     with ParallelEvaluator(model, 1) as ev:
         rec = replay(prep, ev, SimState.capture(model, loaded), keyframes, record_contacts=record_contacts,
-                     on_step=load_stored, record_states=True)
+                     on_step=load_stored, record_states=True, control=inputs)
         report.steps = ev.stats.steps
     report.seconds = time.perf_counter() - t0
     assert rec.states is not None
@@ -231,6 +248,45 @@ def replay_stepwise(
     reached[0] = expected0  # frame 0 follows from the settling: the re-settled start
     _compare(report, layout, states, reached, key, tol)
     return report, rec
+
+
+def _checked_controls(report: StepwiseReport, layout: StateLayout, stored: FloatArray, expected: FloatArray,
+                      key: str, tol: StateTolerances, substeps: int) -> FloatArray | None:
+    """The stored inputs to step under, if they are the keyframes' within ``tol.inputs`` (their deviation into
+    ``report.controls``); None, with a failure naming the step's frame and the input, if they are not."""
+    if stored.shape != expected.shape or stored.dtype != np.float64:
+        report.failures.append(f"{key}: shape {stored.shape} {stored.dtype}, the replay's inputs are "
+                               f"{expected.shape} float64")
+        return None
+    if not np.all(np.isfinite(stored)):
+        step, col = (int(v) for v in np.argwhere(~np.isfinite(stored))[0])
+        report.failures.append(f"{key}: not a finite number at frame {step // substeps} "
+                               f"(step {step}; {_control_entry(layout, col)})")
+        return None
+    diff = np.abs(stored - expected)
+    step, col = (int(v) for v in np.unravel_index(int(np.argmax(diff)), diff.shape))
+    report.controls = Deviation(float(diff[step, col]), step // substeps, _control_entry(layout, col))
+    if report.controls.value > tol.inputs:
+        bad = np.argwhere(diff > tol.inputs)[0]
+        first = Deviation(float(diff[bad[0], bad[1]]), int(bad[0]) // substeps, _control_entry(layout, int(bad[1])))
+        report.failures.append(
+            f"{key}: {first.value:.6g} from the keyframes' inputs at frame {first.frame} (step {int(bad[0])}; "
+            f"{first.where}; tolerance {tol.inputs:g}); largest {report.controls.value:.6g} at frame "
+            f"{report.controls.frame} ({report.controls.where})")
+        return None
+    return stored
+
+
+def _control_entry(layout: StateLayout, column: int) -> str:
+    """A readable name of column ``column`` of a replay's inputs (``CONTROL_SPEC``: ctrl, equality switches,
+    mocap positions, mocap quaternions: the integration state's input parts in the same order)."""
+    at = 0
+    for name in ("ctrl", "eq_active", "mocap_pos", "mocap_quat"):
+        n = layout.slices[name].stop - layout.slices[name].start
+        if column < at + n:
+            return f"{name} {layout.entry(name, column - at)}"
+        at += n
+    return f"column {column}"
 
 
 def _check_forces(report: StepwiseReport, layout: StateLayout, states: FloatArray, key: str) -> None:
@@ -314,8 +370,14 @@ def stepwise_derivation(
         if key not in arrays:
             return StepwiseReport(key, failures=[f"{key}: missing (the result stores the other replay's states)"]), \
                 _empty_record()
-        return replay_stepwise(prep, jobs[name], arrays[key], key)
+        controls_key = CONTROL_KEYS[name]
+        return replay_stepwise(prep, jobs[name], arrays[key], key, controls=arrays.get(controls_key),
+                               controls_key=controls_key)
 
+    stored_without_inputs = [CONTROL_KEYS[n] for n in jobs if STATE_KEYS[n] in arrays and CONTROL_KEYS[n] not in arrays]
+    if stored_without_inputs:
+        report.config_notes.append(f"no stored inputs ({', '.join(stored_without_inputs)}: a result made before they "
+                                   "were stored): stepped under the inputs the keyframes give here")
     names = list(jobs)
     if threads > 1:  # mj_step releases the GIL: the two replays side by side, the same records
         with ThreadPoolExecutor(max_workers=2, thread_name_prefix="stepwise") as pool:
