@@ -89,11 +89,11 @@ def verify_one(path: Path, old_way: bool = False) -> dict[str, Any]:
     file without its stored states (as an older result: whole re-simulation within the cross-host tolerances)."""
     import worker.verification.check as check
     from common.cpu_kind import numpy_simd
-    from common.result_format import read_arrays, read_summary, write_result_npz
+    from common.result_format import STEPWISE_KEYS, read_arrays, read_summary, write_result_npz
 
     blob = path.read_bytes()
     if old_way:
-        arrays = {k: v for k, v in read_arrays(blob).items() if k not in ("state_sim", "raw_state_sim")}
+        arrays = {k: v for k, v in read_arrays(blob).items() if k not in STEPWISE_KEYS}
         blob = write_result_npz(arrays, read_summary(blob))
 
     timed: dict[str, float] = {}
@@ -345,17 +345,23 @@ def make_hinged_box(out: Path, budget: str) -> None:
 
 
 def state_sizes(path: Path) -> dict[str, Any]:
-    """Bytes the stored states take: per frame (uncompressed) and per sequence (as stored, compressed)."""
+    """Bytes the stored states and inputs take: per frame (uncompressed) and per sequence (as stored, compressed)."""
     blob = path.read_bytes()
     with zipfile.ZipFile(io.BytesIO(blob)) as zf:
         info = {i.filename: i for i in zf.infolist()}
-    from common.result_format import read_arrays
+    from common.result_format import STEPWISE_KEYS, read_arrays
 
     arrays = read_arrays(blob)
     states = arrays["state_sim"]
-    stored = sum(info[f"{k}.npy"].compress_size for k in ("state_sim", "raw_state_sim"))
-    raw = sum(info[f"{k}.npy"].file_size for k in ("state_sim", "raw_state_sim"))
-    return {"frames": int(states.shape[0]), "nstate": int(states.shape[1]), "per_frame": 8 * int(states.shape[1]),
+    frames = int(states.shape[0])
+    controls = arrays.get("control_sim")
+    ncontrol = 0 if controls is None else int(controls.shape[1])
+    steps_per_frame = 0 if controls is None else (len(controls) - 1) // max(frames - 1, 1)
+    members = [k for k in STEPWISE_KEYS if f"{k}.npy" in info]
+    stored = sum(info[f"{k}.npy"].compress_size for k in members)
+    raw = sum(info[f"{k}.npy"].file_size for k in members)
+    return {"frames": frames, "nstate": int(states.shape[1]), "ncontrol": ncontrol,
+            "per_frame": 8 * (int(states.shape[1]) + steps_per_frame * ncontrol),
             "stored": stored, "uncompressed": raw, "result": len(blob)}
 
 
@@ -454,7 +460,43 @@ def forgeries(path: Path, folder: Path) -> list[tuple[str, str, Path]]:
     add("hand_off_controls", "a finger bent 0.05 rad off its controls at frame 15", {**arrays, "state_sim": states},
         summary)
     add_shift(add, arrays, summary, prep, keyframes, layout)
+    add_input_forgeries(add, arrays, summary, prep, keyframes)
     return out
+
+
+def add_input_forgeries(add: Any, arrays: dict[str, np.ndarray], summary: dict[str, Any], prep: Any,
+                        keyframes: dict[str, np.ndarray]) -> None:
+    """Forged inputs: a stored servo target the keyframes do not give; and the forger's better try, the refined
+    replay simulated under inputs pushed off the keyframes' (a finger's target and the wrist's height over frames
+    10-20) with every array stored from that simulation, so states and inputs agree with each other."""
+    from worker.refine.derive import build_arrays, replay_metrics
+    from worker.refine.evaluator import ParallelEvaluator
+    from worker.refine.prepare import settled_start
+    from worker.refine.replay import replay
+
+    side = next(iter(prep.spaces))
+    model, spf = prep.layout.model, prep.layout.substeps
+    hand = prep.scene.hands[side]
+    actuator = int(hand.actuator_ids[2])
+    controls = arrays["control_sim"].copy()
+    controls[13 * spf + 3 :, actuator] += 0.05
+    add("inputs_stored_off", "control_sim: a servo target +0.05 rad from frame 13 on (states untouched)",
+        {**arrays, "control_sim": controls}, summary)
+    pushed = arrays["control_sim"].copy()
+    steps = slice(10 * spf, 21 * spf)
+    pushed[steps, actuator] += 0.1
+    pushed[steps, model.nu + model.neq + 3 * hand.mocap_id + 2] += 0.003
+    with ParallelEvaluator(model, 1) as ev:
+        start, _ = settled_start(prep, ev)
+        rec = replay(prep, ev, start, keyframes, record_states=True, control=pushed)
+    raw = dataclasses.replace(rec, object_pose=arrays["raw_object_pose_sim"])  # only the refined replay is forged
+    m_raw = {"per_frame": {k[len("metrics_raw_"):]: arrays[k] for k in arrays if k.startswith("metrics_raw_")}}
+    forged = build_arrays(prep, arrays["sequence_npz"].tobytes(), keyframes, rec, raw, m_raw,
+                          replay_metrics(prep, rec))
+    keep = ("raw_object_pose_sim", "raw_state_sim", "raw_control_sim", "raw_object_articulation_sim")
+    add("inputs_resimulated", "refined replay simulated under a finger target +0.1 rad and the wrist 3 mm higher "
+        "over frames 10-20, every array stored from it", {**arrays, **{k: v for k, v in forged.items()
+                                                                       if k not in keep}}, summary)
 
 
 def add_table_forgery(add: Any, arrays: dict[str, np.ndarray], summary: dict[str, Any], prep: Any,
@@ -501,7 +543,7 @@ def add_shift(add: Any, arrays: dict[str, np.ndarray], summary: dict[str, Any], 
     """The new forgery: the refined trajectory moved 3 mm (z) over frames 20-30, with everything that depends on it
     moved along (states, the contacts' world points, per-frame and summary metrics): within the old cross-host
     tolerance (5 mm + 10 %). Added twice: with states, and without them (an older result, verified the old way)."""
-    from common.result_format import CONTACT_KEYS
+    from common.result_format import CONTACT_KEYS, STEPWISE_KEYS
     from worker.refine.derive import build_arrays, replay_metrics
     from worker.refine.replay import ReplayRecord
     from worker.simulation.contacts import contact_frames
@@ -537,7 +579,7 @@ def add_shift(add: Any, arrays: dict[str, np.ndarray], summary: dict[str, Any], 
     add("shift_3mm_states", "trajectory + states + contacts + metrics moved 3 mm over frames 20-30",
         {**forged, "state_sim": states}, s)
     add("shift_3mm_old_way", "the same without states (verified the old way)",
-        {k: v for k, v in forged.items() if k not in ("state_sim", "raw_state_sim")}, s)
+        {k: v for k, v in forged.items() if k not in STEPWISE_KEYS}, s)
 
 
 # ------------------------------------------------------------------------------------------------- report
@@ -630,6 +672,10 @@ def summary_lines(rows: list[dict[str, Any]], kernels: list[str]) -> list[str]:
                     default=0.0)
         out.append(f"| {f} (signed sum of the per-frame deviations, largest) | {worst:.3g} | | "
                    f"{getattr(STATE_TOLERANCES, f):g} | |")
+    inputs = max(((s.get("controls") or {}).get("value", 0.0) for r in good for s in r["stepwise"].values()),
+                 default=0.0)
+    out.append(f"| stored inputs (control_sim) against the keyframes' | {inputs:.3g} | | "
+               f"{STATE_TOLERANCES.inputs:g} | |")
     for f in ("qpos", "qvel", "qacc_warmstart", "ctrl", "mocap_pos", "mocap_quat", "time"):
         step = max((s["largest"].get(f, {}).get("value", 0.0) for r in good for s in r["stepwise"].values()),
                    default=0.0)
@@ -655,11 +701,14 @@ def deviation_table(rows: list[dict[str, Any]]) -> list[str]:
            "`drift`: the whole re-simulation's largest object deviation (reported, not pass/fail).", "",
            "`old way`: the same file without its states, verified as an older result (whole re-simulation within "
            "5 mm / 5 deg + 10 %).", "",
-           "| result | kernels | verified | " + " | ".join(FIELDS) + " | start qpos / qvel | drift (mm) | old way |",
-           "|---|---|---|" + "---|" * len(FIELDS) + "---|---|---|"]
+           "`inputs`: the stored inputs of every step against those the keyframes give here (the replay steps under "
+           "the stored ones).", "",
+           "| result | kernels | verified | inputs | " + " | ".join(FIELDS)
+           + " | start qpos / qvel | drift (mm) | old way |",
+           "|---|---|---|---|" + "---|" * len(FIELDS) + "---|---|---|"]
     for r in rows:
         if "error" in r:
-            out.append(f"| {r['name']} | {r['kernel']} | ERROR | " + " | ".join("" for _ in FIELDS) + " | | | |")
+            out.append(f"| {r['name']} | {r['kernel']} | ERROR | | " + " | ".join("" for _ in FIELDS) + " | | | |")
             continue
         sw = r["stepwise"].values()
         cells = []
@@ -668,7 +717,9 @@ def deviation_table(rows: list[dict[str, Any]]) -> list[str]:
             cells.append(f"{worst:.2g}")
         start = [max((s["start"].get(f, {}).get("value", 0.0) for s in sw), default=0.0) for f in ("qpos", "qvel")]
         ok = "yes" if r["verified"] else "NO: " + "; ".join(r["failures"])[:200]
-        out.append(f"| {r['name']} | {r['kernel']} | {ok} | " + " | ".join(cells)
+        inputs = [s["controls"]["value"] for s in sw if s.get("controls")]
+        stored_inputs = f"{max(inputs):.2g}" if len(inputs) == len(sw) and inputs else "-"
+        out.append(f"| {r['name']} | {r['kernel']} | {ok} | {stored_inputs} | " + " | ".join(cells)
                    + f" | {start[0]:.2g} / {start[1]:.2g} | {r['drift_m'] * 1000:.3g} | {r.get('old_way', '')} |")
     return out
 
@@ -698,18 +749,22 @@ def size_table(files: list[Path]) -> list[str]:
 
     limits = Settings()
     sizes = [state_sizes(p) for p in files]
-    out = ["## What storing the states costs", "",
-           "| result | frames | state values | bytes / frame / replay | states stored (both, compressed) | "
-           "uncompressed | result file |", "|---|---|---|---|---|---|---|"]
+    out = ["## What storing the states and inputs costs", "",
+           "Per replay and frame: the integration state (`state values`) and the inputs of each physics step of the "
+           "frame (`input values` a step).", "",
+           "| result | frames | state values | input values / step | bytes / frame / replay | stored (both replays, "
+           "compressed) | uncompressed | result file |", "|---|---|---|---|---|---|---|---|"]
     for p, s in zip(files, sizes, strict=True):
-        out.append(f"| {p.stem} | {s['frames']} | {s['nstate']} | {s['per_frame']} | {s['stored'] / 1024:.0f} KiB | "
-                   f"{s['uncompressed'] / 1024:.0f} KiB | {s['result'] / 1024:.0f} KiB |")
+        out.append(f"| {p.stem} | {s['frames']} | {s['nstate']} | {s['ncontrol']} | {s['per_frame']} | "
+                   f"{s['stored'] / 1024:.0f} KiB | {s['uncompressed'] / 1024:.0f} KiB | "
+                   f"{s['result'] / 1024:.0f} KiB |")
     if sizes:
         per = max(s["per_frame"] for s in sizes)
         worst = 2 * per * limits.max_frames
-        out += ["", f"At the service's frame limit ({limits.max_frames} frames) the states of the largest scene here "
-                f"({per // 8} values a frame) take {worst / 2**20:.1f} MiB uncompressed, each of the two members "
-                f"half that, below the 64 MiB an NPZ member may hold (`common.npz_safe.NpzLimits`) and the "
+        out += ["", f"At the service's frame limit ({limits.max_frames} frames) the states and inputs of the largest "
+                f"scene here ({per // 8} values a frame) take {worst / 2**20:.1f} MiB uncompressed, each of the four "
+                f"members less than half that, below the 64 MiB an NPZ member may hold (`common.npz_safe.NpzLimits`) "
+                "and the "
                 f"{limits.max_request_bytes / 2**20:.0f} MiB request limit; the service stores results in the "
                 "database with no size limit of its own."]
     return out
