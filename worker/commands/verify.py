@@ -21,7 +21,8 @@ def register(subparsers: Any) -> None:
         "simulated keypoints, wrist track, contacts, per-frame and summary metrics on both protocols, success) "
         "and fails naming each field that differs and by how much. A physics config other than the product's "
         "defaults fails unless --allow-config. A result that stores every frame's integration state is checked "
-        "stepwise: each frame from the stored one before it (micrometres on any host), every array and figure "
+        "stepwise: each frame from the stored one before it, under the stored inputs of every physics step once "
+        "they match the keyframes' (micrometres on any host), every array and figure "
         "against what those states give, the whole re-simulation's drift reported; an older result is compared "
         "with the whole re-simulation, bit-identical on the machine that made it and within physical tolerances "
         "(millimetres for a held object) on another x86_64 host. "
@@ -85,7 +86,10 @@ def _verify(args: argparse.Namespace) -> int:
         name, dev = rep.worst()
         exact = "bit-identical" if rep.exact else f"largest {name} deviation {dev.value:.3g} at frame {dev.frame} " \
             f"({dev.where})"
-        print(f"stepwise {rep.key}: {rep.frames} frames each from the stored one before, {exact}, {rep.seconds:.2f} s")
+        inputs = "under the inputs made here" if rep.controls is None else \
+            f"under the stored inputs (largest {rep.controls.value:.3g} from the keyframes')"
+        print(f"stepwise {rep.key}: {rep.frames} frames each from the stored one before {inputs}, {exact}, "
+              f"{rep.seconds:.2f} s")
     whole = "whole-rollout drift" if report.method == "stepwise" else "largest object deviation"
     print(f"re-simulated {report.frames} frames: {whole} {report.max_pos_diff_m * 1000:.4g} mm / "
           f"{report.max_rot_diff_deg:.4g} deg, keypoints {report.max_keypoint_diff_m * 1000:.4g} mm")
