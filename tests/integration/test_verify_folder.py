@@ -33,8 +33,13 @@ def test_a_mixed_folder_reports_each_file_and_exits_1(
     rc = main(["verify", str(tmp_path), "--jobs", "2", "--report", str(report_path)])
 
     assert rc == 1
-    out = capsys.readouterr().out
+    captured = capsys.readouterr()
+    out = captured.out
     assert "2 passed, 1 failed, 2 unreadable" in out and "verify: FAILED" in out
+    # Not a terminal: a line per result on stderr, each ending its line, the last one counting all five.
+    progress = [line for line in captured.err.splitlines() if line.startswith("verify ")]
+    assert len(progress) == 5 and progress[-1].startswith("verify 5/5: "), captured.err
+    assert "passed 2" in progress[-1] and "failed 1" in progress[-1] and "unreadable 2" in progress[-1]
     report = json.loads(report_path.read_text())
     status = {f["path"]: f["status"] for f in report["files"]}
     assert status == {"a.result.npz": "passed", "nested/deeper/b.result.npz": "passed",

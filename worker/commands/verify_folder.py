@@ -43,14 +43,23 @@ def verify_folder(root: Path, *, jobs: int | None, report_path: Path | None, all
     columns = (TextColumn("verify"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[tally]}"),
                TimeElapsedColumn())
     tally = dict.fromkeys(STATUSES, 0)
-    with Progress(*columns, console=console, transient=False) as progress:
-        task = progress.add_task("verify", total=len(paths), tally="")
 
-        def advance(verdict: FileVerdict) -> None:
-            tally[verdict.status] += 1
-            progress.update(task, advance=1, tally="  ".join(f"{k} {v}" for k, v in tally.items() if v))
+    def counted(verdict: FileVerdict) -> str:
+        tally[verdict.status] += 1
+        return "  ".join(f"{k} {v}" for k, v in tally.items() if v)
 
-        verdicts = verify_files(paths, options, jobs=workers, on_done=advance)
+    if console.is_terminal:
+        with Progress(*columns, console=console, transient=False) as progress:
+            task = progress.add_task("verify", total=len(paths), tally="")
+            verdicts = verify_files(paths, options, jobs=workers,
+                                    on_done=lambda v: progress.update(task, advance=1, tally=counted(v)))
+    else:  # a log or a pipe: one line a result, rather than a bar's last frame run into the summary
+        def log_line(verdict: FileVerdict) -> None:
+            now = counted(verdict)
+            console.print(f"verify {sum(tally.values())}/{len(paths)}: {verdict.status} "
+                          f"{Path(verdict.path).name} ({now})", soft_wrap=True)
+
+        verdicts = verify_files(paths, options, jobs=workers, on_done=log_line)
     tables = check_release_tables(root)
     for verdict in verdicts:
         verdict.path = Path(verdict.path).relative_to(root).as_posix()
