@@ -473,6 +473,7 @@ def add_input_forgeries(add: Any, arrays: dict[str, np.ndarray], summary: dict[s
     from worker.refine.evaluator import ParallelEvaluator
     from worker.refine.prepare import settled_start
     from worker.refine.replay import replay
+    from worker.verification.stepwise import StateLayout
 
     side = next(iter(prep.spaces))
     model, spf = prep.layout.model, prep.layout.substeps
@@ -482,6 +483,11 @@ def add_input_forgeries(add: Any, arrays: dict[str, np.ndarray], summary: dict[s
     controls[13 * spf + 3 :, actuator] += 0.05
     add("inputs_stored_off", "control_sim: a servo target +0.05 rad from frame 13 on (states untouched)",
         {**arrays, "control_sim": controls}, summary)
+    layout = StateLayout(model)
+    placed = arrays["presettle_state_sim"].copy()
+    placed[layout.slices["qpos"].start + prep.scene.object_qpos_adr + 1] += 0.002
+    add("start_placed_off", "presettle_state_sim: the object placed 2 mm off its recorded pose before the settling",
+        {**arrays, "presettle_state_sim": placed}, summary)
     pushed = arrays["control_sim"].copy()
     steps = slice(10 * spf, 21 * spf)
     pushed[steps, actuator] += 0.1

@@ -22,7 +22,9 @@ result has (F = frames, N = contacts over all frames):
 * ``control_sim`` / ``raw_control_sim`` (T, C) float64 (since the stepwise check steps under them): the inputs
   each replay set before every physics step (T = (F - 1) * substeps + 1; the columns MuJoCo's ctrl, equality
   switches, mocap positions and quaternions), so that check steps under the very bits the replay stepped under
-  on any host; ``verify`` checks them against the keyframes' within 1e-9.
+  on any host; ``verify`` checks them against the keyframes' within 1e-9. ``presettle_state_sim`` (S,): the
+  integration state the settling to frame 0 starts from (hands at their frame-0 targets, the object placed), so
+  that check settles to frame 0 from the same bits too.
 * an articulated object (``common.articulation``) adds ``object_articulation_sim`` / ``_ref`` (F,J) joint values
   (radians / metres) and ``contact_part`` (N,) str: the object part touched, whose frame ``contact_pos_object``
   is then given in.
@@ -73,8 +75,10 @@ CONTACT_KEYS: tuple[str, ...] = (
 INTEGRATION_STATE_KEYS: tuple[str, ...] = ("state_sim", "raw_state_sim")
 #: Each replay's inputs per physics step, stored beside its states (the refined replay's, then the raw one's).
 INTEGRATION_CONTROL_KEYS: tuple[str, ...] = ("control_sim", "raw_control_sim")
+#: The integration state the settling to frame 0 starts from (both replays start from its settled state).
+PRESETTLE_STATE_KEY = "presettle_state_sim"
 #: What the JSON form of a result leaves out: the stepwise check's states and inputs.
-STEPWISE_KEYS: tuple[str, ...] = INTEGRATION_STATE_KEYS + INTEGRATION_CONTROL_KEYS
+STEPWISE_KEYS: tuple[str, ...] = (*INTEGRATION_STATE_KEYS, *INTEGRATION_CONTROL_KEYS, PRESETTLE_STATE_KEY)
 
 
 #: Contact columns of an articulated object's result only.

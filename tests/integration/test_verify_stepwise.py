@@ -294,15 +294,15 @@ def test_a_result_with_states_but_no_stored_inputs_steps_under_the_keyframes_wit
 
 @pytest.mark.slow
 def test_with_other_kernels_forced_every_frame_is_reached_bit_for_bit(honest: Result, tmp_path: Path) -> None:
-    """Under the stored inputs, the kernels NumPy and OpenBLAS pick do not enter the physics: every frame after
-    the first (the start is settled afresh, a rollout of its own) is reached exactly."""
+    """Under the stored inputs, the kernels NumPy and OpenBLAS pick do not enter the physics: every frame is
+    reached exactly, frame 0 too (settled from the stored pre-settle state)."""
     arrays, summary = honest
     path = tmp_path / "r.npz"
     path.write_bytes(_blob(arrays, summary))
     script = ("import json, sys; from pathlib import Path; from worker.verification import check_result; "
               "r = check_result(Path(sys.argv[1]).read_bytes()); "
               "print(json.dumps({'failures': r.failures, 'largest': {k: max([d.value for d in s.largest.values()] "
-              "+ [0.0]) for k, s in r.stepwise.items()}}))")
+              "+ [d.value for d in s.start.values()] + [0.0]) for k, s in r.stepwise.items()}}))")
     for kernels in (OTHER_KERNELS, {"NPY_DISABLE_CPU_FEATURES": "X86_V3 X86_V4 AVX512_ICL AVX512_SPR AVX512_SKX",
                                     "OPENBLAS_CORETYPE": "Nehalem"}):
         env = {**os.environ, **kernels, "PYTHONPATH": str(ROOT)}
@@ -311,3 +311,25 @@ def test_with_other_kernels_forced_every_frame_is_reached_bit_for_bit(honest: Re
         assert run.returncode == 0, run.stderr
         out = json.loads(run.stdout.strip().splitlines()[-1])
         assert out["failures"] == [] and out["largest"] == {"refined": 0.0, "raw": 0.0}, (kernels, out)
+
+
+def test_frame_0_settles_from_the_stored_pre_settle_state(honest: Result, prep: Prepared) -> None:
+    """The settling to frame 0 is steps like any frame's: the result stores the state it starts from, verify
+    checks that against the start placed here (hands at their frame-0 targets, the object at its recorded pose)
+    and compares frame 0 with the settling from it as tightly as any other frame."""
+    from worker.refine.prepare import presettle_state
+
+    arrays, summary = honest
+    np.testing.assert_array_equal(arrays["presettle_state_sim"], presettle_state(prep))
+    report = check_result(_blob(arrays, summary))
+    assert report.failures == [] and all(r.presettle is not None and r.presettle.value == 0.0
+                                         for r in report.stepwise.values())
+    layout, a = StateLayout(prep.layout.model), prep.scene.object_qpos_adr
+    moved = arrays["presettle_state_sim"].copy()
+    moved[layout.slices["qpos"].start + a + 1] += 0.002  # the object placed 2 mm off its recorded pose
+    fails_naming(_blob({**arrays, "presettle_state_sim": moved}, summary), "presettle_state_sim.qpos: 0.002",
+                 "object_root y position", "the recorded start")
+    fails_naming(_blob({**arrays, "presettle_state_sim": moved[:-1]}, summary), "presettle_state_sim: shape")
+    older = {k: v for k, v in arrays.items() if k != "presettle_state_sim"}
+    report = check_result(_blob(older, summary))
+    assert report.failures == [] and any(n.startswith("no stored pre-settle state") for n in report.config_notes)

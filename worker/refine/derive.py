@@ -21,12 +21,12 @@ import numpy as np
 
 from common.geometry import FloatArray
 from common.job_options import JobOptions
-from common.result_format import INTEGRATION_CONTROL_KEYS, INTEGRATION_STATE_KEYS
+from common.result_format import INTEGRATION_CONTROL_KEYS, INTEGRATION_STATE_KEYS, PRESETTLE_STATE_KEY
 from common.sequence_io import sequence_from_npz_bytes
 from worker.hand.mano.pose import mano_result_arrays
 from worker.hand.reference import HandReference
 from worker.refine.evaluator import ParallelEvaluator
-from worker.refine.prepare import Prepared, prepare, settled_start
+from worker.refine.prepare import Prepared, prepare, presettle_state, settled_start
 from worker.refine.replay import ReplayJob, ReplayRecord, replay_all
 from worker.robot.metrics import robot_motion_metrics
 from worker.robot.reference import RobotReference
@@ -183,6 +183,8 @@ def build_arrays(
             arrays[STATE_KEYS[name]] = rec.states
         if rec.controls is not None:
             arrays[CONTROL_KEYS[name]] = rec.controls
+    if final.states is not None:
+        arrays[PRESETTLE_STATE_KEY] = presettle_state(prep)
     if final.contact_frames is not None:
         arrays["object_table_contact"] = final.contact_frames.table
     if final.articulation is not None and raw.articulation is not None and prep.seq.articulation is not None:

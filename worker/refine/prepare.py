@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import mujoco
 import numpy as np
 
 from common.errors import ConfigurationError
@@ -43,7 +44,16 @@ from worker.robot.retarget import robot_references
 from worker.simulation.config import SimConfig
 from worker.simulation.rest_pose import moved_frame
 from worker.simulation.scene import Scene, build_scene
-from worker.simulation.stepping import HandTargets, initial_state, lead_track, lead_values
+from worker.simulation.stepping import (
+    PHYSICS_SPEC,
+    HandTargets,
+    get_state,
+    initial_state,
+    lead_track,
+    lead_values,
+    place_start,
+    settle_placed,
+)
 from worker.simulation.table_fit import TableChoice
 
 #: Defaults chosen for the speed budget (2 shared cores, <= 60 s for 72 frames at 30 fps); see bench/refine.py.
@@ -341,6 +351,33 @@ def _surface_samples(shape: ObjectSpec, primitive_spacing: float) -> FloatArray:
 def settled_start(prep: Prepared, evaluator: ParallelEvaluator) -> tuple[SimState, int]:
     """The settled frame-0 state (``worker.simulation.stepping.initial_state``) with its solver warmstart."""
     data = evaluator.step_data
-    targets = {r.side: HandTargets.from_reference(r) for r in prep.references}
-    physics, steps = initial_state(prep.scene, data, targets)
+    physics, steps = initial_state(prep.scene, data, _frame0_targets(prep))
     return SimState(physics.copy(), data.qacc_warmstart.copy()), steps
+
+
+#: MuJoCo's integration state: everything ``mj_step`` reads, inputs and solver warmstart included.
+_INTEGRATION = int(mujoco.mjtState.mjSTATE_INTEGRATION)
+
+
+def presettle_state(prep: Prepared) -> FloatArray:
+    """The integration state the settling of ``settled_start`` starts from (``place_start``): a result stores it so
+    that a check on another host settles from the very same bits (``settled_from``)."""
+    model = prep.layout.model
+    data = mujoco.MjData(model)
+    place_start(prep.scene, data, _frame0_targets(prep))
+    state = np.empty(mujoco.mj_stateSize(model, _INTEGRATION))
+    mujoco.mj_getState(model, data, state, _INTEGRATION)
+    return state
+
+
+def settled_from(prep: Prepared, evaluator: ParallelEvaluator, state: FloatArray) -> SimState:
+    """``settled_start``'s settling run from a given pre-settle integration state (``presettle_state``'s)."""
+    model, data = prep.layout.model, evaluator.step_data
+    mujoco.mj_resetData(model, data)
+    mujoco.mj_setState(model, data, np.asarray(state, dtype=np.float64), _INTEGRATION)
+    settle_placed(prep.scene, data)
+    return SimState(get_state(prep.scene, data, PHYSICS_SPEC).copy(), data.qacc_warmstart.copy())
+
+
+def _frame0_targets(prep: Prepared) -> dict[str, HandTargets]:
+    return {r.side: HandTargets.from_reference(r) for r in prep.references}

@@ -208,6 +208,14 @@ def initial_state(
     Returns (state with time reset to 0, settle steps taken); the state is ``PHYSICS_SPEC`` (FULLPHYSICS)
     by default — ``data.qacc_warmstart`` then holds the settled warmstart — or ``STATE_SPEC`` with
     ``with_warmstart``."""
+    place_start(scene, data, targets)
+    n_settle = settle_placed(scene, data)
+    return get_state(scene, data, STATE_SPEC if with_warmstart else PHYSICS_SPEC), n_settle
+
+
+def place_start(scene: Scene, data: mujoco.MjData, targets: Mapping[Any, HandTargets]) -> None:
+    """``data`` reset to the state the settling starts from: hands at their frame-0 targets, the object at
+    ``scene.object_init_pose`` at rest, the hold weld on where the scene has one."""
     model = scene.model
     mujoco.mj_resetData(model, data)
     pose_hands(scene, data, targets, 0)
@@ -215,17 +223,22 @@ def initial_state(
     data.qpos[a : a + 7] = scene.object_init_pose
     if scene.articulated:
         data.qpos[scene.object_joint_qpos_adr] = scene.object_init_articulation
-    held = scene.object_hold_eq >= 0  # a scene has the weld only when the object rests before the hand comes
-    if held:  # the object rests where it starts until the hand comes (``SimConfig.hold_until_m``)
+    if scene.object_hold_eq >= 0:  # the object rests where it starts until the hand comes (``SimConfig.hold_until_m``)
         data.eq_active[scene.object_hold_eq] = 1
     mujoco.mj_forward(model, data)
+
+
+def settle_placed(scene: Scene, data: mujoco.MjData) -> int:
+    """``config.settle_seconds`` of simulation from the state in ``data`` (``place_start``'s, or one loaded), the
+    inputs as they are; then time reset to 0 and the hold weld back to its default. Returns the steps taken."""
+    model = scene.model
     n_settle = round(scene.config.settle_seconds / model.opt.timestep)
     for _ in range(n_settle):
         mujoco.mj_step(model, data)
     data.time = 0.0
-    if held:  # not part of the state: the rollouts switch it step by step
+    if scene.object_hold_eq >= 0:  # not part of the state: the rollouts switch it step by step
         data.eq_active[scene.object_hold_eq] = model.eq_active0[scene.object_hold_eq]
-    return get_state(scene, data, STATE_SPEC if with_warmstart else PHYSICS_SPEC), n_settle
+    return n_settle
 
 
 def _record_frame(scene: Scene, data: mujoco.MjData, rec: dict[str, FloatArray], i: int) -> None:

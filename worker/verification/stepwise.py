@@ -25,16 +25,17 @@ from __future__ import annotations
 
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
 import mujoco
 import numpy as np
 
 from common.geometry import FloatArray
+from common.result_format import PRESETTLE_STATE_KEY
 from worker.refine.derive import CONTROL_KEYS, STATE_KEYS, Derived, build_arrays, replay_metrics
 from worker.refine.evaluator import ParallelEvaluator, SimState
-from worker.refine.prepare import Prepared, settled_start
+from worker.refine.prepare import Prepared, presettle_state, settled_from, settled_start
 from worker.refine.replay import INTEGRATION_STATE, ReplayRecord, frame_states, replay, replay_control
 
 if TYPE_CHECKING:
@@ -124,6 +125,9 @@ class StepwiseReport:
     #: The stored inputs' largest deviation from the keyframes' (None: the result stores none, the replay stepped
     #: under the inputs made here).
     controls: Deviation | None = None
+    #: The stored pre-settle state's largest deviation from the start placed here (None: none stored, frame 0
+    #: compared with a start settled afresh here).
+    presettle: Deviation | None = None
 
     def worst(self) -> tuple[str, Deviation]:
         """The field whose largest deviation is furthest towards its tolerance (for a one-line summary)."""
@@ -138,6 +142,7 @@ class StepwiseReport:
                 "start": {k: v.to_dict() for k, v in self.start.items()},
                 "running": {k: v.to_dict() for k, v in self.running.items()},
                 "controls": None if self.controls is None else self.controls.to_dict(),
+                "presettle": None if self.presettle is None else self.presettle.to_dict(),
                 "failures": list(self.failures)}
 
 
@@ -204,12 +209,13 @@ class StateLayout:
 def replay_stepwise(
     prep: Prepared, keyframes: dict[str, FloatArray], states: FloatArray, key: str,
     tol: StateTolerances = STATE_TOLERANCES, record_contacts: bool = True,
-    controls: FloatArray | None = None, controls_key: str = "",
+    controls: FloatArray | None = None, controls_key: str = "", presettle: FloatArray | None = None,
 ) -> tuple[StepwiseReport, ReplayRecord]:
     """The replay of ``keyframes`` checked frame by frame against the stored ``states`` (F, state size) of result
     array ``key``, stepping under the stored ``controls`` (steps, ncontrol) of array ``controls_key`` once they
     match the keyframes' (None: under the keyframes'); see the module docstring. Returns the report and the record
-    made at the stored states."""
+    made at the stored states. ``presettle`` (checked by ``checked_presettle``): frame 0 is compared with the
+    settling from it, as tightly as any other frame; without it, with the start settled afresh here."""
     model = prep.layout.model
     layout = StateLayout(model)
     report = StepwiseReport(key, frames=int(prep.num_frames))
@@ -221,7 +227,10 @@ def replay_stepwise(
         return report, _empty_record()
     _check_forces(report, layout, states, key)
     with ParallelEvaluator(model, 1) as ev:  # the re-settled frame 0 the replay started from
-        start, _ = settled_start(prep, ev)
+        if presettle is None:
+            start, _ = settled_start(prep, ev)
+        else:  # the settling is steps like any frame's: from the same state, the same bits
+            start, tol = settled_from(prep, ev, presettle), replace(tol, start=1.0)
         expected_inputs = replay_control(prep, ev, start, keyframes)
     inputs = None
     if controls is not None:
@@ -248,6 +257,31 @@ def replay_stepwise(
     reached[0] = expected0  # frame 0 follows from the settling: the re-settled start
     _compare(report, layout, states, reached, key, tol)
     return report, rec
+
+
+def checked_presettle(prep: Prepared, stored: FloatArray, tol: StateTolerances = STATE_TOLERANCES
+                      ) -> tuple[FloatArray | None, Deviation, list[str]]:
+    """The stored pre-settle state to settle from, if it is the start placed here (``presettle_state``: the hands
+    at their frame-0 targets, the object at its recorded pose) within ``tol.inputs`` in every part; its largest
+    deviation; the failures naming part and entry where it is not."""
+    layout = StateLayout(prep.layout.model)
+    key = PRESETTLE_STATE_KEY
+    stored = np.asarray(stored)
+    if stored.shape != (layout.size,) or stored.dtype != np.float64 or not np.all(np.isfinite(stored)):
+        return None, Deviation(), [f"{key}: shape {stored.shape} {stored.dtype} (finite: "
+                                   f"{bool(np.all(np.isfinite(stored)))}), the model's integration state is "
+                                   f"({layout.size},) float64"]
+    worst, failures = Deviation(), []
+    for name, signed in layout.differences(stored, presettle_state(prep)).items():
+        if not signed.size:
+            continue
+        i = int(np.argmax(np.abs(signed)))
+        here = Deviation(float(abs(signed[i])), 0, f"{name} {layout.entry(name, i)}")
+        worst = here if here.value > worst.value else worst
+        if here.value > tol.inputs:
+            failures.append(f"{key}.{name}: {here.value:.6g} from the start placed here ({layout.entry(name, i)}; "
+                            f"tolerance {tol.inputs:g}): frame 0 must settle from the recorded start")
+    return (None if failures else stored), worst, failures
 
 
 def _checked_controls(report: StepwiseReport, layout: StateLayout, stored: FloatArray, expected: FloatArray,
@@ -365,14 +399,25 @@ def stepwise_derivation(
     prep = derived.prep
     jobs = {"refined": keyframes, "raw": {side: sp.zero_keyframes() for side, sp in prep.spaces.items()}}
 
+    presettle: FloatArray | None = None
+    placed: Deviation | None = None
+    if PRESETTLE_STATE_KEY in arrays:
+        presettle, placed, problems = checked_presettle(prep, arrays[PRESETTLE_STATE_KEY])
+        report.failures.extend(problems)
+    else:
+        report.config_notes.append(f"no stored pre-settle state ({PRESETTLE_STATE_KEY}: a result made before it was "
+                                   "stored): frame 0 compared with a start settled afresh here")
+
     def run(name: str) -> tuple[StepwiseReport, ReplayRecord]:
         key = STATE_KEYS[name]
         if key not in arrays:
             return StepwiseReport(key, failures=[f"{key}: missing (the result stores the other replay's states)"]), \
                 _empty_record()
         controls_key = CONTROL_KEYS[name]
-        return replay_stepwise(prep, jobs[name], arrays[key], key, controls=arrays.get(controls_key),
-                               controls_key=controls_key)
+        rep, rec = replay_stepwise(prep, jobs[name], arrays[key], key, controls=arrays.get(controls_key),
+                                   controls_key=controls_key, presettle=presettle)
+        rep.presettle = placed
+        return rep, rec
 
     stored_without_inputs = [CONTROL_KEYS[n] for n in jobs if STATE_KEYS[n] in arrays and CONTROL_KEYS[n] not in arrays]
     if stored_without_inputs:
