@@ -78,6 +78,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--cache", type=Path, default=None, help="keep each verification's figures here and reuse them")
     p.add_argument("--rows-only", action="store_true", help="verify the results (into --cache), no report")
     p.add_argument("--skip-old-way", action="store_true", help="leave out the old-way verification of each file")
+    p.add_argument("--add-presettle", action="store_true",
+                   help="first add presettle_state_sim to the results in --results made before it was stored "
+                   "(computed on this build from each result's own preparation; a refinement made since gives the "
+                   "same file with that array)")
     return p.parse_args(argv)
 
 
@@ -342,6 +346,25 @@ def make_hinged_box(out: Path, budget: str) -> None:
     seq = hinged_box_sequence() if budget == "full" else short_hinged_box_sequence()
     outcome = refine_sequence(seq, JobOptions(**HINGED_BOX_OPTIONS[budget]), threads=1)
     out.write_bytes(outcome.to_npz_bytes(wall_clock=False))
+
+
+def add_presettle(path: Path) -> bool:
+    """Add the pre-settle state to a result made before results stored it (``--add-presettle``); False if it has
+    one."""
+    from common.result_format import PRESETTLE_STATE_KEY, read_arrays, read_summary, write_result_npz
+    from worker.refine.prepare import presettle_state
+    from worker.refine.result import prepare_from_result
+
+    blob = path.read_bytes()
+    arrays = read_arrays(blob)
+    if PRESETTLE_STATE_KEY in arrays:
+        return False
+    prep = prepare_from_result(blob)[0]
+    tmp = path.with_suffix(".presettle.tmp")
+    tmp.write_bytes(write_result_npz({**arrays, PRESETTLE_STATE_KEY: presettle_state(prep)}, read_summary(blob),
+                                     wall_clock=False))
+    tmp.rename(path)
+    return True
 
 
 def state_sizes(path: Path) -> dict[str, Any]:
@@ -609,6 +632,10 @@ def main(argv: list[str] | None = None) -> int:
         make_results(args.results, args.make, args.budget, args.names)
         if args.make_only:
             return 0
+    if args.add_presettle:
+        for path in sorted(args.results.glob("*.npz")):
+            if add_presettle(path):
+                print(f"added presettle_state_sim to {path.name}", flush=True)
     global HOST_CODE
     HOST_CODE = code_digest()
     kernels = list(KERNELS)
