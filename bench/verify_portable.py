@@ -531,18 +531,18 @@ def add_input_forgeries(add: Any, arrays: dict[str, np.ndarray], summary: dict[s
 def add_table_forgery(add: Any, arrays: dict[str, np.ndarray], summary: dict[str, Any], prep: Any,
                       keyframes: dict[str, np.ndarray]) -> None:
     """The result re-derived whole (every attempt, figure and the outcome) on a table candidate that scores more
-    than ``SCORE_MARGIN`` worse than the best: consistent in itself, on a table the fit would not choose."""
+    than ``score_margin`` worse than the best: consistent in itself, on a table the fit would not choose."""
     from common.job_options import JobOptions
     from worker.refine.derive import add_attempt_metrics, attempt_figures, derive_result
     from worker.refine.outcome import classify_outcome, was_rescued
     from worker.simulation.config import SimConfig
     from worker.simulation.metrics import scalar_metrics
-    from worker.simulation.table_fit import SCORE_MARGIN, TableChoice
+    from worker.simulation.table_fit import TableChoice, score_margin
     from worker.verification.check import _attempt_details, _attempt_keyframes
 
     fit = prep.scene.table_fit
     best = min(fit.scores)
-    far = [i for i, score in enumerate(fit.scores) if score > best + SCORE_MARGIN]
+    far = [i for i, score in enumerate(fit.scores) if score > best + score_margin(score)]
     if not far:
         return
     i = min(far, key=lambda k: fit.scores[k])
@@ -718,7 +718,7 @@ def summary_lines(rows: list[dict[str, Any]], kernels: list[str]) -> list[str]:
                    f"{STATE_TOLERANCES.of(f, 0):g} |")
     ties = [f"{r['name']} ({r['kernel']}): {n}" for r in rows for n in r.get("notes", []) if "near tie" in n]
     out += ["", "Table choices re-derived as a near tie (the stored candidate accepted within the margin, "
-            "`worker.simulation.table_fit.SCORE_MARGIN`): " + ("; ".join(ties) or "none") + "."]
+            "`worker.simulation.table_fit.score_margin`): " + ("; ".join(ties) or "none") + "."]
     drift = max((r["drift_m"] for r in good), default=0.0)
     olds = [r for r in rows if "old_way" in r]
     out += ["", f"Largest whole-rollout drift (the figure the old check compared within 5 mm + 10 %): "

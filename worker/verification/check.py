@@ -27,7 +27,7 @@ restart), contacts, every derived array and both protocols' metrics. Then:
 
 The table under the object: a result that records the fit's choice (``summary["table"]["candidate"]``, since
 issue #54) is re-derived on that very plane and start pose, and passes where the fit re-derives it as a candidate
-scoring within ``worker.simulation.table_fit.SCORE_MARGIN`` of the best here (near ties swap under other kernels);
+scoring within ``worker.simulation.table_fit.score_margin`` of the best here (near ties swap under other kernels);
 an older result must come out on the same plane as the fit's own choice here.
 
 Any difference fails naming the field and its largest difference. The report carries a SHA-256 over everything

@@ -12,7 +12,7 @@ from common.outcome import ReasonCode
 from worker.refine.derive import add_attempt_metrics, attempt_figures
 from worker.refine.outcome import classify_outcome, was_rescued
 from worker.simulation.metrics import scalar_metrics
-from worker.simulation.table_fit import SCORE_MARGIN, TableFit
+from worker.simulation.table_fit import TableFit, score_margin
 from worker.verification.report import CROSS_HOST, Tolerances, VerifyReport
 
 
@@ -85,7 +85,7 @@ def check_summary(
 
 def check_table(report: VerifyReport, summary: dict[str, Any], fit: TableFit | None) -> None:
     """A result that records its table choice (``TableChoice``) stands on it in the re-derivation; here: the fit
-    re-derives it as a candidate, scoring within ``table_fit.SCORE_MARGIN`` of the best here (two candidates near a
+    re-derives it as a candidate, scoring within ``table_fit.score_margin`` of the best here (two candidates near a
     tie swap under other CPU kernels), and the stored drift is within that margin of its score here. A result
     without the choice was checked the old way: the fit's own choice must be the stored plane (``check_summary``)."""
     table = summary.get("table")
@@ -97,14 +97,16 @@ def check_table(report: VerifyReport, summary: dict[str, Any], fit: TableFit | N
     problems = fit.choice_problems()
     report.failures.extend(problems)
     stored = table.get("drift")
-    if not isinstance(stored, int | float) or not abs(float(stored) - fit.drift) <= SCORE_MARGIN:
+    margin = score_margin(max(float(stored), fit.drift)) if isinstance(stored, int | float) else 0.0
+    if not isinstance(stored, int | float) or not abs(float(stored) - fit.drift) <= margin:
         report.failures.append(f"table.drift: stored {stored!r}, re-computed {fit.drift:.4g} (tolerance "
-                               f"{SCORE_MARGIN:g} degrees + mm)")
+                               f"{margin:.3g} degrees + mm)")
     best = int(np.argmin(fit.scores)) if fit.scores else fit.candidate
     if best != fit.candidate and not problems:
         report.config_notes.append(
             f"table: the stored candidate {fit.candidate} scores {fit.scores[fit.candidate]:.4g} here, candidate "
-            f"{best} {fit.scores[best]:.4g} (within the margin {SCORE_MARGIN:g}: a near tie the kernels decide)")
+            f"{best} {fit.scores[best]:.4g} (within the margin {score_margin(fit.scores[fit.candidate]):.3g}: a near "
+            "tie the kernels decide)")
 
 
 def check_outcome(report: VerifyReport, summary: dict[str, Any], derived: Any, tol: Tolerances | None,
