@@ -795,11 +795,11 @@ def size_table(files: list[Path]) -> list[str]:
         per = max(s["per_frame"] for s in sizes)
         worst = 2 * per * limits.max_frames
         out += ["", f"At the service's frame limit ({limits.max_frames} frames) the states and inputs of the largest "
-                f"scene here ({per // 8} values a frame) take {worst / 2**20:.1f} MiB uncompressed, each of the four "
-                f"members less than half that, below the 64 MiB an NPZ member may hold (`common.npz_safe.NpzLimits`) "
-                "and the "
-                f"{limits.max_request_bytes / 2**20:.0f} MiB request limit; the service stores results in the "
-                "database with no size limit of its own."]
+                f"scene here ({per // 8} values a frame) take {worst / 2**20:.1f} MiB uncompressed over four members, "
+                "each under a third of that. A result is not an upload: the request limit "
+                f"({limits.max_request_bytes / 2**20:.0f} MiB) and the NPZ limits of sequences "
+                "(`common.npz_safe.NpzLimits`) do not apply to it, and the service stores results in the database "
+                "with no size limit of its own."]
     return out
 
 
