@@ -103,6 +103,7 @@ def run_one(stem: str, mode: str) -> dict[str, Any]:
            "steps": s["timings"]["steps"],
            "attempts": len(s["attempts"]) or 1, "evaluations": s["timings"]["evaluations"],
            "success": paper["success"], "E_t": paper["E_t"], "E_r": paper["E_r"],
+           "first_attempt_success": bool(s["attempts"][0]["paper"]["success"]) if s["attempts"] else paper["success"],
            "load_1min": os.getloadavg()[0], "at": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")}
     CACHE.mkdir(parents=True, exist_ok=True)
     (CACHE / f"{stem}.{mode}.npz").write_bytes(out.to_npz_bytes())

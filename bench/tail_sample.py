@@ -1,0 +1,138 @@
+"""The bounded tail's saving over whole samples, before and after from one run (issue #53 item 3).
+
+    .venv/bin/python bench/tail_sample.py --run --shard 0/2 &   # two processes, one core each
+    .venv/bin/python bench/tail_sample.py --run --shard 1/2
+    .venv/bin/python bench/tail_sample.py --report              # writes bench/results/tail_sample.md
+
+Refines every sequence of ``--samples`` (default dev120 and holdout80) with the product's whole plan
+(``JobOptions.tail="full"``, one simulation thread) and, where that plan's first attempt failed, once more with the
+bounded tail (``tail="bounded"``), on the same machine in the same run; both are cached by ``bench/tail.py``'s
+``run_one`` in ``var/bench/tail/``, so an interrupted run resumes. The bounded plan differs from the whole one only
+after a failed first attempt whose reasons say no grasp can follow the recording (``worker.refine.outcome.
+tail_cut_reason``): where the first attempt succeeds the two plans are the same run, and where the bounded run was not
+cut it is the same plan again, so "after" takes the bounded run's figures only where it was cut. ``--report`` prints
+p90 and maximum wall time per sequence before and after, with SR, E_t and E_r on the paper's protocol.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from bench.tail import CACHE, run_one  # noqa: E402
+
+SAMPLES = ("dev120", "holdout80")
+
+
+def sample_stems(name: str) -> list[str]:
+    lines = (ROOT / "bench" / "samples" / f"{name}.txt").read_text().splitlines()
+    return [s.split("#")[0].strip().removesuffix(".npz") for s in lines if s.split("#")[0].strip()]
+
+
+def shard(stems: list[str], spec: str) -> list[str]:
+    """Every N-th stem from the K-th (``K/N``), so N processes split a sample evenly."""
+    k, n = (int(x) for x in spec.split("/"))
+    if not 0 <= k < n:
+        raise SystemExit(f"--shard {spec}: K must be 0..N-1")
+    return stems[k::n]
+
+
+def run(stems: list[str]) -> None:
+    for i, stem in enumerate(stems, 1):
+        full = run_one(stem, "full")
+        line = f"[{i}/{len(stems)}] {stem} full {full['wall_s']} s, {full['attempts']} attempts"
+        if not full["first_attempt_success"]:
+            bounded = run_one(stem, "bounded")
+            line += f"; bounded {bounded['wall_s']} s, cut: {'yes' if _was_cut(bounded) else 'no'}"
+        print(line, flush=True)
+
+
+def _was_cut(row: dict[str, Any]) -> bool:
+    return any(r["code"] == "plan_cut_short" for r in row["outcome"]["reasons"])
+
+
+def _row(stem: str, mode: str) -> dict[str, Any] | None:
+    hit = CACHE / f"{stem}.{mode}.json"
+    return json.loads(hit.read_text()) if hit.exists() else None
+
+
+def pairs(stems: list[str]) -> list[tuple[dict[str, Any], dict[str, Any]]]:
+    """(before, after) per sequence run: the whole plan, and the bounded run where it was cut, else the same run."""
+    out = []
+    for stem in stems:
+        full = _row(stem, "full")
+        if full is None:
+            continue
+        bounded = _row(stem, "bounded")
+        if not full["first_attempt_success"] and bounded is None:
+            continue  # its bounded run is still to come
+        out.append((full, bounded if bounded is not None and _was_cut(bounded) else full))
+    return out
+
+
+def _figures(rows: list[dict[str, Any]]) -> str:
+    wall = np.array([r["wall_s"] for r in rows])
+    return (f"{100 * np.mean([r['success'] for r in rows]):.1f} | {np.mean([r['E_t'] for r in rows]):.3f} | "
+            f"{np.mean([r['E_r'] for r in rows]):.3f} | {np.median(wall):.1f} | {np.percentile(wall, 90):.1f} | "
+            f"{wall.max():.1f} | {wall.sum():.0f}")
+
+
+def report(samples: list[str]) -> str:
+    lines = [
+        "# The bounded tail over whole samples (bench/tail_sample.py)",
+        "",
+        f"Generated {datetime.now(UTC):%Y-%m-%d %H:%M} UTC on {platform.machine()} ({os.cpu_count()} cores), one "
+        "simulation thread per sequence. Before: the product's whole plan; after: the bounded tail "
+        "(`JobOptions.tail=\"bounded\"`), the same run where the plans are the same. Paper's protocol.",
+        "",
+        "| sample | n | plan | cut | SR % | E_t cm | E_r deg | median wall s | p90 wall s | max wall s | sum s |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    every: list[tuple[dict[str, Any], dict[str, Any]]] = []
+    for name in [*samples, "all"]:
+        got = every if name == "all" else pairs(sample_stems(name))
+        if name != "all":
+            every += got
+        if not got:
+            continue
+        cut = sum(after is not before for before, after in got)
+        for plan, rows in (("whole (before)", [b for b, _ in got]), ("bounded (after)", [a for _, a in got])):
+            lines.append(f"| {name} | {len(got)} | {plan} | {cut if 'after' in plan else ''} | {_figures(rows)} |")
+    cut_rows = [(b, a) for b, a in every if a is not b]
+    if cut_rows:
+        lines += ["", "Cut sequences (wall s / attempts / E_t cm / E_r deg):", "",
+                  "| sequence | whole plan | bounded |", "|---|---|---|"]
+        lines += [f"| {b['sequence']} | {b['wall_s']} / {b['attempts']} / {b['E_t']:.2f} / {b['E_r']:.2f} | "
+                  f"{a['wall_s']} / {a['attempts']} / {a['E_t']:.2f} / {a['E_r']:.2f} |" for b, a in cut_rows]
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--samples", nargs="*", choices=SAMPLES, default=list(SAMPLES))
+    p.add_argument("--run", action="store_true", help="refine what is not cached yet")
+    p.add_argument("--shard", default="0/1", help="K/N: this process's share of the sequences (default all)")
+    p.add_argument("--report", action="store_true", help="write the before/after table")
+    p.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "tail_sample.md")
+    args = p.parse_args()
+    if args.run:
+        run(shard([s for name in args.samples for s in sample_stems(name)], args.shard))
+    if args.report:
+        text = report(args.samples)
+        args.out.write_text(text)
+        print(text)
+
+
+if __name__ == "__main__":
+    main()
