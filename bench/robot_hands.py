@@ -105,7 +105,7 @@ def report(rows: list[dict[str, Any]], hands: list[str], names: list[str], args:
     seqs = [n.removesuffix(".npz") for n in names]
     lines = ["# Robot hands on DexYCB dev120 (bench/robot_hands.py)", "",
              f"Generated {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} on {platform.processor() or 'x86_64'} "
-             f"({cpu_model()}), {os.cpu_count()} cores shared with the session's other work (1-minute load "
+             f"({cpu_model()}), {os.cpu_count()} cores (1-minute load "
              f"average at the end of each run: {_load_range(rows)}), {args.threads} simulation threads. Paper's "
              "protocol (frames 10+). Product options "
              "(restarts 3, polish on); the models are dex-urdf's (read from --robot-dir, not shipped).", ""]
