@@ -111,6 +111,11 @@ def run_one(stem: str, mode: str) -> dict[str, Any]:
     return row
 
 
+def was_cut(row: dict[str, Any]) -> bool:
+    """Whether a cached run's plan was cut short (its outcome lists ``plan_cut_short``)."""
+    return any(r["code"] == "plan_cut_short" for r in row["outcome"]["reasons"])
+
+
 def reclassify() -> None:
     """Classify every cached result again with the classifier as it is now (``verify``'s derivation, then
     ``worker.refine.outcome``), keeping its plan_cut_short; rewrites the cached outcomes."""
@@ -181,7 +186,7 @@ def report() -> str:
         reasons = [] if got is None else got["outcome"]["reasons"]
         failure = [r for r in reasons if r["code"] in FAILURE_CODES]
         primary = failure[0] if failure else None
-        cut = any(r["code"] == "plan_cut_short" for r in reasons)
+        cut = got is not None and was_cut(got)
         before = walls[sample].get(stem, {}).get("wall s", "")
         first_hit = CACHE / f"{stem}.first_attempt.json"
         first = json.loads(first_hit.read_text()) if first_hit.exists() and got and got["mode"] != "first_attempt" \
@@ -200,7 +205,7 @@ def report() -> str:
         )
     cut_rows = [(float(walls[HAND_FOUND[st][0]][st]["wall s"]), got.get("cpu_s", got["wall_s"])) for st in HAND_FOUND
                 if (got := _cached(st)) is not None and got["mode"] == "bounded"
-                and any(r["code"] == "plan_cut_short" for r in got["outcome"]["reasons"])]
+                and was_cut(got)]
     timing = []
     if cut_rows:
         full, cut_short = np.array([b for b, _ in cut_rows]), np.array([a for _, a in cut_rows])
@@ -229,7 +234,7 @@ def report() -> str:
     for sample, size in (("dev120", 120), ("holdout80", 80)):
         pairs = [(walls[sample][st], got) for st, (smp, _, _) in HAND_FOUND.items() if smp == sample
                  and (got := _cached(st)) is not None and got["mode"] == "bounded"
-                 and any(r["code"] == "plan_cut_short" for r in got["outcome"]["reasons"])]
+                 and was_cut(got)]
         if pairs:
             dt = sum(g["E_t"] - float(r["E_t 10+"]) for r, g in pairs)
             dr = sum(g["E_r"] - float(r["E_r 10+"]) for r, g in pairs)

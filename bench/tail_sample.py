@@ -30,14 +30,14 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.tail import CACHE, run_one  # noqa: E402
+from bench.samples.draw import read_sample  # noqa: E402
+from bench.tail import CACHE, run_one, was_cut  # noqa: E402
 
 SAMPLES = ("dev120", "holdout80")
 
 
 def sample_stems(name: str) -> list[str]:
-    lines = (ROOT / "bench" / "samples" / f"{name}.txt").read_text().splitlines()
-    return [s.split("#")[0].strip().removesuffix(".npz") for s in lines if s.split("#")[0].strip()]
+    return [file.removesuffix(".npz") for file, _ in read_sample(ROOT / "bench" / "samples" / f"{name}.txt")]
 
 
 def shard(stems: list[str], spec: str) -> list[str]:
@@ -54,12 +54,8 @@ def run(stems: list[str]) -> None:
         line = f"[{i}/{len(stems)}] {stem} full {full['wall_s']} s, {full['attempts']} attempts"
         if not full["first_attempt_success"]:
             bounded = run_one(stem, "bounded")
-            line += f"; bounded {bounded['wall_s']} s, cut: {'yes' if _was_cut(bounded) else 'no'}"
+            line += f"; bounded {bounded['wall_s']} s, cut: {'yes' if was_cut(bounded) else 'no'}"
         print(line, flush=True)
-
-
-def _was_cut(row: dict[str, Any]) -> bool:
-    return any(r["code"] == "plan_cut_short" for r in row["outcome"]["reasons"])
 
 
 def _row(stem: str, mode: str) -> dict[str, Any] | None:
@@ -77,7 +73,7 @@ def pairs(stems: list[str]) -> list[tuple[dict[str, Any], dict[str, Any]]]:
         bounded = _row(stem, "bounded")
         if not full["first_attempt_success"] and bounded is None:
             continue  # its bounded run is still to come
-        out.append((full, bounded if bounded is not None and _was_cut(bounded) else full))
+        out.append((full, bounded if bounded is not None and was_cut(bounded) else full))
     return out
 
 
