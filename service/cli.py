@@ -26,6 +26,12 @@ def register_serve(subparsers: Any) -> None:
     )
     serve.add_argument("--host", default="127.0.0.1", help="interface to bind (default 127.0.0.1)")
     serve.add_argument("--port", type=int, default=8000, help="port (default 8000)")
+    serve.add_argument(
+        "--fd",
+        type=int,
+        help="serve on the already-bound, listening socket inherited as this file descriptor instead of binding "
+        "--host/--port (which then only name it); `hoi-refine up` starts the API this way",
+    )
     serve.add_argument("--workers", type=int, default=1, help="uvicorn worker processes (default 1)")
     serve.add_argument("--log-level", default="info", choices=("critical", "error", "warning", "info", "debug"))
     serve.add_argument("--no-migrate", action="store_true", help="do not upgrade the database at start-up")
@@ -83,6 +89,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         factory=True,
         host=args.host,
         port=args.port,
+        fd=args.fd,
         workers=args.workers,
         log_level=args.log_level,
     )

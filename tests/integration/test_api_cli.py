@@ -18,6 +18,8 @@ from common.api_key_store import ApiKeyStore, hash_key
 from common.database import create_engine_for, is_at_head
 from common.settings import get_settings
 from service import cli
+from worker.runtime.deployment_state import bind_listener
+from worker.runtime.supervisor import hoi_refine_command
 
 
 def run_cli(*argv: str) -> int:
@@ -64,3 +66,27 @@ def test_serve_upgrades_an_empty_database_and_becomes_ready(tmp_path: Path) -> N
     finally:
         proc.terminate()
         proc.wait(timeout=15)
+
+
+@pytest.mark.slow
+def test_serve_on_an_inherited_socket_keeps_the_port_from_start_to_stop(tmp_path: Path) -> None:
+    """``serve --fd`` (how ``hoi-refine up`` starts the API) serves on the socket its parent bound, so no other
+    process can take the port while the API starts; the parent's socket stays bound after the API stops."""
+    listener = bind_listener("127.0.0.1", 0)
+    port = listener.getsockname()[1]
+    env = {**os.environ, "HOI_REFINE_VAR_DIR": str(tmp_path / "served")}
+    env.pop("HOI_REFINE_DATABASE_URL", None)
+    fd = listener.fileno()
+    with listener:
+        with pytest.raises(OSError):
+            bind_listener("127.0.0.1", port)  # taken from the start, before the API runs
+        cmd = [*hoi_refine_command(), "serve", "--port", "1", "--fd", str(fd)]  # --port only names it
+        proc = subprocess.Popen(cmd, env=env, pass_fds=(fd,))
+        try:
+            resp = wait_until_ready(f"http://127.0.0.1:{port}", 60, alive=lambda: proc.poll() is None)
+            assert resp is not None and resp.json() == {"status": "ready"}
+        finally:
+            proc.terminate()
+            proc.wait(timeout=15)
+        with pytest.raises(OSError):
+            bind_listener("127.0.0.1", port)

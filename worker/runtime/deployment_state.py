@@ -77,14 +77,20 @@ def die_with_parent() -> Callable[[], None] | None:
     return preexec
 
 
-def port_free(host: str, port: int) -> bool:
-    with socket.socket() as sock:
+def bind_listener(host: str, port: int) -> socket.socket:
+    """The API's listening socket, bound here so that no other process (Ray's, for one, which starts beside the
+    API and takes ephemeral ports) can take the port between the check and the API's start; the API child
+    inherits it (``hoi-refine serve --fd``). Raises ``OSError`` when the port is in use."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    try:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            sock.bind((host, port))
-        except OSError:
-            return False
-    return True
+        sock.bind((host, port))
+        sock.listen(2048)
+    except OSError:
+        sock.close()
+        raise
+    return sock
 
 
 class DeploymentState:

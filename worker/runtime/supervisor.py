@@ -15,6 +15,7 @@ from __future__ import annotations
 import logging
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -32,9 +33,9 @@ from common.settings import get_settings
 from worker.runtime.deployment_state import (
     DeploymentRecord,
     DeploymentState,
+    bind_listener,
     clear_stale,
     die_with_parent,
-    port_free,
     process_start_time,
 )
 from worker.runtime.pool import PoolConfig, WorkerPool
@@ -83,26 +84,31 @@ def hoi_refine_command() -> list[str]:
     return [str(script)] if script.exists() else [sys.executable, "-m", "common.cli"]
 
 
-def start_api(host: str, port: int) -> subprocess.Popen[bytes]:
-    """``hoi-refine serve`` in its own session (Ctrl-C in a terminal reaches only the supervisor), dying with
-    the supervisor (``PR_SET_PDEATHSIG``) however the supervisor dies."""
-    cmd = [*hoi_refine_command(), "serve", "--host", host, "--port", str(port), "--no-migrate"]
+def start_api(host: str, port: int, listener: socket.socket) -> subprocess.Popen[bytes]:
+    """``hoi-refine serve`` on the supervisor's listening socket, in its own session (Ctrl-C in a terminal
+    reaches only the supervisor), dying with the supervisor (``PR_SET_PDEATHSIG``) however the supervisor dies."""
+    fd = listener.fileno()
+    cmd = [*hoi_refine_command(), "serve", "--host", host, "--port", str(port), "--fd", str(fd), "--no-migrate"]
     log.info("starting API: %s", " ".join(cmd))
-    return subprocess.Popen(cmd, start_new_session=True, env=dict(os.environ), preexec_fn=die_with_parent())
+    return subprocess.Popen(
+        cmd, start_new_session=True, env=dict(os.environ), preexec_fn=die_with_parent(), pass_fds=(fd,)
+    )
 
 
 class ApiChild:
     """The API process of ``up``: restarted when it exits, at most ``max_restarts`` times within
     ``restart_window_s`` (then ``up`` gives up), after a backoff of 1, 2, 4 ... s (at most 30 s)."""
 
-    def __init__(self, config: UpConfig, state: DeploymentState, record: DeploymentRecord) -> None:
-        self.config, self.state, self.record = config, state, record
+    def __init__(
+        self, config: UpConfig, state: DeploymentState, record: DeploymentRecord, listener: socket.socket
+    ) -> None:
+        self.config, self.state, self.record, self.listener = config, state, record, listener
         self.restarts: list[float] = []
         self._restart_at: float | None = None
         self.proc = self._start()
 
     def _start(self) -> subprocess.Popen[bytes]:
-        proc = start_api(self.config.host, self.config.port)
+        proc = start_api(self.config.host, self.config.port, self.listener)
         self.record.api_pid, self.record.api_start_time = proc.pid, process_start_time(proc.pid)
         self.state.write(self.record)
         return proc
@@ -194,16 +200,24 @@ def run_up(config: UpConfig, stop: threading.Event | None = None) -> int:
     try:
         if stale is not None:
             clear_stale(stale)
-        if not port_free(config.host, config.port):
+        try:
+            listener = bind_listener(config.host, config.port)
+        except OSError as exc:
             raise ConfigurationError(f"port {config.port} on {config.host} is in use by another program; "
-                                     "choose another with --port")  # fmt: skip
-        return _run(config, stop, base_url, state, stale)
+                                     "choose another with --port") from exc  # fmt: skip
+        with listener:
+            return _run(config, stop, base_url, state, stale, listener)
     finally:
         state.release()
 
 
 def _run(
-    config: UpConfig, stop: threading.Event, base_url: str, state: DeploymentState, stale: DeploymentRecord | None
+    config: UpConfig,
+    stop: threading.Event,
+    base_url: str,
+    state: DeploymentState,
+    stale: DeploymentRecord | None,
+    listener: socket.socket,
 ) -> int:
     pool = WorkerPool(config.pool)
     with stop_on_signals(stop):
@@ -218,7 +232,7 @@ def _run(
             n = _with_queue(lambda q: q.requeue_worker_jobs(stale.worker_prefix, reason))
             log.warning("requeued %d job(s) left RUNNING by the dead `hoi-refine up`", n)
         record = DeploymentRecord(os.getpid(), os.uname().nodename, base_url)
-        api = ApiChild(config, state, record)
+        api = ApiChild(config, state, record, listener)
         try:
             pool.start()
             wait_for_api(base_url, api.proc, config.api_start_timeout_s, stop)
