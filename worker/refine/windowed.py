@@ -7,7 +7,10 @@ at keyframe j-2 (see ``spline`` for why this is exact with a Catmull-Rom spline)
 at keyframe j-1 is committed and the window slides by one keyframe. With two hands, each hand has its own CMA-
 ES on its own keyframe j; the candidates of both are paired in the same rollouts (candidate i of the right
 hand with candidate i of the left), and each hand's CMA-ES is told its own objective (object terms + its hand
-terms).
+terms). Each hand's best was scored beside random candidates of the other hand, never beside the other's best, so
+before a window commits, the pair of bests is simulated together and kept only if it beats the best pair seen in
+one rollout and the keyframes the window started from (``_confirmed``): a pair that was never simulated together
+can drop an object each hand alone held.
 
 A window is skipped (keyframe left at its current value) when the hand does not touch the object on the
 window's frames and the current loss is already below ``skip_loss``: nothing there to fix.
@@ -183,14 +186,15 @@ def optimise_windows(
             # The polish draws from random streams of its own (2), apart from the first pass's (0, 1), and a
             # band from the ones its round names.
             stream = (2 if polish else 0) if band is None else band.stream
+            confirm = len(problem.sides) > 1
             best = _optimise_one(problem, settings, j, state, kf, base, log, should_stop, report, stream, polish,
-                                 confirm=band is not None)
+                                 confirm)
             evaluations += log.evaluations - 1
             if log.best_loss > settings.escalate_loss:
                 log.escalated = True
                 before = log.evaluations
                 _optimise_one(problem, _escalated(settings), j, state, kf, best, log, should_stop, report, stream + 1,
-                              polish, confirm=band is not None)
+                              polish, confirm)
                 evaluations += log.evaluations - before
         logs.append(log)
         report(j, log.best_loss, finished=True)
@@ -214,7 +218,7 @@ def _optimise_one(
 ) -> dict[str, float]:
     """CMA-ES on keyframe j of every hand, started from ``kf`` (whose losses are ``base``); writes the best
     keyframe into ``kf`` (and, unless ``polish``, every later one) and adds to ``log``; returns each hand's best
-    loss. ``confirm`` (a polish pass, several hands): see ``_confirmed``."""
+    loss. ``confirm`` (several hands): see ``_confirmed``."""
     strategies: dict[str, Any] = {}
     for i, side in enumerate(problem.sides):
         opts = {
@@ -259,9 +263,8 @@ def _optimise_one(
         if _stalled(log.history, settings):
             log.stopped_early = True
             break
-    # Hands were scored on paired rollouts; take each hand's best and confirm the pair jointly via commit.
     if confirm and len(problem.sides) > 1:
-        chosen, losses_now, probes = _confirmed(problem, j, state, kf, best, pair, start, base)
+        chosen, losses_now, probes = _confirmed(problem, j, state, kf, best, pair, start, base, hold=not polish)
         best = {s: (losses_now[s], chosen[s]) for s in problem.sides}
         evals += probes
     for side in problem.sides:
@@ -274,16 +277,17 @@ def _optimise_one(
 def _confirmed(
     problem: WindowProblem, j: int, state: Any, kf: dict[str, FloatArray], best: dict[str, tuple[float, FloatArray]],
     pair: tuple[float, dict[str, FloatArray], dict[str, float]], start: dict[str, FloatArray],
-    base: dict[str, float],
+    base: dict[str, float], hold: bool = False,
 ) -> tuple[dict[str, FloatArray], dict[str, float], int]:
-    """Keyframe j of every hand for a polish pass's window, of three: each hand's best (scored beside random
-    candidates of the other hand, never together, so the pair may lose the object where each alone held it), the
-    best pair scored in one rollout, and the pass's own keyframe. Each hand's best is probed together; the lowest
-    total loss wins. Returns the keyframes, their per-hand losses and the probes made (one)."""
+    """Keyframe j of every hand for a window, of three: each hand's best (scored beside random candidates of the
+    other hand, never together, so the pair may lose the object where each alone held it), the best pair scored in
+    one rollout, and the keyframe the window started from. Each hand's best is probed together (``hold``: with the
+    later keyframes holding it, as the first pass evaluates); the lowest total loss wins. Returns the keyframes,
+    their per-hand losses and the probes made (one)."""
     combined = {s: b[1] for s, b in best.items()}
     trial = {s: kf[s].copy() for s in problem.sides}
     for s in problem.sides:
-        trial[s][j] = combined[s]
+        trial[s][j if not hold else slice(j, None)] = combined[s]
     together, _ = problem.probe(j, state, trial)
     options = [(float(sum(together.values())), combined, together), (float(sum(base.values())), start, base), pair]
     _, chosen, losses = min(options, key=lambda o: o[0])
