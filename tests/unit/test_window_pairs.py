@@ -35,8 +35,9 @@ class ClashProblem:
         losses = _losses(keyframes["right"][j], keyframes["left"][j])
         return {s: float(v) for s, v in losses.items()}, True
 
-    def evaluate(self, j: int, state: Any, keyframes: dict[str, np.ndarray], candidates: dict[str, np.ndarray],
-                 hold: bool = True) -> dict[str, np.ndarray]:
+    def evaluate(
+        self, j: int, state: Any, keyframes: dict[str, np.ndarray], candidates: dict[str, np.ndarray], hold: bool = True
+    ) -> dict[str, np.ndarray]:
         return _losses(candidates["right"], candidates["left"])
 
     def commit(self, j: int, state: Any, keyframes: dict[str, np.ndarray]) -> Any:
@@ -62,8 +63,14 @@ def test_one_hand_commits_its_best_unchanged() -> None:
         def probe(self, j: int, state: Any, keyframes: dict[str, np.ndarray]) -> tuple[dict[str, float], bool]:
             return {"right": float(10 * np.sum((keyframes["right"][j] - TARGET["right"]) ** 2))}, True
 
-        def evaluate(self, j: int, state: Any, keyframes: dict[str, np.ndarray], candidates: dict[str, np.ndarray],
-                     hold: bool = True) -> dict[str, np.ndarray]:
+        def evaluate(
+            self,
+            j: int,
+            state: Any,
+            keyframes: dict[str, np.ndarray],
+            candidates: dict[str, np.ndarray],
+            hold: bool = True,
+        ) -> dict[str, np.ndarray]:
             return {"right": 10 * np.sum((candidates["right"] - TARGET["right"]) ** 2, axis=1)}
 
     settings = CmaSettings(popsize=8, max_generations=4, skip_loss=0.0, seed=3)
