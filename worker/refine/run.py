@@ -44,11 +44,6 @@ SKIP_LOSS_PER_FRAME = 0.3
 #: Windows whose best loss per frame stays above this get a second, larger CMA-ES run (``windowed``). 2.5 per
 #: frame is an object off by ~1.5 cm and ~7 degrees with the default weights: a grasp starting to slip.
 ESCALATE_LOSS_PER_FRAME = 2.5
-#: With two hands a window also escalates only when its best loss is this many times the median of the recent
-#: windows' (``CmaSettings.escalate_relative``): on ARCTIC the hands' terms keep even a held object's windows at 5-18
-#: per frame, so the level above escalated 129 of 140 windows of ketchup_use_01 (tripling their cost), while the
-#: windows where the bottle was lost stood 11-40 times above the median of the eight before them.
-ESCALATE_RELATIVE_TWO_HANDS = 3.0
 #: A window's CMA-ES stops early once its best loss per frame is below this and improved by < 1 % over the last
 #: ``STALL_GENERATIONS`` generations (``windowed._stalled``): a converged window needs no polish, while one still
 #: far off keeps its full budget, since the greedy window cannot undo what it commits (issue #19: stopping every
@@ -108,7 +103,6 @@ def cma_settings(options: JobOptions, interval: int, hands: int = 1) -> CmaSetti
         seed=options.seed,
         skip_loss=SKIP_LOSS_PER_FRAME * 3 * interval * per,  # a window spans 3 keyframe intervals
         escalate_loss=ESCALATE_LOSS_PER_FRAME * 3 * interval * per,
-        escalate_relative=ESCALATE_RELATIVE_TWO_HANDS if hands > 1 else 0.0,
         stall_generations=STALL_GENERATIONS,
         stall_below=STALL_LOSS_PER_FRAME * 3 * interval * per,
     )

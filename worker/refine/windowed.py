@@ -21,8 +21,7 @@ later keyframes as that pass left them instead of by the held candidate. The fir
 any later keyframe existed; the polish lets it see them (one more greedy sweep; the caller keeps whichever
 whole-sequence replay is better).
 
-A window whose best loss is still above ``escalate_loss`` (and, with ``escalate_relative``, that many times the
-recent windows' median) after the CMA-ES run gets a second, larger one
+A window whose best loss is still above ``escalate_loss`` after the CMA-ES run gets a second, larger one
 (``escalate_factor`` x the population, a wider initial step, its own random stream) started from the best
 found: the greedy sliding window cannot undo a committed keyframe, so a grasp lost here is lost for good, and
 the budget is better spent on the few windows where the object is slipping than on every window alike.
@@ -80,10 +79,6 @@ class CmaSettings:
     #: A second, larger CMA-ES run for windows whose best loss stays above this (inf: never).
     escalate_loss: float = float("inf")
     escalate_factor: int = 2
-    #: Escalate only where the best loss is also above this many times the median best loss of the last
-    #: ``ESCALATE_HISTORY`` optimised windows (0: the absolute level alone): where a sequence's loss is high
-    #: throughout, the budget goes to the windows that stand out, not to every one.
-    escalate_relative: float = 0.0
     #: Stop a window's CMA-ES early when its best loss improved by less than ``stall_tolerance`` (relative) over
     #: the last ``stall_generations`` generations (0: always run ``max_generations``), but only once that loss is
     #: below ``stall_below`` (None: ``skip_loss``, the level at which an untouched window needs no work): a window
@@ -91,10 +86,6 @@ class CmaSettings:
     stall_generations: int = 0
     stall_tolerance: float = 0.01
     stall_below: float | None = float("inf")
-
-
-#: How many recent optimised windows ``CmaSettings.escalate_relative`` compares with (fewer: the absolute level alone).
-ESCALATE_HISTORY = 8
 
 
 @dataclass(frozen=True)
@@ -169,7 +160,6 @@ def optimise_windows(
     n_todo = n_win - first
     t_start = time.perf_counter()
     evaluations = 0
-    recent: list[float] = []  # best losses of the optimised windows so far (``_escalates``)
 
     def report(j: int, best: float, finished: bool = False) -> None:
         if progress is None:
@@ -200,13 +190,12 @@ def optimise_windows(
             best = _optimise_one(problem, settings, j, state, kf, base, log, should_stop, report, stream, polish,
                                  confirm)
             evaluations += log.evaluations - 1
-            if _escalates(log.best_loss, recent, settings):
+            if log.best_loss > settings.escalate_loss:
                 log.escalated = True
                 before = log.evaluations
                 _optimise_one(problem, _escalated(settings), j, state, kf, best, log, should_stop, report, stream + 1,
                               polish, confirm)
                 evaluations += log.evaluations - before
-            recent.append(log.best_loss)
         logs.append(log)
         report(j, log.best_loss, finished=True)
         state = problem.commit(j, state, kf)
@@ -314,15 +303,6 @@ def _stalled(history: list[float], settings: CmaSettings) -> bool:
         return False
     before, now = history[-k - 1], history[-1]
     return before - now <= settings.stall_tolerance * abs(before)
-
-
-def _escalates(best_loss: float, recent: list[float], settings: CmaSettings) -> bool:
-    """Whether a window whose CMA-ES ended at ``best_loss`` gets the second, larger run."""
-    if best_loss <= settings.escalate_loss:
-        return False
-    if settings.escalate_relative <= 0 or len(recent) < ESCALATE_HISTORY:
-        return True
-    return best_loss > settings.escalate_relative * float(np.median(recent[-ESCALATE_HISTORY:]))
 
 
 def _escalated(settings: CmaSettings) -> CmaSettings:
