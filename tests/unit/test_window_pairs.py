@@ -6,6 +6,7 @@ from typing import Any
 
 import numpy as np
 
+from tests.unit.test_window_escalation import BowlProblem
 from worker.refine.windowed import CmaSettings, optimise_windows
 
 TARGET = {"right": np.array([2.0, -1.5, 1.0]), "left": np.array([-1.0, 2.0, 1.5])}
@@ -20,16 +21,9 @@ def _losses(right: np.ndarray, left: np.ndarray) -> dict[str, np.ndarray]:
     return {s: 10 * d + clash for s, d in near.items()}
 
 
-class ClashProblem:
+class ClashProblem(BowlProblem):
     sides = ("right", "left")
     n_keyframes = 6
-    first_window = 1
-
-    def dim(self, side: str) -> int:
-        return 3
-
-    def start_state(self) -> Any:
-        return None
 
     def probe(self, j: int, state: Any, keyframes: dict[str, np.ndarray]) -> tuple[dict[str, float], bool]:
         losses = _losses(keyframes["right"][j], keyframes["left"][j])
@@ -39,9 +33,6 @@ class ClashProblem:
         self, j: int, state: Any, keyframes: dict[str, np.ndarray], candidates: dict[str, np.ndarray], hold: bool = True
     ) -> dict[str, np.ndarray]:
         return _losses(candidates["right"], candidates["left"])
-
-    def commit(self, j: int, state: Any, keyframes: dict[str, np.ndarray]) -> Any:
-        return None
 
 
 def test_every_window_logs_the_loss_its_committed_pair_has_together_and_never_worsens_it() -> None:
