@@ -157,6 +157,7 @@ def optimise_windows(
     state = problem.start_state() if band is None else band.state
     first, n_win = (problem.first_window, problem.n_keyframes) if band is None else (band.start, band.stop)
     polish = polish or band is not None
+    confirm = len(problem.sides) > 1  # a pair of per-hand bests is simulated together before it is committed
     n_todo = n_win - first
     t_start = time.perf_counter()
     evaluations = 0
@@ -186,7 +187,6 @@ def optimise_windows(
             # The polish draws from random streams of its own (2), apart from the first pass's (0, 1), and a
             # band from the ones its round names.
             stream = (2 if polish else 0) if band is None else band.stream
-            confirm = len(problem.sides) > 1
             best = _optimise_one(problem, settings, j, state, kf, base, log, should_stop, report, stream, polish,
                                  confirm)
             evaluations += log.evaluations - 1
@@ -263,7 +263,7 @@ def _optimise_one(
         if _stalled(log.history, settings):
             log.stopped_early = True
             break
-    if confirm and len(problem.sides) > 1:
+    if confirm:
         chosen, losses_now, probes = _confirmed(problem, j, state, kf, best, pair, start, base, hold=not polish)
         best = {s: (losses_now[s], chosen[s]) for s in problem.sides}
         evals += probes
