@@ -13,10 +13,8 @@ import io
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -25,18 +23,12 @@ from typing import Any
 import psutil
 import pyarrow.parquet as pq
 import pytest
-import sqlalchemy as sa
-import uvicorn
 
-from common.api_key_store import ApiKeyStore
-from common.database import create_engine_for
 from common.job_options import JobOptions
-from common.queue import JobQueue
 from common.sequence_io import save_sequence, sequence_from_npz_bytes
 from common.settings import Settings
-from service.app import create_app
+from tests.support.live_server import LiveDeployment
 from tests.support.queue_fixtures import tiny_sequence
-from worker.runtime.loop import WorkerLoop
 from worker.simulation.replay import raw_replay, replay_result_bytes, replay_summary
 
 SEQUENCES = 3
@@ -57,56 +49,17 @@ def replay_job(payload: bytes, options: JobOptions, progress: Any, should_stop: 
     return replay_result_bytes(result), summary
 
 
-class Server:
-    """The API under uvicorn in a thread over a migrated SQLite file; workers only once ``start_workers``."""
-
-    def __init__(self, db_url: str) -> None:
-        self.settings = Settings(database_url=db_url, poll_retry_after_seconds=1, lease_seconds=30.0)
-        self.engine = create_engine_for(db_url)
-        self.queue = JobQueue(self.engine, self.settings)
-        _, self.key = ApiKeyStore(self.engine).create("idle")
-        sock = socket.socket()
-        sock.bind(("127.0.0.1", 0))
-        self.url = f"http://127.0.0.1:{sock.getsockname()[1]}"
-        self.server = uvicorn.Server(uvicorn.Config(create_app(self.settings, self.engine), log_level="warning",
-                                                    access_log=False))  # fmt: skip
-        self.threads = [threading.Thread(target=self.server.run, kwargs={"sockets": [sock]}, daemon=True)]
-        self.threads[0].start()
-        deadline = time.monotonic() + 20
-        while not self.server.started:
-            assert time.monotonic() < deadline, "uvicorn did not start"
-            time.sleep(0.02)
-        self.workers: list[WorkerLoop] = []
-
-    def start_workers(self) -> None:
-        self.workers = [WorkerLoop(self.queue, replay_job, "w1", lease_seconds=30.0, idle_poll_seconds=0.05)]
-        self.threads += [threading.Thread(target=w.run, daemon=True) for w in self.workers]
-        for t in self.threads[1:]:
-            t.start()
-
-    def stop(self) -> None:
-        for w in self.workers:
-            w.stop()
-        self.server.should_exit = True
-        for t in self.threads:
-            t.join(timeout=30)
-        self.engine.dispose()
-
-    def jobs(self) -> list[Any]:
-        with self.engine.connect() as conn:
-            return list(conn.execute(sa.text("SELECT id, name, state, batch_id FROM jobs")).all())
-
-
 @pytest.fixture
-def server(db_url: str) -> Iterator[Server]:
-    srv = Server(db_url)
+def server(db_url: str) -> Iterator[LiveDeployment]:
+    """The API over a migrated SQLite file; its worker starts only once the test says so."""
+    srv = LiveDeployment(Settings(database_url=db_url, poll_retry_after_seconds=1, lease_seconds=30.0), replay_job)
     try:
         yield srv
     finally:
         srv.stop()
 
 
-def submit_command(srv: Server, data: Path, out: Path) -> list[str]:
+def submit_command(srv: LiveDeployment, data: Path, out: Path) -> list[str]:
     return [sys.executable, "-m", "common.cli", "submit", str(data), "--api", srv.url, "--key", srv.key, "--out",
             str(out), "--wait", "--poll-interval", "0.5", "--progress-every", "0.5", "--seed", "2"]  # fmt: skip
 
@@ -130,7 +83,7 @@ def all_submitted(out: Path) -> bool:
 @pytest.mark.parametrize("sigint_ignored", [False, True], ids=["sigint", "sigint-ignored-at-start"])
 @pytest.mark.parametrize("empty_db_url", ["sqlite"], indirect=True)
 def test_a_waiting_submit_idles_prints_progress_stops_on_sigint_and_resumes(
-    server: Server, tmp_path: Path, sigint_ignored: bool
+    server: LiveDeployment, tmp_path: Path, sigint_ignored: bool
 ) -> None:
     data, out = tmp_path / "data", tmp_path / "out"
     data.mkdir()

@@ -1,7 +1,7 @@
 """``hoi-refine submit`` against a real server: interrupted half-way, re-run, everything exactly once.
 
 The FastAPI app runs under uvicorn in a thread on 127.0.0.1 over a migrated SQLite file; two in-test
-workers (``worker.runtime.loop.WorkerLoop`` over ``common.queue.JobQueue``) complete the jobs with a real
+workers (``tests.support.live_server.LiveDeployment``) complete the jobs with a real
 raw replay in MuJoCo (``worker.simulation.replay``). The per-key active-job limit is set to 2, so the tool also meets
 real 429 answers with ``Retry-After`` and has to wait them out.
 """
@@ -11,34 +11,25 @@ from __future__ import annotations
 import argparse
 import io
 import json
-import socket
-import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-import sqlalchemy as sa
-import uvicorn
 from rich.console import Console
 
 from common.api_client import ApiClient
-from common.api_key_store import ApiKeyStore
-from common.database import create_engine_for
 from common.errors import InputError
 from common.job_options import JobOptions
-from common.queue import JobQueue
 from common.result_format import read_arrays, read_summary
 from common.sequence_io import save_sequence, sequence_from_npz_bytes
 from common.settings import Settings
-from service.app import create_app
 from service.submit import cli as submit_cli
 from service.submit.manifest import Manifest
 from service.submit.runner import SubmitConfig, SubmitOutcome, run_submit
+from tests.support.live_server import LiveDeployment
 from tests.support.queue_fixtures import tiny_sequence
-from worker.runtime.loop import WorkerLoop
 from worker.simulation.replay import raw_replay, replay_result_bytes, replay_summary
 
 SEQUENCES = 6
@@ -57,59 +48,19 @@ def replay_job(payload: bytes, options: JobOptions, progress: Any, should_stop: 
     return replay_result_bytes(result), replay_summary(result)
 
 
-class Deployment:
-    """API server + two workers over one SQLite database, and the owner's API key."""
+class Deployment(LiveDeployment):
+    """API server + two workers over one database, and the count of 429 answers the tool met."""
 
     def __init__(self, db_url: str) -> None:
-        self.settings = Settings(
-            database_url=db_url,
-            max_active_jobs_per_key=2,
-            active_jobs_retry_after_seconds=1,
-            poll_retry_after_seconds=1,
-            lease_seconds=30.0,
-        )
-        self.api_engine = create_engine_for(db_url)
-        self.worker_engine = create_engine_for(db_url)
-        self.queue = JobQueue(self.worker_engine, self.settings)
-        self.key_id, self.key = ApiKeyStore(self.worker_engine).create("bulk")
-        self.throttled = 0  # 429 answers the tool met
-        sock = socket.socket()
-        sock.bind(("127.0.0.1", 0))
-        self.url = f"http://127.0.0.1:{sock.getsockname()[1]}"
-        app = create_app(self.settings, self.api_engine)
-        self.server = uvicorn.Server(uvicorn.Config(app, log_level="warning", access_log=False))
-        self.threads = [threading.Thread(target=self.server.run, kwargs={"sockets": [sock]}, daemon=True)]
-        self.workers = [
-            WorkerLoop(self.queue, replay_job, f"w{i}", lease_seconds=30.0, idle_poll_seconds=0.05) for i in range(2)
-        ]
-        self.threads += [threading.Thread(target=w.run, daemon=True) for w in self.workers]
-
-    def start(self) -> None:
-        for t in self.threads:
-            t.start()
-        deadline = time.monotonic() + 20
-        while not self.server.started:
-            assert time.monotonic() < deadline, "uvicorn did not start"
-            time.sleep(0.02)
-
-    def stop(self) -> None:
-        for w in self.workers:
-            w.stop()
-        self.server.should_exit = True
-        for t in self.threads:
-            t.join(timeout=30)
-        self.api_engine.dispose()
-        self.worker_engine.dispose()
-
-    def jobs(self) -> list[Any]:
-        with self.worker_engine.connect() as conn:
-            return list(conn.execute(sa.text("SELECT id, name, state, idempotency_key, batch_id FROM jobs")).all())
+        super().__init__(Settings(database_url=db_url, max_active_jobs_per_key=2, active_jobs_retry_after_seconds=1,
+                                  poll_retry_after_seconds=1, lease_seconds=30.0), replay_job)  # fmt: skip
+        self.throttled = 0
 
 
 @pytest.fixture
 def deployment(db_url: str) -> Iterator[Deployment]:
     dep = Deployment(db_url)
-    dep.start()
+    dep.start_workers(2)
     try:
         yield dep
     finally:

@@ -1,6 +1,6 @@
 """Loopback HTTP servers for tests that need real sockets: the app under uvicorn in a thread (server-sent
-events must stream, which the in-process TestClient does not do), a webhook receiver, and receivers that
-answer too much or too slowly."""
+events must stream, which the in-process TestClient does not do), a whole deployment of it with in-test workers, a
+webhook receiver, and receivers that answer too much or too slowly."""
 
 from __future__ import annotations
 
@@ -10,23 +10,32 @@ import subprocess
 import threading
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import Any
 
+import sqlalchemy as sa
 import uvicorn
+
+from common.api_key_store import ApiKeyStore
+from common.database import create_engine_for
+from common.queue import JobQueue
+from common.settings import Settings
+from service.app import create_app
+from worker.runtime.loop import JobFunction, WorkerLoop
 
 
 @contextmanager
 def serve_app(app: Any) -> Iterator[str]:
-    """Run ``app`` with uvicorn on 127.0.0.1 (a free port) in a thread; yields its base URL."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", lifespan="on"))
-    thread = threading.Thread(target=server.run, daemon=True)
+    """Run ``app`` with uvicorn on 127.0.0.1 in a thread; yields its base URL. The socket is bound here and handed
+    to uvicorn, so no other process can take the port between choosing it and serving on it."""
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    port = sock.getsockname()[1]
+    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", access_log=False, lifespan="on"))
+    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
     thread.start()
     deadline = time.monotonic() + 30
     while not server.started:
@@ -38,6 +47,48 @@ def serve_app(app: Any) -> Iterator[str]:
     finally:
         server.should_exit = True
         thread.join(timeout=30)
+        sock.close()
+
+
+class LiveDeployment:
+    """The API (``serve_app``) over ``settings.database_url`` and, once ``start_workers``, in-test workers:
+    ``WorkerLoop`` threads that run ``job`` on the queue. ``key`` is an API key of the deployment's owner."""
+
+    def __init__(self, settings: Settings, job: JobFunction) -> None:
+        if settings.database_url is None:
+            raise ValueError("a live deployment needs a database_url")
+        self.settings, self.job = settings, job
+        self.api_engine = create_engine_for(settings.database_url)
+        self.worker_engine = create_engine_for(settings.database_url)
+        self.queue = JobQueue(self.worker_engine, settings)
+        self.key_id, self.key = ApiKeyStore(self.worker_engine).create("owner")
+        self._stack = ExitStack()
+        self.url = self._stack.enter_context(serve_app(create_app(settings, self.api_engine)))
+        self.workers: list[WorkerLoop] = []
+        self._threads: list[threading.Thread] = []
+
+    def start_workers(self, count: int = 1) -> None:
+        lease = self.settings.lease_seconds
+        new = [WorkerLoop(self.queue, self.job, f"w{len(self.workers) + i + 1}", lease_seconds=lease,
+                          idle_poll_seconds=0.05) for i in range(count)]  # fmt: skip
+        self.workers += new
+        for w in new:
+            self._threads.append(threading.Thread(target=w.run, daemon=True))
+            self._threads[-1].start()
+
+    def stop(self) -> None:
+        for w in self.workers:
+            w.stop()
+        for t in self._threads:
+            t.join(timeout=30)
+        self._stack.close()
+        self.api_engine.dispose()
+        self.worker_engine.dispose()
+
+    def jobs(self) -> list[Any]:
+        """Every job's id, name, state, idempotency key and batch, straight from the database."""
+        with self.worker_engine.connect() as conn:
+            return list(conn.execute(sa.text("SELECT id, name, state, idempotency_key, batch_id FROM jobs")).all())
 
 
 @dataclass
