@@ -24,7 +24,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -36,6 +36,7 @@ from common.errors import ApiError, HoiRefineError
 from common.job_options import JobOptions
 from common.job_state import FINISHED, JobState
 from common.result_format import content_digest, read_summary
+from common.stop_signals import stop_on_signals
 from service.submit.batch import ensure_batch, print_batch, save_reports
 from service.submit.discovery import Source, SourceFormat, discover, load_source
 from service.submit.manifest import (
@@ -440,31 +441,16 @@ def _nothing() -> Iterator[None]:
     yield
 
 
-@contextmanager
-def _stop_on_signals(stop: threading.Event, console: Console) -> Iterator[None]:
-    """SIGINT / SIGTERM set ``stop`` (the run winds down and says how to resume); a second one aborts.
+def _stop_on_signals(stop: threading.Event, console: Console) -> AbstractContextManager[None]:
+    """SIGINT / SIGTERM set ``stop`` (the run winds down and says how to resume); a second one aborts. No
+    KeyboardInterrupt lands in the middle of a manifest update (``common.stop_signals``)."""
 
-    The run installs its own handler, so it also stops where it was started with SIGINT ignored (a background
-    job of a non-interactive shell), and no KeyboardInterrupt can land in the middle of a manifest update.
-    Only the main thread can install handlers; elsewhere (a test's thread) the run relies on ``stop``.
-    """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def handler(signum: int, _frame: Any) -> None:
-        if stop.is_set():
+    def say(sig: signal.Signals, again: bool) -> None:
+        if again:
             raise KeyboardInterrupt
-        stop.set()
-        console.print(f"\n{signal.Signals(signum).name}: stopping (requests in flight finish; again to abort)",
-                      highlight=False)  # fmt: skip
+        console.print(f"\n{sig.name}: stopping (requests in flight finish; again to abort)", highlight=False)
 
-    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield
-    finally:
-        for sig, old in previous.items():
-            signal.signal(sig, old)
+    return stop_on_signals(stop, say)
 
 
 def _settle(fut: Future[Any], kind: str, entry: Entry, manifest: Manifest, console: Console) -> str:

@@ -20,16 +20,16 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import FrameType
 from typing import Any, TypeVar
 
 from common.api_client import wait_until_ready
 from common.errors import ApiError, AuthenticationError, ConfigurationError
 from common.settings import get_settings
+from common.stop_signals import stop_on_signals as common_stop_on_signals
 from worker.runtime.deployment_state import (
     DeploymentRecord,
     DeploymentState,
@@ -59,23 +59,17 @@ class UpConfig:
     restart_window_s: float = 600.0
 
 
-@contextmanager
-def stop_on_signals(stop: threading.Event) -> Iterator[None]:
-    """SIGINT/SIGTERM set ``stop`` instead of raising, so shutdown runs in order; restored on exit."""
+def stop_on_signals(stop: threading.Event) -> AbstractContextManager[None]:
+    """SIGINT/SIGTERM set ``stop`` instead of raising, so shutdown runs in order (a second one only says it is still
+    stopping); restored on exit."""
 
-    def handler(signum: int, _frame: FrameType | None) -> None:
-        if stop.is_set():
-            log.warning("second %s: still stopping, please wait", signal.Signals(signum).name)
+    def say(sig: signal.Signals, again: bool) -> None:
+        if again:
+            log.warning("second %s: still stopping, please wait", sig.name)
         else:
-            log.info("%s received: stopping", signal.Signals(signum).name)
-        stop.set()
+            log.info("%s received: stopping", sig.name)
 
-    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield
-    finally:
-        for sig, old in previous.items():
-            signal.signal(sig, old)
+    return common_stop_on_signals(stop, say)
 
 
 def hoi_refine_command() -> list[str]:
