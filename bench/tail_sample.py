@@ -77,12 +77,12 @@ def archived() -> dict[tuple[str, str], dict[str, Any]]:
     return {(r["sequence"], r["mode"]): r for r in rows}
 
 
-def archive(stems: list[str]) -> int:
-    """Append the cached rows of ``stems`` not archived yet, tagged with this machine's CPU and the code digest, and
-    return how many. The cache is this machine's (``var/``), and the code must not have changed since the run began:
-    a row's ``code`` is the digest of ``common/`` and ``worker/`` as they are now."""
+def archive(stems: list[str], code: str | None = None) -> int:
+    """Append the cached rows of ``stems`` not archived yet, tagged with this machine's CPU and ``code`` (the digest
+    of ``common/`` and ``worker/`` the rows ran with; None: as they are now), and return how many. The cache is this
+    machine's (``var/``)."""
     done = archived()
-    tag = {"cpu": f"{cpu_model()} ({numpy_simd()})", "code": code_digest()}
+    tag = {"cpu": f"{cpu_model()} ({numpy_simd()})", "code": code or code_digest()}
     new = []
     for stem in stems:
         for mode in ("full", "bounded"):
@@ -177,6 +177,8 @@ def main() -> None:
     p.add_argument("--shard", default="0/1", help="K/N: this process's share of the sequences (default all)")
     p.add_argument("--archive", action="store_true",
                    help=f"append the cached rows to {ARCHIVE.relative_to(ROOT)}, so another day's run continues them")
+    p.add_argument("--code", help="with --archive: the code digest the cached rows ran with, where common/ or worker/ "
+                   "changed since the run began (bench/refine.py's code_digest then; default: as they are now)")
     p.add_argument("--report", action="store_true", help="write the before/after table")
     p.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "tail_sample.md")
     args = p.parse_args()
@@ -184,7 +186,7 @@ def main() -> None:
     if args.run:
         run(shard(stems, args.shard))
     if args.archive:
-        print(f"archived {archive(stems)} rows in {ARCHIVE.relative_to(ROOT)}")
+        print(f"archived {archive(stems, args.code)} rows in {ARCHIVE.relative_to(ROOT)}")
     if args.report:
         text = report(args.samples)
         args.out.write_text(text)
