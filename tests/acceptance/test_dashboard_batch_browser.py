@@ -15,7 +15,7 @@ from __future__ import annotations
 import csv
 import io
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import pytest
 
@@ -25,6 +25,9 @@ from common.sequence_io import sequence_to_npz_bytes
 from tests.support.browser import CHROMIUM_ARGS, Deployment, use_key
 from tests.support.queue_fixtures import fake_result, tiny_sequence
 from tests.support.visual import DOCS, update_docs
+
+if TYPE_CHECKING:
+    from playwright.sync_api import FloatRect
 
 pytestmark = pytest.mark.slow
 
@@ -99,7 +102,7 @@ def test_the_batch_page_and_the_job_lists_outcome_column(chromium: str, deployme
             expect(row("mug-broken").locator(".outcome")).to_have_count(0)  # FAILED: no outcome
             expect(row("box-waiting").locator("td.state")).to_have_text("QUEUED")
             if update_docs():
-                top = {"x": 0, "y": 0, "width": 1200, "height": 400}
+                top: FloatRect = {"x": 0, "y": 0, "width": 1200, "height": 400}
                 page.screenshot(path=str(DOCS / "dashboard_jobs.png"), clip=top)
             page.select_option("#outcome-filter", "not_executable")  # asks the API for that outcome only
             expect(page.locator("#jobs tbody tr")).to_have_count(1, timeout=10_000)

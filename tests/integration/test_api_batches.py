@@ -177,9 +177,9 @@ def worker_summary(executable: bool, reasons: list[dict[str, object]]) -> dict[s
 def test_the_report_puts_the_outcome_first_with_both_protocols_penetration_and_verification(api: ApiHarness) -> None:
     batch_id = api.client.post("/v1/batches", json={"name": "r"}, headers=api.headers).json()["id"]
     ids = [submit(api, i, batch_id) for i in range(3)]
-    rescued = {"code": "rescued_on_finer_parts", "frame": None, "value": None, "unit": None, "message": "kept on "
-               "the finer convex parts"}  # fmt: skip
-    jump = {"code": "recording_too_fast", "frame": 41, "value": 38.5, "unit": "deg/frame",
+    rescued: dict[str, object] = {"code": "rescued_on_finer_parts", "frame": None, "value": None, "unit": None,
+                                  "message": "kept on the finer convex parts"}  # fmt: skip
+    jump: dict[str, object] = {"code": "recording_too_fast", "frame": 41, "value": 38.5, "unit": "deg/frame",
             "message": "the recorded object turns 38.5 deg between frames 40 and 41"}  # fmt: skip
     finish(api, ids[0], worker_summary(False, [rescued, jump]))
     finish(api, ids[1], worker_summary(True, [rescued]))

@@ -34,7 +34,7 @@ def test_json_submission_polling_headers_and_etag(api: ApiHarness) -> None:
     assert job["state"] == "QUEUED" and job["attempt"] == 1 and job["priority"] == 3 and job["num_frames"] == 5
     assert job["options"]["keyframe_interval"] == 5
     stored = api.client.get(f"/v1/jobs/{job['id']}/input", headers=api.headers).json()
-    assert np.allclose(stored["object_pose"], json_body()["object_pose"]) and stored["name"] == "tiny-box"
+    assert np.allclose(stored["object_pose"], np.asarray(json_body()["object_pose"])) and stored["name"] == "tiny-box"
     got = api.client.get(f"/v1/jobs/{job['id']}", headers=api.headers)
     assert got.status_code == 200 and got.headers["Retry-After"] == "3"
     etag = got.headers["ETag"]
@@ -56,11 +56,11 @@ def test_json_submission_polling_headers_and_etag(api: ApiHarness) -> None:
 
 def test_multipart_submission_and_idempotency_key(api: ApiHarness) -> None:
     headers = {**api.headers, "Idempotency-Key": "batch-7"}
-    first = api.client.post("/v1/jobs", headers=headers, **multipart(7))  # type: ignore[arg-type]
-    again = api.client.post("/v1/jobs", headers=headers, **multipart(7))  # type: ignore[arg-type]
+    first = api.client.post("/v1/jobs", headers=headers, **multipart(7))
+    again = api.client.post("/v1/jobs", headers=headers, **multipart(7))
     assert first.status_code == again.status_code == 202
     assert first.json()["id"] == again.json()["id"] and first.json()["options"]["seed"] == 7
-    other = api.client.post("/v1/jobs", headers=headers, **multipart(7, max_generations=3))  # type: ignore[arg-type]
+    other = api.client.post("/v1/jobs", headers=headers, **multipart(7, max_generations=3))
     assert other.status_code == 422 and other.headers["content-type"] == PROBLEM
     assert "Idempotency-Key" in other.json()["title"]
     # The same payload as JSON is the same sequence and options: the same job.
@@ -121,7 +121,7 @@ def test_media_type_json_as_a_file_and_strict_numbers(api: ApiHarness) -> None:
     assert resp.status_code == 422 and {"hands[0].valid[0]", "options.seed"} <= fields(resp), resp.text
     form = multipart(4)
     form["data"] = {"options": '{"seed": "4"}'}
-    multi = api.client.post("/v1/jobs", headers=api.headers, **form)  # type: ignore[arg-type]
+    multi = api.client.post("/v1/jobs", headers=api.headers, **form)
     assert multi.status_code == 422 and fields(multi) == {"options.seed"}
     body = json_body()
     body["fps"] = 30  # an integer where a float is asked for is a number all the same
@@ -255,7 +255,7 @@ def test_dexycb_upload_is_accepted_when_ycb_dir_is_set(
 
     blob = dexycb_dev_files[0].read_bytes()
     files = {"sequence": (dexycb_dev_files[0].name, blob, "application/octet-stream")}
-    api.client.app.state.settings = api.client.app.state.settings.model_copy(  # type: ignore[attr-defined]
+    api.client.app.state.settings = api.client.app.state.settings.model_copy(
         update={"max_frames": 3000, "max_request_bytes": 64_000_000}
     )
     monkeypatch.delenv("HOI_REFINE_YCB_DIR", raising=False)

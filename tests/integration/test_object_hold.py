@@ -101,6 +101,7 @@ def _box_on_its_edge(approach_at: int, moves_at: int) -> Sequence:
     top = quat_rotate(np.broadcast_to(seq.object_pose[0, 3:], (8, 4)), corners)[:, 2].argmax()
     above = quat_rotate(seq.object_pose[0, 3:], corners[top]) + seq.object_pose[0, :3] + [0.0, 0.0, 0.015]
     kp = seq.hands[0].keypoints
+    assert kp is not None
     lowest = kp[np.arange(FRAMES), kp[:, :, 2].argmin(axis=1)]  # (T, 3)
     share = np.clip(np.arange(FRAMES) / approach_at, 0.0, 1.0)[:, None]
     kp += (share * (above - lowest))[:, None, :]

@@ -83,7 +83,7 @@ def test_outcome_is_stored_with_the_result_and_filters_jobs_and_batches(queue: J
         queue.list(owner, outcome="fine")
 
 
-def _tiny(seed: int) -> tuple[Any, ...]:
+def _tiny(seed: int) -> tuple[bytes, JobOptions, None, str, int]:
     return tiny_payload(seed), JobOptions(seed=seed), None, f"tiny-{seed}", 5
 
 
@@ -106,7 +106,7 @@ def test_the_migration_marks_jobs_that_succeeded_before_it_unknown(empty_db_url:
                 )
         upgrade_to_head(empty_db_url)
         with engine.connect() as conn:
-            rows = dict(conn.execute(sa.text("SELECT id, outcome FROM jobs")).all())
+            rows: dict[str, str | None] = dict(conn.execute(sa.text("SELECT id, outcome FROM jobs")).all())
         assert rows == {"done": "unknown", "waiting": None, "broken": None}
         queue = JobQueue(engine)
         assert queue.get("k", "done").outcome == "unknown" and queue.get("k", "done").outcome_detail is None

@@ -173,8 +173,8 @@ def test_the_wrist_lead_makes_the_welded_palm_follow_a_fast_wrist_track(
     angle = np.radians(turn_deg_s) * t
     quat = np.column_stack([np.cos(angle / 2), np.zeros(frames), np.zeros(frames), np.sin(angle / 2)])
     q = np.tile(np.linspace(0, 0.3, 45), (frames, 1))
-    kp = forward_keypoints(default_geometry("right"), pos, quat, q)  # type: ignore[arg-type]
-    seq.hands = [HandTrack(side="right", valid=np.ones(frames, dtype=bool), keypoints=kp)]  # type: ignore[arg-type]
+    kp = forward_keypoints(default_geometry("right"), pos, quat, q)
+    seq.hands = [HandTrack(side="right", valid=np.ones(frames, dtype=bool), keypoints=kp)]
     refs, _, rec = _replay(seq.validate(), SimConfig(wrist_lead_s=lead_s))
     # Keypoint error once the palm has reached its steady lag (frames 5..14; the last frame holds still).
     err = np.linalg.norm(rec.keypoints["right"][5:15] - refs[0].keypoints[5:15], axis=2).mean(axis=1)
@@ -193,8 +193,8 @@ def test_the_finger_lead_makes_the_servoed_fingers_follow_a_closing_hand(lead_s:
     t = np.arange(frames) / 30.0
     pos = np.column_stack([np.zeros(frames), np.zeros(frames), np.full(frames, 0.4)])
     quat = np.tile([1.0, 0.0, 0.0, 0.0], (frames, 1))
-    kp = forward_keypoints(default_geometry("right"), pos, quat, np.outer(0.9 * t, np.ones(45)))  # type: ignore[arg-type]
-    seq.hands = [HandTrack(side="right", valid=np.ones(frames, dtype=bool), keypoints=kp)]  # type: ignore[arg-type]
+    kp = forward_keypoints(default_geometry("right"), pos, quat, np.outer(0.9 * t, np.ones(45)))
+    seq.hands = [HandTrack(side="right", valid=np.ones(frames, dtype=bool), keypoints=kp)]
     refs, _, rec = _replay(seq.validate(), SimConfig(finger_lead_s=lead_s))
     err = np.linalg.norm(rec.keypoints["right"][6:18] - refs[0].keypoints[6:18], axis=2).mean()
     if lead_s == 0.0:

@@ -25,7 +25,7 @@ def refined() -> RefineOutcome:
 def test_the_raw_replay_opens_the_lid_only_through_contact() -> None:
     seq = short_hinged_box_sequence(errors=False)
     result = raw_replay(seq)
-    assert result.record.articulation is not None
+    assert result.record.articulation is not None and seq.articulation is not None
     opened = result.record.articulation[-1, 0]
     assert opened > 0.5, opened  # the right hand swung it open: nothing else drives the joint
     # Without the hands the lid stays shut: the joint's friction holds it against gravity.

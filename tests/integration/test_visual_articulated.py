@@ -50,11 +50,13 @@ def test_a_raw_replay_starts_at_the_recorded_joint_values() -> None:
     from worker.simulation.replay import raw_replay, replay_result_bytes
 
     seq = short_hinged_box_sequence()
+    assert seq.articulation is not None
     seq.articulation = seq.articulation + 0.4
     seq = seq.validate()
     blob = replay_result_bytes(raw_replay(seq))
     pb = resimulate(blob, seq)
     qpos0 = pb.trajectories["raw"].qpos[0, pb.scene.object_joint_qpos_adr]
+    assert seq.articulation is not None
     np.testing.assert_allclose(pb.scene.object_init_articulation, seq.articulation[0])
     assert abs(float(qpos0[0]) - 0.4) < 0.02  # the settled start: the hands hold the lid where it was recorded
     np.testing.assert_array_equal(pb.trajectories["raw"].articulation, read_arrays(blob)["object_articulation_sim"])

@@ -27,7 +27,7 @@ pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
-def setup():  # type: ignore[no-untyped-def]
+def setup():
     prep = prepare(short_example_sequence(), JobOptions())
     cpu = ParallelEvaluator(prep.scene.model, 1)
     start, _ = settled_start(prep, cpu)
@@ -37,14 +37,14 @@ def setup():  # type: ignore[no-untyped-def]
     cpu.close()
 
 
-def _population(problem, keyframes, j: int, n: int):  # type: ignore[no-untyped-def]
+def _population(problem, keyframes, j: int, n: int):
     rng = np.random.default_rng(j)
     cands = {s: 0.5 * rng.standard_normal((n, problem.dim(s))) for s in problem.sides}
     f0, f1 = problem.window(j)
     return problem.build_control(keyframes, f0, f1, j, cands)[0]
 
 
-def test_rollout_keeps_the_cpu_layout_and_convention(setup) -> None:  # type: ignore[no-untyped-def]
+def test_rollout_keeps_the_cpu_layout_and_convention(setup) -> None:
     prep, cpu, start, problem, keyframes = setup
     control = _population(problem, keyframes, 1, 3)
     states, sensors = cpu.rollout(start, control)
@@ -65,7 +65,7 @@ def test_rollout_keeps_the_cpu_layout_and_convention(setup) -> None:  # type: ig
     assert np.abs(g_states[0, -1] - g_states[1, -1]).max() > 1e-4
 
 
-def test_contact_overflow_grows_the_buffers_and_repeats_the_rollout(setup) -> None:  # type: ignore[no-untyped-def]
+def test_contact_overflow_grows_the_buffers_and_repeats_the_rollout(setup) -> None:
     prep, cpu, start, problem, keyframes = setup
     # The full zero-offset pass: the hand closes on the box and lifts it (many contacts).
     f_last = problem.num_frames - 1

@@ -6,7 +6,10 @@ from __future__ import annotations
 import numpy as np
 
 from common.articulation import ObjectJoint
-from common.sequence import HandTrack, ManoParams, ObjectPart, ObjectSpec, Sequence
+from common.sequence import HandTrack, ManoParams, ObjectPart, ObjectSpec, Sequence, Side
+
+#: Each hand and the side of the box it starts on (x sign).
+SIDE_SIGNS: tuple[tuple[Side, float], ...] = (("right", 1.0), ("left", -1.0))
 
 
 def lid_joint(**overrides: object) -> ObjectJoint:
@@ -32,7 +35,7 @@ def tiny_articulated_sequence(seed: int = 0, frames: int = 5, name: str = "tiny-
     hands = [
         HandTrack(side=side, valid=np.ones(frames, dtype=bool),
                   keypoints=rng.normal(scale=0.03, size=(frames, 21, 3)) + np.array([0.08 * sign, 0.0, 0.08]))
-        for side, sign in (("right", 1.0), ("left", -1.0))
+        for side, sign in SIDE_SIGNS
     ]  # fmt: skip
     return Sequence(name=name, fps=30.0, object=obj, object_pose=pose, hands=hands, up=np.array([0.0, 0.0, 1.0]),
                     articulation=np.linspace(0.0, 0.5, frames)[:, None])  # fmt: skip
@@ -74,7 +77,7 @@ def drawer_cabinet_sequence(frames: int = 6, parts: int = 3, mano: bool = False)
     pose = np.tile([0.0, 0.0, 0.1, 1.0, 0.0, 0.0, 0.0], (frames, 1))
     hands = []
     for side in ("right", "left"):
-        hand = HandTrack(side=side, valid=np.ones(frames, dtype=bool),  # type: ignore[arg-type]
+        hand = HandTrack(side=side, valid=np.ones(frames, dtype=bool),
                          keypoints=rng.normal(0.0, 0.05, (frames, 21, 3)))
         if mano:
             hand.mano = ManoParams(global_orient=rng.normal(0, 0.5, (frames, 3)),

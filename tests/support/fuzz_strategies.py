@@ -4,7 +4,7 @@ test (``tests/integration/test_api_fuzz.py``): valid sequences in every variant,
 from __future__ import annotations
 
 import io
-from typing import Any
+from typing import Any, Literal, cast
 
 import numpy as np
 from hypothesis import strategies as st
@@ -57,7 +57,7 @@ def random_arrays(draw: st.DrawFn) -> np.ndarray:
     dtype = np.dtype(draw(DTYPES))
     shape = draw(hnp.array_shapes(min_dims=0, max_dims=3, min_side=0, max_side=25))
     if dtype.kind == "f":
-        width = dtype.itemsize * 8
+        width = cast(Literal[16, 32, 64], dtype.itemsize * 8)
         huge = float(np.finfo(dtype).max)  # beyond every plausible coordinate, representable in the dtype
         elements = st.floats(width=width) | st.sampled_from([huge, -huge, 0.0])
         return draw(hnp.arrays(dtype, shape, elements=elements))

@@ -74,7 +74,7 @@ KNOWN_ROTATION_OFFSET = np.array([0.6, -0.4, 0.8])
 #: (``SimConfig.hold_until_m``): the truth's hand touches the box one frame after the recorded hand comes within
 #: 2 cm of it, so a start turned a few degrees touches it while the hold still welds it, and with the hold this
 #: test's seed ends with the wrist further from the truth than it started (x1.15; x0.51 without; issue #15).
-KNOWN_ANSWER_SIM = {"hold_until_m": 0.0}
+KNOWN_ANSWER_SIM: dict[str, Any] = {"hold_until_m": 0.0}
 
 
 def _rotate_about(points: np.ndarray, pivot: np.ndarray, quat: np.ndarray) -> np.ndarray:

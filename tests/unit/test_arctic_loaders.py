@@ -55,6 +55,8 @@ def test_release_tree_loads_with_units_fields_and_joint(tmp_path: Path, split_me
     np.testing.assert_array_equal(joint.limits, [0.0, 0.6])  # the recording's range, 0 included
     # Parts in metres, each holding its own box.
     bottom, top = obj.part_shapes()
+    assert bottom.mesh_vertices is not None and top.mesh_vertices is not None
+    assert bottom.mesh_faces is not None and top.mesh_faces is not None
     np.testing.assert_allclose(_sorted_rows(bottom.mesh_vertices), _sorted_rows(_corners(BOTTOM_MM) / 1000.0))
     np.testing.assert_allclose(_sorted_rows(top.mesh_vertices), _sorted_rows(_corners(TOP_MM) / 1000.0))
     assert bottom.mesh_faces.shape == top.mesh_faces.shape == (12, 3)
@@ -77,6 +79,7 @@ def test_release_part_poses_match_arctics_own_formula(tmp_path: Path) -> None:
     """A top vertex in the world: ARCTIC turns it about -z by the angle, then applies the global pose (mm)."""
     seq = load_sequence(write_release_tree(tmp_path))
     top = seq.object.part_shapes()[1]
+    assert top.mesh_vertices is not None
     poses = seq.object.part_poses(seq.object_pose, seq.articulation)
     for f in range(3):
         v_mm = top.mesh_vertices * 1000.0
@@ -122,7 +125,7 @@ def test_release_errors_name_the_file(tmp_path: Path) -> None:
     c = tmp_path / "c" / "raw_seqs" / "s01" / "box_grab_01.mano.npy"
     data = np.load(c, allow_pickle=True).item()
     data["left"]["pose"] = data["left"]["pose"][:, :40]
-    np.save(c, data, allow_pickle=True)  # type: ignore[arg-type]
+    np.save(c, data, allow_pickle=True)
     with pytest.raises(UnsupportedFormatError, match=r"left\.pose must be \(3, 45\)"):
         load_arctic_release(c)
     # parts.json that does not label every vertex.
@@ -157,6 +160,7 @@ def test_dexmachina_tree_loads(tmp_path: Path) -> None:
     obj = seq.object
     assert obj.name == "box" and obj.part_names == ["bottom", "top"]
     assert obj.mass_kg == 0.9 and obj.parts[0].shape.mass_kg == 0.15
+    assert obj.parts[0].shape.mesh_vertices is not None
     np.testing.assert_allclose(_sorted_rows(obj.parts[0].shape.mesh_vertices), _sorted_rows(_corners(TOP_MM) / 1e3))
     joint = obj.joints[0]
     np.testing.assert_array_equal(joint.axis, [0.0, 0.0, -1.0])

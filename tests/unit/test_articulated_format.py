@@ -180,6 +180,7 @@ def test_every_joint_problem_is_reported_at_once() -> None:
     seq = drawer_cabinet_sequence(parts=3)
     seq.object.joints[0].axis = np.zeros(3)
     seq.object.joints[2].parent = "nowhere"
+    assert seq.articulation is not None
     seq.articulation = seq.articulation.copy()
     seq.articulation[2, 1] = 0.9  # the drawer beyond its 0.25 m
     seq.articulation[4, 0] = 2.5  # the door beyond its 1.8 rad, though its axis is bad too

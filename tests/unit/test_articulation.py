@@ -55,6 +55,7 @@ def bad(field_edit: str) -> str:
     if field_edit == "axis":
         joint.axis = np.zeros(3)
     elif field_edit == "value":
+        assert seq.articulation is not None
         seq.articulation = seq.articulation.copy()
         seq.articulation[3, 0] = 2.5
     elif field_edit == "parent":

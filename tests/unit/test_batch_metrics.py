@@ -3,6 +3,8 @@ status and short form that the queue stores beside a job."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import pytest
 
 from common.batch_metrics import (
@@ -17,7 +19,7 @@ from common.batch_metrics import (
 
 
 def test_aggregate_reads_protocols_by_key_and_older_unit_suffixed_names() -> None:
-    summaries = [
+    summaries: list[dict[str, Any] | None] = [
         {"metrics": {"raw": {"E_t": 2.0, "success": False}, "refined": {"E_t": 0.5, "success": True},
                      "paper": {"raw": {"E_t": 1.5}, "refined": {"E_t": 0.4}}}},
         {"metrics": {"raw": {"E_t_cm": 4.0, "E_r_deg": 20.0}, "refined": {"E_t_cm": 1.5, "success": False}}},

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import asdict
+from typing import Any
 
 import pytest
 
@@ -82,7 +83,7 @@ def test_coacd_overrides_reach_the_decomposition_and_its_cache_key(monkeypatch: 
 def test_the_report_names_the_objects_held_until_the_recording_moved_them() -> None:
     from bench.refine import held_until_moved_line
 
-    rows = [{"sequence": "20200709-subject-01__20200709_152240", "object": "037_scissors",
+    rows: list[dict[str, Any]] = [{"sequence": "20200709-subject-01__20200709_152240", "object": "037_scissors",
              "object_hold": {"release_frame": 34, "until_recording_moves": True}},
             {"sequence": "s__b", "object": "002_master_chef_can",
              "object_hold": {"release_frame": 20, "until_recording_moves": False}},

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from common.geometry import quat_to_matrix
-from common.sequence import HandTrack, ObjectSpec, Sequence
+from common.sequence import HandTrack, ObjectSpec, Sequence, Side
 from common.sequence_mirror import mirror_object, mirror_sequence, reflection
 from worker.example import short_example_sequence
 from worker.hand.model import HINGE_NAMES, JOINT_LIMITS, MIRROR_SIGNS, default_geometry
@@ -41,6 +41,13 @@ def _mesh_sequence() -> Sequence:
                     world_from_source=world).validate()
 
 
+def _signed_volume(obj: ObjectSpec) -> float:
+    """The mesh's signed volume: positive where its faces wind outward."""
+    assert obj.mesh_vertices is not None and obj.mesh_faces is not None
+    v = obj.mesh_vertices[obj.mesh_faces]
+    return float(np.einsum("fi,fi->f", v[:, 0], np.cross(v[:, 1], v[:, 2])).sum() / 6)
+
+
 def _world_surface(seq: Sequence, frame: int) -> np.ndarray:
     pose = seq.object_pose_world()[frame]
     return np.asarray(seq.object.surface_vertices() @ quat_to_matrix(pose[3:]).T + pose[:3])
@@ -54,11 +61,7 @@ def test_mirror_reflects_hand_and_object_surface_and_swaps_the_side() -> None:
     for frame in (0, seq.num_frames - 1):
         np.testing.assert_allclose(_world_surface(mir, frame), _world_surface(seq, frame) @ M.T, atol=1e-12)
     # Faces are re-wound: the signed volume (outward normals) keeps its sign under the reflection.
-    def volume(obj: ObjectSpec) -> float:
-        v = obj.mesh_vertices[obj.mesh_faces]
-        return float(np.einsum("fi,fi->f", v[:, 0], np.cross(v[:, 1], v[:, 2])).sum() / 6)
-
-    assert np.sign(volume(mir.object)) == np.sign(volume(seq.object)) != 0
+    assert np.sign(_signed_volume(mir.object)) == np.sign(_signed_volume(seq.object)) != 0
     back = mirror_sequence(mir)
     assert back.hands[0].side == "right"
     np.testing.assert_allclose(back.object_pose_world(), seq.object_pose_world(), atol=1e-12)
@@ -74,9 +77,11 @@ def test_mirror_keeps_a_primitive_and_rejects_a_tilted_plane() -> None:
 
 
 def test_left_palm_box_mirrors_the_right_one() -> None:
-    def palm(side: str) -> tuple[list[float], list[float]]:
+    def palm(side: Side) -> tuple[list[float], list[float]]:
         xml = hand_worldbody_xml(default_geometry(side), SimConfig(), np.zeros(3), np.array([1.0, 0, 0, 0]))
-        size, pos = re.search(rf'<geom name="{side}_palm"[^>]*size="([^"]*)" pos="([^"]*)"', xml).groups()
+        found = re.search(rf'<geom name="{side}_palm"[^>]*size="([^"]*)" pos="([^"]*)"', xml)
+        assert found is not None
+        size, pos = found.groups()
         return [float(v) for v in size.split()], [float(v) for v in pos.split()]
 
     (size_r, pos_r), (size_l, pos_l) = palm("right"), palm("left")
@@ -127,6 +132,7 @@ def _same_points(a: np.ndarray, b: np.ndarray) -> None:
 
 def _part_surfaces(seq: Sequence, frame: int) -> list[np.ndarray]:
     """Every part's surface in the world at ``frame`` (forward kinematics from the world base pose)."""
+    assert seq.articulation is not None
     poses = seq.object.part_poses(seq.object_pose_world()[frame], seq.articulation[frame])
     return [shape.surface_vertices() @ quat_to_matrix(poses[k, 3:]).T + poses[k, :3]
             for k, shape in enumerate(seq.object.part_shapes())]  # fmt: skip
@@ -161,6 +167,4 @@ def test_an_articulated_object_mirrors_part_by_part(normal: tuple[float, float, 
             _same_points(twice, original)
     # Re-winding keeps every mesh part's outward normals.
     knob, knob_m = seq.object.parts[2].shape, mir.object.parts[2].shape
-    signed = [float(np.einsum("fi,fi->f", *(lambda v: (v[:, 0], np.cross(v[:, 1], v[:, 2])))(
-        o.mesh_vertices[o.mesh_faces])).sum()) for o in (knob, knob_m)]  # fmt: skip
-    assert np.sign(signed[0]) == np.sign(signed[1]) != 0
+    assert np.sign(_signed_volume(knob)) == np.sign(_signed_volume(knob_m)) != 0

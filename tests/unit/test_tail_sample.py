@@ -78,8 +78,12 @@ def test_archived_rows_pair_and_are_not_run_again_once_the_cache_is_gone(
     for file in cache.iterdir():
         file.unlink()  # another machine: var/ is gone
     ran: list[tuple[str, str]] = []
-    monkeypatch.setattr(tail_sample, "run_one", lambda stem, mode: ran.append((stem, mode)) or {
-        "wall_s": 1.0, "attempts": 1, "first_attempt_success": False, "outcome": {"reasons": []}})
+
+    def run_one(stem: str, mode: str) -> dict[str, Any]:
+        ran.append((stem, mode))
+        return {"wall_s": 1.0, "attempts": 1, "first_attempt_success": False, "outcome": {"reasons": []}}
+
+    monkeypatch.setattr(tail_sample, "run_one", run_one)
 
     tail_sample.run(["ok", "cut", "pending"])
     got = {b["sequence"]: (b["wall_s"], a["wall_s"], b["cpu"]) for b, a in tail_sample.pairs(["ok", "cut"])}

@@ -12,7 +12,7 @@ from worker.refine.windowed import CmaSettings, _stalled, optimise_windows
 class Bowl:
     """A window problem without physics: keyframe j's loss is its squared distance to ``target``."""
 
-    sides = ("right",)
+    sides: tuple[str, ...] = ("right",)
     n_keyframes = 3
     first_window = 1
 

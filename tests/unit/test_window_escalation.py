@@ -14,7 +14,7 @@ TARGET = np.array([2.0, -1.5, 1.0])
 class BowlProblem:
     """A window problem without physics: keyframe j's loss is its squared distance to TARGET (scaled)."""
 
-    sides = ("right",)
+    sides: tuple[str, ...] = ("right",)
     n_keyframes = 4
     first_window = 1
 

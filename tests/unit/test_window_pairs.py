@@ -22,7 +22,7 @@ def _losses(right: np.ndarray, left: np.ndarray) -> dict[str, np.ndarray]:
 
 
 class ClashProblem(BowlProblem):
-    sides = ("right", "left")
+    sides: tuple[str, ...] = ("right", "left")
     n_keyframes = 6
 
     def probe(self, j: int, state: Any, keyframes: dict[str, np.ndarray]) -> tuple[dict[str, float], bool]:
@@ -49,7 +49,7 @@ def test_every_window_logs_the_loss_its_committed_pair_has_together_and_never_wo
 
 def test_one_hand_commits_its_best_unchanged() -> None:
     class OneHand(ClashProblem):
-        sides = ("right",)
+        sides: tuple[str, ...] = ("right",)
 
         def probe(self, j: int, state: Any, keyframes: dict[str, np.ndarray]) -> tuple[dict[str, float], bool]:
             return {"right": float(10 * np.sum((keyframes["right"][j] - TARGET["right"]) ** 2))}, True

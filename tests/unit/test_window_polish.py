@@ -20,7 +20,7 @@ class CoupledProblem:
     is: (x_j - T_j)^2 + (x_{j+1} - T_{j+1})^2, x_{j+1} being the candidate when held and the given keyframe when not.
     It records what each evaluation was given."""
 
-    sides = ("right",)
+    sides: tuple[str, ...] = ("right",)
     n_keyframes = 5
     first_window = 1
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, fields
+from typing import Self
 
 import mujoco
 import mujoco.rollout
@@ -131,7 +132,7 @@ class ParallelEvaluator:
             self._pool.close()
             self._pool = None
 
-    def __enter__(self) -> ParallelEvaluator:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc: object) -> None:
