@@ -24,6 +24,19 @@ from service.problems import problem_response
 log = logging.getLogger("hoi_refine.service")
 
 
+class _TrackedSend:
+    """``send`` that remembers whether the response has started: after that no error answer can replace it."""
+
+    def __init__(self, send: Send) -> None:
+        self.started = False
+        self._send = send
+
+    async def __call__(self, message: Message) -> None:
+        if message["type"] == "http.response.start":
+            self.started = True
+        await self._send(message)
+
+
 class BodySizeLimit:
     """413 for a body over ``max_bytes``: at once from Content-Length, else while it streams in."""
 
@@ -41,7 +54,6 @@ class BodySizeLimit:
                 await problem_response(413, "Payload too large", detail)(scope, receive, send)
                 return
         received = 0
-        started = False
 
         async def counting_receive() -> Message:
             nonlocal received
@@ -53,16 +65,11 @@ class BodySizeLimit:
                     raise PayloadTooLargeError(f"request body is over the limit of {self.max_bytes} bytes")
             return message
 
-        async def tracking_send(message: Message) -> None:
-            nonlocal started
-            if message["type"] == "http.response.start":
-                started = True
-            await send(message)
-
+        tracked = _TrackedSend(send)
         try:
-            await self.app(scope, counting_receive, tracking_send)
+            await self.app(scope, counting_receive, tracked)
         except PayloadTooLargeError as exc:  # read outside a route (no handler there): answer here
-            if started:
+            if tracked.started:
                 raise
             await problem_response(413, PayloadTooLargeError.title, str(exc))(scope, receive, send)
 
@@ -77,21 +84,14 @@ class CatchAll:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        started = False
-
-        async def tracking_send(message: Message) -> None:
-            nonlocal started
-            if message["type"] == "http.response.start":
-                started = True
-            await send(message)
-
+        tracked = _TrackedSend(send)
         try:
-            await self.app(scope, receive, tracking_send)
+            await self.app(scope, receive, tracked)
         except Exception as exc:
             correlation_id = uuid.uuid4().hex
             log.error("unhandled error [correlation id %s] %s %s", correlation_id, scope.get("method"),
                       scope.get("path"), exc_info=exc)  # fmt: skip
-            if started:  # the answer is on its way: nothing better to do than end this connection
+            if tracked.started:  # the answer is on its way: nothing better to do than end this connection
                 raise
             await internal_error(correlation_id)(scope, receive, send)
 
