@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import statistics
 import sys
@@ -33,7 +34,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.provenance import provenance_line  # noqa: E402
+from bench.provenance import KERNELS, numpy_simd, provenance_line  # noqa: E402
 from bench.refine import code_digest  # noqa: E402
 
 #: The issue's goals (paper's protocol): most sequences succeed, E_t <= 1 cm, E_r <= 5 deg, E_a <= 5 deg,
@@ -44,7 +45,8 @@ GOALS = {"E_t": 1.0, "E_r": 5.0, "E_a": 5.0, "pen_max": 2.0, "wall_s": 900.0}
 def plan_key(args: argparse.Namespace) -> str:
     """The part of the cache key that says which plan ran (restarts, polish, repair), so runs of other plans do
     not answer for each other."""
-    return f"_r{args.restarts}_p{int(args.polish)}_l{int(args.local_repair)}"
+    kernels = "" if args.kernels == "original" else f"_k{args.kernels}"
+    return f"_r{args.restarts}_p{int(args.polish)}_l{int(args.local_repair)}{kernels}"
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -59,6 +61,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--local-repair", action="store_true",
                    help="polish a failed attempt by the local repair instead of the sweeps (job option local_repair)")
     p.add_argument("--only", nargs="*", default=None, help="only these sequences (file stems)")
+    p.add_argument("--kernels", choices=tuple(KERNELS), default="original",
+                   help="NumPy's and OpenBLAS's kernels: this host's own (original), or those of a host without "
+                        "AVX-512 (avx2) or without AVX2 (sse). These long two-hand refinements follow the last bits, "
+                        "so rows compare across machines only under the same kernels; avx2 runs on every x86 host "
+                        "these figures came from")
     p.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "refine_arctic.md")
     p.add_argument("--results", type=Path, default=ROOT / "var" / "arctic",
                    help="where the result files are written (outside the repository's tracked files)")
@@ -265,7 +272,14 @@ def render(rows: list[dict[str, Any]], by_mode: dict[str, list[dict[str, Any]]],
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    args.provenance = provenance_line(code_digest())
+    wanted = KERNELS[args.kernels]
+    if any(os.environ.get(k) != v for k, v in wanted.items()):  # NumPy reads them once, when it is imported
+        argv = sys.argv[1:] if argv is None else argv
+        os.execve(sys.executable, [sys.executable, str(Path(__file__).resolve()), *argv], {**os.environ, **wanted})
+    forced = "" if args.kernels == "original" else f" (kernels forced: {args.kernels}, {wanted})"
+    if forced:
+        print(f"NumPy / OpenBLAS kernels: {args.kernels}; NumPy dispatches to: {numpy_simd()}", file=sys.stderr)
+    args.provenance = provenance_line(code_digest()) + forced
     digest = code_digest()
     cache_root = ROOT / "var" / "bench" / "arctic"
     paths = usable_sequences(args.arctic)

@@ -14,8 +14,18 @@ from pathlib import Path
 from common.cpu_kind import cpu_model, numpy_simd
 
 ROOT = Path(__file__).resolve().parents[1]
-__all__ = ["NUMERIC_PACKAGES", "cpu_model", "git_commit", "numpy_simd", "package_versions", "provenance_line"]
+__all__ = ["KERNELS", "NUMERIC_PACKAGES", "cpu_model", "git_commit", "numpy_simd", "package_versions",
+           "provenance_line"]
 
+#: Environments that make NumPy and OpenBLAS compute on this host as on another CPU kind: "avx2" is what an AVX2 host
+#: without AVX-512 computes (every x86 host these benchmarks ran on has AVX2), "sse" a host without AVX2. Set before
+#: NumPy is imported (``bench/verify_portable.py`` checks a result under each; ``bench/arctic.py --kernels``).
+KERNELS: dict[str, dict[str, str]] = {
+    "original": {},
+    "avx2": {"NPY_DISABLE_CPU_FEATURES": "X86_V4 AVX512_ICL AVX512_SPR AVX512_SKX", "OPENBLAS_CORETYPE": "Haswell"},
+    "sse": {"NPY_DISABLE_CPU_FEATURES": "X86_V3 X86_V4 AVX512_ICL AVX512_SPR AVX512_SKX",
+            "OPENBLAS_CORETYPE": "Nehalem"},
+}
 #: Packages whose arithmetic (or whose output feeding the physics) a refinement's figures depend on.
 NUMERIC_PACKAGES = ("mujoco", "numpy", "scipy", "cma", "coacd", "trimesh")
 

@@ -42,12 +42,10 @@ from typing import Any
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-KERNELS: dict[str, dict[str, str]] = {
-    "original": {},
-    "avx2": {"NPY_DISABLE_CPU_FEATURES": "X86_V4 AVX512_ICL AVX512_SPR AVX512_SKX", "OPENBLAS_CORETYPE": "Haswell"},
-    "sse": {"NPY_DISABLE_CPU_FEATURES": "X86_V3 X86_V4 AVX512_ICL AVX512_SPR AVX512_SKX",
-            "OPENBLAS_CORETYPE": "Nehalem"},
-}
+sys.path.insert(0, str(ROOT))
+
+from bench.provenance import KERNELS  # noqa: E402
+
 FIELDS = ("qpos", "qvel", "qacc_warmstart", "ctrl", "mocap_pos", "mocap_quat")
 #: ``--make``'s refinement options per budget (``hoi-refine refine`` arguments; the hinged box's as job options).
 BUDGETS: dict[str, list[str]] = {"cheap": ["--max-generations", "2", "--restarts", "0"], "full": []}
