@@ -35,7 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench.provenance import KERNELS, numpy_simd, provenance_line  # noqa: E402
-from bench.refine import code_digest  # noqa: E402
+from bench.refine import cma_defaults, code_digest, override_tag, parse_overrides  # noqa: E402
 
 #: The issue's goals (paper's protocol): most sequences succeed, E_t <= 1 cm, E_r <= 5 deg, E_a <= 5 deg,
 #: sequence maximum penetration <= 2 mm, at most 15 min per sequence on 2 threads.
@@ -46,7 +46,7 @@ def plan_key(args: argparse.Namespace) -> str:
     """The part of the cache key that says which plan ran (restarts, polish, repair), so runs of other plans do
     not answer for each other."""
     kernels = "" if args.kernels == "original" else f"_k{args.kernels}"
-    return f"_r{args.restarts}_p{int(args.polish)}_l{int(args.local_repair)}{kernels}"
+    return f"_r{args.restarts}_p{int(args.polish)}_l{int(args.local_repair)}{kernels}{override_tag(args.cma_overrides)}"
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -69,10 +69,15 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "refine_arctic.md")
     p.add_argument("--results", type=Path, default=ROOT / "var" / "arctic",
                    help="where the result files are written (outside the repository's tracked files)")
+    p.add_argument("--cma", action="append", default=[], metavar="NAME=VALUE",
+                   help="a CMA-ES setting (worker.refine.windowed.CmaSettings) other than the product's, e.g. "
+                   "--cma rewind_windows=3; repeatable")
     p.add_argument("--fresh", action="store_true", help="ignore cached per-sequence results")
     p.add_argument("--compare", action="store_true",
                    help="render the report from both modes' cached rows (per-hand vs joint), running nothing")
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    args.cma_overrides = parse_overrides(args.cma, p, "--cma", cma_defaults())
+    return args
 
 
 def usable_sequences(arctic: Path) -> list[Path]:
@@ -118,8 +123,8 @@ def run_one(path: Path, args: argparse.Namespace, cache: Path) -> dict[str, Any]
             last[0] = now
             print(f"  {now - t0:5.0f} s  attempt {p.attempt}  window {p.window}/{p.windows}", flush=True)
 
-    out = refine_sequence(seq, options, threads=args.threads, progress=progress,
-                          cache_dir=ROOT / "var" / "cache")  # fmt: skip
+    out = refine_sequence(seq, options, threads=args.threads, progress=progress, cache_dir=ROOT / "var" / "cache",
+                          cma_overrides=args.cma_overrides)  # fmt: skip
     wall = time.perf_counter() - t0
     args.results.mkdir(parents=True, exist_ok=True)
     (args.results / f"{path.parent.name}_{path.stem}_{args.two_hands}.result.npz").write_bytes(out.to_npz_bytes())
@@ -277,7 +282,8 @@ def main(argv: list[str] | None = None) -> int:
         argv = sys.argv[1:] if argv is None else argv
         os.execve(sys.executable, [sys.executable, str(Path(__file__).resolve()), *argv], {**os.environ, **wanted})
     forced = "" if args.kernels == "original" else f" (kernels forced: {args.kernels}, {wanted})"
-    if forced:
+    forced += f" (CMA-ES settings other than the product's: {args.cma_overrides})" if args.cma_overrides else ""
+    if args.kernels != "original":
         print(f"NumPy / OpenBLAS kernels: {args.kernels}; NumPy dispatches to: {numpy_simd()}", file=sys.stderr)
     args.provenance = provenance_line(code_digest()) + forced
     digest = code_digest()

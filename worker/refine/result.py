@@ -103,6 +103,8 @@ def build_summary(
             "optimised": int(sum(not w.skipped for w in logs)),
             "escalated": int(sum(w.escalated for w in logs)),
             "stopped_early": int(sum(w.stopped_early for w in logs)),
+            # Windows a first pass ran again with the ones before them (``windowed``; only where rewinds were on).
+            **({"rewound": int(sum(w.rewound for w in logs))} if settings.rewind_windows > 0 else {}),
             "per_window": [
                 {"keyframe": w.index, "skipped": w.skipped, "touched": w.touched, "escalated": w.escalated,
                  "stopped_early": w.stopped_early, "initial_loss": w.initial_loss, "best_loss": w.best_loss,

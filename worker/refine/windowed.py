@@ -26,6 +26,13 @@ A window whose best loss is still above ``escalate_loss`` after the CMA-ES run g
 found: the greedy sliding window cannot undo a committed keyframe, so a grasp lost here is lost for good, and
 the budget is better spent on the few windows where the object is slipping than on every window alike.
 
+A first pass with ``rewind_windows`` > 0 (off in the product: being measured on ARCTIC, bench/results/
+refine_arctic.md) goes back when a window stands out (its best loss, escalation included, ``rewind_ratio`` x the
+median of the last optimised windows and above ``escalate_loss``): the object is usually lost
+there because of keyframes committed a window or two earlier, which no later window can change. The pass runs that
+window and the ``rewind_windows`` before it again from the state before them, drawing from other random streams,
+and keeps whichever of the two runs has the lower sum of their windows' losses.
+
 This module knows nothing of MuJoCo: it drives any ``WindowProblem``.
 """
 
@@ -41,6 +48,12 @@ import numpy as np
 
 from common.errors import JobCancelledError
 from common.geometry import FloatArray
+
+#: The k-th rewind of a pass draws from random stream REWIND_STREAM + 2 k (+ 1 where a window escalates); the first
+#: pass, the polish and the repair's rounds use the streams below it.
+REWIND_STREAM = 1000
+#: A standing-out window is judged against the median of this many optimised windows before it.
+REWIND_RECENT = 8
 
 
 class WindowProblem(Protocol):
@@ -86,6 +99,12 @@ class CmaSettings:
     stall_generations: int = 0
     stall_tolerance: float = 0.01
     stall_below: float | None = float("inf")
+    #: A first pass runs a standing-out window again with this many windows before it (0: never; module docstring).
+    rewind_windows: int = 0
+    #: A window stands out when its best loss is above this many times the median of the last optimised windows.
+    rewind_ratio: float = 3.0
+    #: At most this many rewinds per pass (each costs ``rewind_windows`` + 1 windows).
+    rewind_max: int = 8
 
 
 @dataclass(frozen=True)
@@ -111,6 +130,9 @@ class WindowLog:
     escalated: bool = False
     #: The CMA-ES run ended before ``max_generations`` because the best loss stopped improving.
     stopped_early: bool = False
+    #: The window stood out and the pass ran it again with the windows before it (``rewind_windows``); its
+    #: evaluations then include those of the run that was not kept.
+    rewound: bool = False
 
 
 @dataclass
@@ -172,7 +194,9 @@ def optimise_windows(
         index = j - first + 1
         progress(RefineProgress(index, n_todo, best, evaluations, elapsed, eta, skipped, done / n_todo))
 
-    for j in range(first, n_win):
+    def window(j: int, state: Any, stream: int) -> WindowLog:
+        """Optimise window j from ``state`` (the state at its first frame) into ``kf``, drawing from ``stream``."""
+        nonlocal evaluations
         _check_stop(should_stop)
         if not polish:
             for side in problem.sides:  # hold the last optimised offset over the keyframes not optimised yet
@@ -183,22 +207,49 @@ def optimise_windows(
         log = WindowLog(j, False, touched, base_total, base_total, 1)
         if not touched and base_total < settings.skip_loss:
             log.skipped = True
-        else:
-            # The polish draws from random streams of its own (2), apart from the first pass's (0, 1), and a
-            # band from the ones its round names.
-            stream = (2 if polish else 0) if band is None else band.stream
-            best = _optimise_one(problem, settings, j, state, kf, base, log, should_stop, report, stream, polish,
-                                 confirm)
-            evaluations += log.evaluations - 1
-            if log.best_loss > settings.escalate_loss:
-                log.escalated = True
-                before = log.evaluations
-                _optimise_one(problem, _escalated(settings), j, state, kf, best, log, should_stop, report, stream + 1,
-                              polish, confirm)
-                evaluations += log.evaluations - before
-        logs.append(log)
-        report(j, log.best_loss, finished=True)
-        state = problem.commit(j, state, kf)
+            return log
+        best = _optimise_one(problem, settings, j, state, kf, base, log, should_stop, report, stream, polish, confirm)
+        evaluations += log.evaluations - 1
+        if log.best_loss > settings.escalate_loss:
+            log.escalated = True
+            before = log.evaluations
+            _optimise_one(problem, _escalated(settings), j, state, kf, best, log, should_stop, report, stream + 1,
+                          polish, confirm)
+            evaluations += log.evaluations - before
+        return log
+
+    # The polish draws from random streams of its own (2), apart from the first pass's (0, 1), a band from the ones
+    # its round names, and the k-th rewind from REWIND_STREAM + 2 k.
+    stream = (2 if polish else 0) if band is None else band.stream
+    starts: dict[int, Any] = {}  # the state at the first frame of each window, for a rewind
+    rewinds, calm_from = 0, first  # a rewind's windows are not rewound again
+    for j in range(first, n_win):
+        starts[j] = state
+        logs.append(window(j, state, stream))
+        if (not polish and settings.rewind_windows > 0 and rewinds < settings.rewind_max and j >= calm_from
+                and _stands_out(logs, settings)):
+            back = max(first, j - settings.rewind_windows)
+            before_kf = {s: kf[s].copy() for s in problem.sides}
+            before_logs, before_starts = logs[back - first:], {i: starts[i] for i in range(back, j + 1)}
+            del logs[back - first:]
+            redo = starts[back]
+            for i in range(back, j + 1):
+                starts[i] = redo
+                logs.append(window(i, redo, REWIND_STREAM + 2 * rewinds))
+                if i < j:
+                    redo = problem.commit(i, redo, kf)
+            rewinds, calm_from = rewinds + 1, j + settings.rewind_windows + 1
+            again, discarded = logs[back - first:], before_logs
+            if sum(w.best_loss for w in again) >= sum(w.best_loss for w in before_logs):  # ties keep the first run
+                for side in problem.sides:
+                    kf[side][:] = before_kf[side]
+                logs[back - first:], discarded = before_logs, again
+                starts.update(before_starts)
+            logs[-1].rewound = True
+            logs[-1].evaluations += sum(w.evaluations for w in discarded)
+        report(j, logs[-1].best_loss, finished=True)
+        state = problem.commit(j, starts[j], kf)
+        starts.pop(j - settings.rewind_windows, None)  # no rewind reaches it any more
     return kf, logs
 
 
@@ -292,6 +343,16 @@ def _confirmed(
     options = [(float(sum(together.values())), combined, together), (float(sum(base.values())), start, base), pair]
     _, chosen, losses = min(options, key=lambda o: o[0])
     return chosen, losses, 1
+
+
+def _stands_out(logs: list[WindowLog], settings: CmaSettings) -> bool:
+    """Whether the last window's best loss is above ``escalate_loss`` and ``rewind_ratio`` x the median of the
+    (up to ``REWIND_RECENT``) optimised windows before it, at least three of them."""
+    last = logs[-1]
+    if last.skipped or last.best_loss <= settings.escalate_loss:
+        return False
+    recent = [w.best_loss for w in logs[:-1] if not w.skipped][-REWIND_RECENT:]
+    return len(recent) >= 3 and last.best_loss > settings.rewind_ratio * float(np.median(recent))
 
 
 def _stalled(history: list[float], settings: CmaSettings) -> bool:
