@@ -43,8 +43,8 @@ GOALS = {"E_t": 1.0, "E_r": 5.0, "E_a": 5.0, "pen_max": 2.0, "wall_s": 900.0}
 
 
 def plan_key(args: argparse.Namespace) -> str:
-    """The part of the cache key that says which plan ran (restarts, polish, repair), so runs of other plans do
-    not answer for each other."""
+    """The part of the cache key that says which plan ran (restarts, polish, repair, forced kernels, CMA-ES
+    overrides), so runs of other plans do not answer for each other."""
     kernels = "" if args.kernels == "original" else f"_k{args.kernels}"
     return f"_r{args.restarts}_p{int(args.polish)}_l{int(args.local_repair)}{kernels}{override_tag(args.cma_overrides)}"
 

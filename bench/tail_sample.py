@@ -94,22 +94,23 @@ def archive(stems: list[str], code: str | None = None) -> int:
     return len(new)
 
 
-def _row(stem: str, mode: str) -> dict[str, Any] | None:
+def _row(stem: str, mode: str, archive_rows: dict[tuple[str, str], dict[str, Any]]) -> dict[str, Any] | None:
+    """This machine's cached row, else the archived one."""
     hit = CACHE / f"{stem}.{mode}.json"
     if hit.exists():
         row: dict[str, Any] = json.loads(hit.read_text())
         return row
-    return archived().get((stem, mode))
+    return archive_rows.get((stem, mode))
 
 
 def pairs(stems: list[str]) -> list[tuple[dict[str, Any], dict[str, Any]]]:
     """(before, after) per sequence run: the whole plan, and the bounded run where it was cut, else the same run."""
-    out = []
+    out, archive_rows = [], archived()
     for stem in stems:
-        full = _row(stem, "full")
+        full = _row(stem, "full", archive_rows)
         if full is None:
             continue
-        bounded = _row(stem, "bounded")
+        bounded = _row(stem, "bounded", archive_rows)
         if not full["first_attempt_success"] and bounded is None:
             continue  # its bounded run is still to come
         out.append((full, bounded if bounded is not None and was_cut(bounded) else full))
