@@ -285,8 +285,8 @@ def main(argv: list[str] | None = None) -> int:
     forced += f" (CMA-ES settings other than the product's: {args.cma_overrides})" if args.cma_overrides else ""
     if args.kernels != "original":
         print(f"NumPy / OpenBLAS kernels: {args.kernels}; NumPy dispatches to: {numpy_simd()}", file=sys.stderr)
-    args.provenance = provenance_line(code_digest()) + forced
     digest = code_digest()
+    args.provenance = provenance_line(digest) + forced
     cache_root = ROOT / "var" / "bench" / "arctic"
     paths = usable_sequences(args.arctic)
     if args.only:
