@@ -211,7 +211,7 @@ def _under(model: mujoco.MjModel, body: int, root: int) -> bool:
 
 def penetration_sensor_xml(side: str) -> str:
     """A contact sensor over the hand's contacts with the object's base body (``body2``: of an articulated object,
-    not the parts below it, whose charging lost the ARCTIC mixer's lid): the smallest signed distance among them.
+    not the parts below it, which a hand must press to move them): the smallest signed distance among them.
 
     MuJoCo reduces the step's contacts in C while it computes its sensors, so every batched rollout records the
     hand's deepest penetration per substep in its sensordata, without Python walking ``data.contact``; it reads
