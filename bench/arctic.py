@@ -1,6 +1,6 @@
 """Two hands and articulated objects on real ARCTIC recordings: raw replay vs refined (issue #52, "must show").
 
-    .venv/bin/python bench/arctic.py --arctic DIR [--two-hands per_hand|joint] [--threads 2] [--only NAME ...]
+    .venv/bin/python bench/arctic.py --arctic DIR [--two-hands per_hand|joint] [--threads 2] [--only NAME ...] [--seed N]
         [--restarts N] [--no-polish]
 
 ``DIR`` is the ``assets/arctic`` folder of the dexmachina repository (its ``processed/<subject>/*.npy`` and one
@@ -46,7 +46,9 @@ def plan_key(args: argparse.Namespace) -> str:
     """The part of the cache key that says which plan ran (restarts, polish, repair, forced kernels, CMA-ES
     overrides), so runs of other plans do not answer for each other."""
     kernels = "" if args.kernels == "original" else f"_k{args.kernels}"
-    return f"_r{args.restarts}_p{int(args.polish)}_l{int(args.local_repair)}{kernels}{override_tag(args.cma_overrides)}"
+    seed = f"_s{args.seed}" if args.seed else ""
+    return (f"_r{args.restarts}_p{int(args.polish)}_l{int(args.local_repair)}{kernels}{seed}"
+            f"{override_tag(args.cma_overrides)}")
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -61,6 +63,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--local-repair", action="store_true",
                    help="polish a failed attempt by the local repair instead of the sweeps (job option local_repair)")
     p.add_argument("--only", nargs="*", default=None, help="only these sequences (file stems)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="the job's CMA-ES seed (JobOptions.seed, default 0): another draw of the same plan, to see how "
+                        "much a sequence's figures vary between draws")
     p.add_argument("--kernels", choices=tuple(KERNELS), default="original",
                    help="NumPy's and OpenBLAS's kernels: this host's own (original), or those of a host without "
                         "AVX-512 (avx2) or without AVX2 (sse). These long two-hand refinements follow the last bits, "
@@ -113,7 +118,7 @@ def run_one(path: Path, args: argparse.Namespace, cache: Path) -> dict[str, Any]
         return dict(json.loads(key.read_text()))
     seq = load_sequence(path)
     options = JobOptions(two_hands=args.two_hands, polish=args.polish, local_repair=args.local_repair,
-                         **({} if args.restarts is None else {"restarts": args.restarts}))
+                         seed=args.seed, **({} if args.restarts is None else {"restarts": args.restarts}))
     t0 = time.perf_counter()
     last = [t0]
 
