@@ -1,7 +1,7 @@
 """Two hands and articulated objects on real ARCTIC recordings: raw replay vs refined (issue #52, "must show").
 
-    .venv/bin/python bench/arctic.py --arctic DIR [--two-hands per_hand|joint] [--threads 2] [--only NAME ...] [--seed N]
-        [--restarts N] [--no-polish]
+    .venv/bin/python bench/arctic.py --arctic DIR [--two-hands per_hand|joint] [--threads 2] [--only NAME ...]
+        [--restarts N] [--no-polish] [--seed N]
 
 ``DIR`` is the ``assets/arctic`` folder of the dexmachina repository (its ``processed/<subject>/*.npy`` and one
 folder per object with the URDF and meshes); the ARCTIC licence forbids redistribution, so nothing of it is ever
