@@ -43,12 +43,17 @@ GOALS = {"E_t": 1.0, "E_r": 5.0, "E_a": 5.0, "pen_max": 2.0, "wall_s": 900.0}
 
 
 def plan_key(args: argparse.Namespace) -> str:
-    """The part of the cache key that says which plan ran (restarts, polish, repair, forced kernels, CMA-ES
+    """The part of the cache key that says which plan ran (restarts, polish, repair, forced kernels, seed, CMA-ES
     overrides), so runs of other plans do not answer for each other."""
     kernels = "" if args.kernels == "original" else f"_k{args.kernels}"
     seed = f"_s{args.seed}" if args.seed else ""
     return (f"_r{args.restarts}_p{int(args.polish)}_l{int(args.local_repair)}{kernels}{seed}"
             f"{override_tag(args.cma_overrides)}")
+
+
+def result_name(sequence: str, two_hands: str, seed: int = 0) -> str:
+    """The stored result's file name for ``sequence`` ("s01/mixer_use_01"); another seed's draw gets its own."""
+    return f"{sequence.replace('/', '_')}_{two_hands}{f'_s{seed}' if seed else ''}.result.npz"
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -132,7 +137,8 @@ def run_one(path: Path, args: argparse.Namespace, cache: Path) -> dict[str, Any]
                           cma_overrides=args.cma_overrides)  # fmt: skip
     wall = time.perf_counter() - t0
     args.results.mkdir(parents=True, exist_ok=True)
-    (args.results / f"{path.parent.name}_{path.stem}_{args.two_hands}.result.npz").write_bytes(out.to_npz_bytes())
+    result = args.results / result_name(f"{path.parent.name}/{path.stem}", args.two_hands, args.seed)
+    result.write_bytes(out.to_npz_bytes())
     s = out.summary
     t = s["timings"]
     row = {
@@ -222,7 +228,7 @@ def first_failure(result: Path) -> str:
 def failures(rows: list[dict[str, Any]], args: argparse.Namespace) -> list[str]:
     lines = ["| sequence | first frame past a limit (refined, paper's protocol) |", "|---|---|"]
     for r in rows:
-        result = args.results / f"{r['sequence'].replace('/', '_')}_{r['two_hands']}.result.npz"
+        result = args.results / result_name(r["sequence"], r["two_hands"], args.seed)
         lines.append(f"| {r['sequence']} | {first_failure(result)} |")
     return lines
 

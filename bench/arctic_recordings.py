@@ -30,7 +30,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.arctic import first_failure, usable_sequences  # noqa: E402
+from bench.arctic import first_failure, result_name, usable_sequences  # noqa: E402
 from bench.provenance import provenance_line  # noqa: E402
 from bench.refine import code_digest  # noqa: E402
 from common.sequence import Sequence  # noqa: E402
@@ -94,7 +94,7 @@ def sequence_row(path: Path, results: Path | None, cache_dir: Path) -> list[str]
     profile = " ".join(f"{m.turn_deg[i:i + BLOCK].mean():.1f}" for i in range(0, len(m.turn_deg), BLOCK))
     fail = "-"
     if results is not None:
-        result = results / f"{path.parent.name}_{path.stem}_per_hand.result.npz"
+        result = results / result_name(f"{path.parent.name}/{path.stem}", "per_hand")
         fail = first_failure(result)
         if fail.startswith("frame "):
             f = int(fail.split(":")[0].removeprefix("frame "))

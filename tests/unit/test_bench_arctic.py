@@ -28,3 +28,8 @@ def test_forced_kernels_run_the_bench_again_under_them(tmp_path: Path) -> None:
     plain = subprocess.run([sys.executable, str(ROOT / "bench" / "arctic.py"), "--arctic", str(tmp_path)],
                            capture_output=True, text=True, env=env, timeout=120)  # fmt: skip
     assert plain.returncode == 2 and "NumPy / OpenBLAS kernels" not in plain.stderr
+
+
+def test_another_seeds_result_is_stored_beside_the_first_not_over_it() -> None:
+    assert arctic.result_name("s01/mixer_use_01", "per_hand") == "s01_mixer_use_01_per_hand.result.npz"
+    assert arctic.result_name("s01/mixer_use_01", "per_hand", 2) == "s01_mixer_use_01_per_hand_s2.result.npz"
