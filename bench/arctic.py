@@ -197,10 +197,11 @@ def table(rows: list[dict[str, Any]], proto: str) -> list[str]:
     return lines
 
 
-def first_failure(result: Path) -> str:
-    """The first frame (paper's protocol) past a success limit in a stored result, which limit and by how much."""
+def first_failure(result: Path) -> tuple[int | None, str]:
+    """The first frame (paper's protocol) past a success limit in a stored result (None: none, or no result), and
+    a line saying which limit and by how much ("-" without a result, "none" where no frame is past a limit)."""
     if not result.is_file():
-        return "-"
+        return None, "-"
     from common.result_format import read_arrays
     from worker.simulation.metrics import PAPER_FIRST_FRAME, SUCCESS_POSITION_CM, SUCCESS_ROTATION_DEG
 
@@ -221,15 +222,15 @@ def first_failure(result: Path) -> str:
                                  | (e_r[PAPER_FIRST_FRAME:] > SUCCESS_ROTATION_DEG)
                                  | (np.zeros_like(e_t[PAPER_FIRST_FRAME:], dtype=bool) if ok_a is None
                                     else ok_a[PAPER_FIRST_FRAME:] == 0))  # fmt: skip
-            return f"frame {f}: {', '.join(past)} ({bad.size} frames past a limit)"
-    return "none"
+            return f, f"frame {f}: {', '.join(past)} ({bad.size} frames past a limit)"
+    return None, "none"
 
 
 def failures(rows: list[dict[str, Any]], args: argparse.Namespace) -> list[str]:
     lines = ["| sequence | first frame past a limit (refined, paper's protocol) |", "|---|---|"]
     for r in rows:
         result = args.results / result_name(r["sequence"], r["two_hands"], args.seed)
-        lines.append(f"| {r['sequence']} | {first_failure(result)} |")
+        lines.append(f"| {r['sequence']} | {first_failure(result)[1]} |")
     return lines
 
 

@@ -18,6 +18,7 @@ is for one hand, where the method is known to work.
 from __future__ import annotations
 
 import argparse
+import functools
 import itertools
 import json
 import sys
@@ -74,7 +75,7 @@ class Motion:
 
 
 def sequence_row(path: Path, results: Path | None, cache_dir: Path) -> list[str]:
-    """The table cells of one ARCTIC sequence, and its reasons line."""
+    """The table cells of one ARCTIC sequence."""
     from common.job_options import JobOptions
     from common.sequence_io import load_sequence
     from worker.refine import outcome
@@ -95,9 +96,8 @@ def sequence_row(path: Path, results: Path | None, cache_dir: Path) -> list[str]
     fail = "-"
     if results is not None:
         result = results / result_name(f"{path.parent.name}/{path.stem}", "per_hand")
-        fail = first_failure(result)
-        if fail.startswith("frame "):
-            f = int(fail.split(":")[0].removeprefix("frame "))
+        f, fail = first_failure(result)
+        if f is not None:
             fail += f"; turn before it {m.turn_deg[max(0, f - LEAD):f].mean():.1f} deg/frame"
     why = "; ".join(f"{r.code.value} at frame {r.frame} ({r.value} {r.unit})" for r in reasons) or "none"
     k = int(np.argmax(m.turn_deg))
@@ -110,12 +110,11 @@ def dexycb_row(sample: str) -> list[str] | None:
     """Median / p90 / max over a DexYCB sample of the same figures; None when the data are missing."""
     from bench.samples.draw import read_sample
     from bench.tail import DATA
-    from common.sequence_io import load_sequence
 
     listing = ROOT / "bench" / "samples" / f"{sample}.txt"
     if not DATA.is_dir():
         return None
-    motions = [Motion.of(load_sequence(DATA / file)) for file, _ in read_sample(listing)]
+    motions = [dexycb_motion(file.removesuffix(".npz")) for file, _ in read_sample(listing)]
 
     def spread(values: list[float], digits: int = 0) -> str:
         v = np.asarray(values)
@@ -127,15 +126,23 @@ def dexycb_row(sample: str) -> list[str] | None:
             spread([float(m.move_cm.max()) for m in motions], 2), "-", "-", "-", "-", "-"]
 
 
+@functools.cache
+def dexycb_motion(stem: str) -> Motion:
+    """A DexYCB dev sequence's motion, read once for the reference row and the bins both."""
+    from bench.tail import DATA
+    from common.sequence_io import load_sequence
+
+    return Motion.of(load_sequence(DATA / f"{stem}.npz"))
+
+
 def turn_bins(archive: Path) -> list[str]:
     """The archived DexYCB refinements (whole plan) binned by sustained turn; empty when either is missing."""
     from bench.tail import DATA
-    from common.sequence_io import load_sequence
 
     if not archive.is_file() or not DATA.is_dir():
         return []
     rows = [json.loads(line) for line in archive.read_text().splitlines() if line.strip()]
-    runs = [(Motion.of(load_sequence(DATA / f"{r['sequence']}.npz")).sustained_turn(), r) for r in rows
+    runs = [(dexycb_motion(r["sequence"]).sustained_turn(), r) for r in rows
             if r["mode"] == "full" and (DATA / f"{r['sequence']}.npz").is_file()]
     lines = [f"DexYCB sequences refined by the whole plan (`{archive.relative_to(ROOT)}`), by their fastest "
              f"{BLOCK}-frame mean turn:", "",
